@@ -1,0 +1,24 @@
+"""What a surface does to light: BRDF models, Fresnel terms, microfacet parts.
+
+Every model follows the contract of :class:`BRDF` (see ``jaxrefl/brdf/_base.py``):
+``m.eval(params, wi, wo)`` is f_r in 1/sr, without the cosine factor.
+"""
+
+from ._base import BRDF as BRDF
+from ._base import Param as Param
+from ._base import Params as Params
+from ._convert import (
+    alpha_to_phong_exponent as alpha_to_phong_exponent,
+)
+from ._convert import (
+    alpha_to_roughness as alpha_to_roughness,
+)
+from ._convert import (
+    phong_exponent_to_alpha as phong_exponent_to_alpha,
+)
+from ._convert import (
+    roughness_to_alpha as roughness_to_alpha,
+)
+from ._registry import available as available
+from ._registry import get as get
+from ._sum import Sum as Sum

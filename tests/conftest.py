@@ -1,0 +1,54 @@
+"""Shared test configuration.
+
+* float64 is enabled for the whole session (tests that check float32 ask for it explicitly
+  with ``dtype=jnp.float32``), and implicit rank promotion is an error.
+* ``shared_data`` locates ``../shared/data`` through ``JAXREFL_SHARED_DATA``. In CI
+  (``CI`` set, as ``.ci/run`` does) a missing data folder is a failure, never a skip.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import jax
+import pytest
+
+jax.config.update("jax_enable_x64", True)
+jax.config.update("jax_numpy_rank_promotion", "raise")
+
+try:
+    from hypothesis import HealthCheck, settings
+
+    settings.register_profile(
+        "ci",
+        max_examples=60,
+        deadline=None,
+        suppress_health_check=[HealthCheck.too_slow],
+        derandomize=True,
+    )
+    settings.register_profile("dev", max_examples=30, deadline=None)
+    settings.load_profile("ci" if os.environ.get("CI") else "dev")
+except ImportError:  # hypothesis is a test extra
+    pass
+
+
+def _shared_data_dir() -> Path | None:
+    env = os.environ.get("JAXREFL_SHARED_DATA")
+    if env:
+        return Path(env)
+    guess = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+    return guess if guess.is_dir() else None
+
+
+@pytest.fixture(scope="session")
+def shared_data() -> Path:
+    d = _shared_data_dir()
+    if d is None or not d.is_dir():
+        msg = (
+            f"shared data not found: set JAXREFL_SHARED_DATA to the folder ../shared/data (got {d})"
+        )
+        if os.environ.get("CI"):
+            pytest.fail(msg)
+        pytest.skip(msg)
+    return d
