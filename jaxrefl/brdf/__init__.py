@@ -22,3 +22,21 @@ from ._convert import (
 from ._registry import available as available
 from ._registry import get as get
 from ._sum import Sum as Sum
+from ._diagnostics import (
+    directional_albedo as directional_albedo,
+    furnace_test as furnace_test,
+    hemisphere_grid as hemisphere_grid,
+    reciprocity_error as reciprocity_error,
+)
+from ._frame import (
+    cos_theta as cos_theta,
+    half_vector as half_vector,
+    reflect as reflect,
+    spherical_direction as spherical_direction,
+)
+from ._zoo import (
+    ZooEntry as ZooEntry,
+    model_zoo as model_zoo,
+    random_directions as random_directions,
+    random_params as random_params,
+)

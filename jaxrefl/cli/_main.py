@@ -1,0 +1,49 @@
+"""Entry point: ``jaxrefl <command> [options]``."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+
+from . import _demo, _models
+
+__all__ = ["main"]
+
+_COMMANDS = {
+    "demo": _demo,
+    "models": _models,
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from jaxrefl import __version__
+
+    parser = argparse.ArgumentParser(
+        prog="jaxrefl",
+        description="Probabilistic reflectance estimation in JAX.",
+    )
+    parser.add_argument("--version", action="version", version=f"jaxrefl {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, module in _COMMANDS.items():
+        p = sub.add_parser(name, help=module.HELP, description=module.__doc__)
+        module.add_arguments(p)
+        p.set_defaults(_run=module.run)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "command", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args._run(args) or 0)
+    except (ValueError, FileNotFoundError, KeyError) as exc:
+        print(f"jaxrefl {args.command}: error: {exc}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
