@@ -10,7 +10,8 @@ encoded like the real photos: value^(1/2.2), clipped to [0, 1].
 
 Model: Cook–Torrance with GGX, height-correlated Smith shadowing and Schlick Fresnel on a
 Lambertian base (``jaxrefl.brdf.get("cook_torrance", diffuse="lambert")``); radiance
-= light_power * f_r * cos θ_i / r^2 (the data README's convention), times cos^4 vignetting.
+= light_power * f_r * cos θ_i / r^2, with no vignetting: the convention of the real flash
+captures (``../shared/data/README.md``), so the written capture reads back like a real one.
 """
 
 from __future__ import annotations
@@ -104,4 +105,5 @@ def render_demo(scene: DemoScene, encode: bool = True) -> Float[Array, "K H W 3"
         scene.cameras,
         points=scene.points,
         response=response,
+        cos4=False,  # the svbrdf-diff-renderer captures carry no vignetting
     )

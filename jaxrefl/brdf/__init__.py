@@ -19,8 +19,11 @@ from ._convert import (
 from ._convert import (
     roughness_to_alpha as roughness_to_alpha,
 )
+from ._merl import MERL as MERL
 from ._registry import available as available
+from ._merl import MERL as MERL
 from ._registry import get as get
+from ._rusinkiewicz import from_half_diff as from_half_diff, to_half_diff as to_half_diff
 from ._sum import Sum as Sum
 from ._diagnostics import (
     directional_albedo as directional_albedo,

@@ -108,7 +108,7 @@ def half_vector(wi: Float[Array, "*b 3"], wo: Float[Array, "*b 3"]) -> Float[Arr
 
 def reflect(w: Float[Array, "*b 3"]) -> Float[Array, "*b 3"]:
     """Mirror direction about the normal: (-x, -y, z)."""
-    return w * jnp.asarray([-1.0, -1.0, 1.0], dtype=w.dtype)
+    return jnp.stack([-w[..., 0], -w[..., 1], w[..., 2]], axis=-1)
 
 
 def upper_hemisphere(wi: Float[Array, "*b 3"], wo: Float[Array, "*b 3"]) -> Bool[Array, " *b"]:

@@ -12,6 +12,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, PRNGKeyArray
 
 from ._base import BRDF, Param
@@ -116,7 +117,8 @@ def random_params(
         elif q.kind == "scalar":
             out[q.name] = _uniform_in(kk, q, batch_shape, dtype)
         else:
-            n_lobes = jnp.asarray(q.default).shape[-2] if jnp.ndim(q.default) >= 2 else 1
+            default = np.asarray(q.default)
+            n_lobes = default.shape[-2] if default.ndim >= 2 else 1
             k1, k2, k3 = jax.random.split(kk, 3)
             cxy = jax.random.uniform(k1, (*batch_shape, n_lobes, 2), dtype, -1.0, 1.0)
             cz = jax.random.uniform(k2, (*batch_shape, n_lobes, 1), dtype, 0.0, 1.0)

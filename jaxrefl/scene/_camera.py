@@ -49,8 +49,8 @@ __all__ = [
 # ---------------------------------------------------------------------------- geometry
 def cos4_falloff(
     points: Float[Array, "*b 3"],
-    camera_position: Float[ArrayLike, "3"],
-    optical_axis: Float[ArrayLike, "3"],
+    camera_position: Float[ArrayLike, " 3"],
+    optical_axis: Float[ArrayLike, " 3"],
 ) -> Float[Array, " *b"]:
     """cos^4 of the angle between the ray camera -> point and the unit optical axis.
 
@@ -86,8 +86,8 @@ class PinholeCamera(Camera):
     (a point); with neither, the camera looks at the origin (the centre of a planar sample).
     """
 
-    position: Float[Array, "3"]
-    axis: Float[Array, "3"]
+    position: Float[Array, " 3"]
+    axis: Float[Array, " 3"]
 
     def __init__(self, position, look_at=None, axis=None):
         self.position = _as_float(position)
@@ -110,7 +110,7 @@ class PinholeCamera(Camera):
 class OrthographicCamera(Camera):
     """A distant viewer in ``direction`` (from the scene towards the camera); no falloff."""
 
-    direction: Float[Array, "3"]
+    direction: Float[Array, " 3"]
 
     def __init__(self, direction=(0.0, 0.0, 1.0)):
         d = _as_float(direction)
@@ -146,7 +146,11 @@ class Response(eqx.Module):
         """Linear radiance -> encoded values (clipped to [0, 1] if ``clip``)."""
         x = _as_float(radiance)
         y = self.curve(x * self.exposure.astype(x.dtype))
-        return jnp.clip(y, 0.0, 1.0) if self.clip else y
+        if not self.clip:
+            return y
+        # Sensor range [0, 1]; where() rather than clip() so that a value exactly at 0 or 1
+        # keeps the full gradient of the curve (clip() splits it at ties), beyond it none.
+        return jnp.where(y < 0.0, 0.0, jnp.where(y > 1.0, 1.0, y))
 
     def invert(self, encoded: Float[ArrayLike, "*b"]) -> Float[Array, "*b"]:
         """Encoded values -> linear radiance (exact inverse of unclipped :meth:`apply`)."""
@@ -238,7 +242,7 @@ class TabulatedResponse(Response):
                 k = int(bad[0])
                 raise ValueError(
                     f"TabulatedResponse needs strictly increasing {name}; "
-                    f"{name}[{k}] = {v[k]!r} >= {name}[{k + 1}] = {v[k + 1]!r}"
+                    f"{name}[{k}] = {float(v[k])} >= {name}[{k + 1}] = {float(v[k + 1])}"
                 )
         self.x = _as_float(x)
         self.y = _as_float(y)

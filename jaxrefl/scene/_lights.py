@@ -90,10 +90,10 @@ class DirectionalLight(Light):
     contributes 0 (the BRDF is 0 there). S = 1.
     """
 
-    direction: Float[Array, "3"]
+    direction: Float[Array, " 3"]
     irradiance: Float[Array, " C"]
 
-    def __init__(self, direction: Float[ArrayLike, "3"], irradiance: Float[ArrayLike, " C"]):
+    def __init__(self, direction: Float[ArrayLike, " 3"], irradiance: Float[ArrayLike, " C"]):
         self.direction = _unit(direction)
         self.irradiance = _color(irradiance)
 
@@ -113,10 +113,10 @@ class PointLight(Light):
     from direction (position - point)/r, different at every point. S = 1.
     """
 
-    position: Float[Array, "3"]
+    position: Float[Array, " 3"]
     intensity: Float[Array, " C"]
 
-    def __init__(self, position: Float[ArrayLike, "3"], intensity: Float[ArrayLike, " C"]):
+    def __init__(self, position: Float[ArrayLike, " 3"], intensity: Float[ArrayLike, " C"]):
         self.position = _as_float(position)
         self.intensity = _color(intensity)
 
@@ -152,9 +152,9 @@ class AreaLight(Light):
     I(theta_l) = L A cos(theta_l) (L A along the normal); the total emitted power is pi L A.
     """
 
-    centre: Float[Array, "3"]
-    edge_u: Float[Array, "3"]
-    edge_v: Float[Array, "3"]
+    centre: Float[Array, " 3"]
+    edge_u: Float[Array, " 3"]
+    edge_v: Float[Array, " 3"]
     radiance: Float[Array, " C"]
     n: int = eqx.field(static=True)
     rule: str = eqx.field(static=True)
@@ -171,7 +171,7 @@ class AreaLight(Light):
         self.rule = rule
 
     @property
-    def normal(self) -> Float[Array, "3"]:
+    def normal(self) -> Float[Array, " 3"]:
         """The emitting side's unit normal (u x v)/|u x v|."""
         return _unit(jnp.cross(self.edge_u, self.edge_v))
 
