@@ -39,15 +39,23 @@ def main() -> int:
         table(
             ["model", "dtype", "cases", "non-finite f", "non-finite grad", "max |f|", "max |grad|"],
             [
-                [r.label, r.dtype, r.cases, r.nonfinite_values, r.nonfinite_grads,
-                 f"{r.max_abs_value:.3g}", f"{r.max_abs_grad:.3g}"]
+                [
+                    r.label,
+                    r.dtype,
+                    r.cases,
+                    r.nonfinite_values,
+                    r.nonfinite_grads,
+                    f"{r.max_abs_value:.3g}",
+                    f"{r.max_abs_grad:.3g}",
+                ]
                 for r in rows
             ],
         )
     )
     total = sum(r.cases for r in rows)
     bad = sum(r.nonfinite_values + r.nonfinite_grads for r in rows)
-    print(f"\n{len(rows)} rows, {total} cases, {bad} non-finite; sweep took {dt:.1f} s (incl. compile)")
+    print(f"\n{len(rows)} rows, {total} cases, {bad} non-finite")
+    print(f"sweep took {dt:.1f} s (compile included)")
     if args.csv:
         with open(args.csv, "w", newline="") as fh:
             w = csv.DictWriter(fh, fieldnames=list(asdict(rows[0])))

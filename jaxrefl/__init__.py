@@ -1,5 +1,9 @@
 """jaxrefl: probabilistic reflectance estimation in JAX."""
 
-from . import brdf as brdf, io as io, scene as scene, spectral as spectral
+from . import brdf as brdf
+from . import fit as fit
+from . import io as io
+from . import scene as scene
+from . import spectral as spectral
 
 __version__ = "0.1.0"

@@ -78,8 +78,17 @@ def demo_scene(size: int = 128, seed: int = 0, dtype=jnp.float32) -> DemoScene:
     )
     # Flash positions like the bath_tile capture: ~24 cm up, offsets of a few cm.
     offsets = np.array(
-        [[2.3, 0.0], [4.9, 3.3], [-0.3, -2.3], [-2.8, 1.9], [5.2, -2.7],
-         [2.5, 3.3], [2.9, -2.4], [-0.4, 0.0], [4.8, -0.3]]
+        [
+            [2.3, 0.0],
+            [4.9, 3.3],
+            [-0.3, -2.3],
+            [-2.8, 1.9],
+            [5.2, -2.7],
+            [2.5, 3.3],
+            [2.9, -2.4],
+            [-0.4, 0.0],
+            [4.8, -0.3],
+        ]
     )
     heights = np.array([24.3, 22.8, 23.9, 23.4, 23.7, 22.8, 24.1, 24.7, 24.1])
     positions = np.concatenate([offsets, heights[:, None]], axis=1)

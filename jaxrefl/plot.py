@@ -27,7 +27,9 @@ def lobe_slice(
     direction is at +theta_i on the +x side. Returns (theta_o in degrees, values).
     """
     th_o = np.linspace(-90.0, 90.0, n)
-    wo = spherical_direction(jnp.deg2rad(jnp.abs(jnp.asarray(th_o))), jnp.where(th_o >= 0, 0.0, jnp.pi))
+    wo = spherical_direction(
+        jnp.deg2rad(jnp.abs(jnp.asarray(th_o))), jnp.where(th_o >= 0, 0.0, jnp.pi)
+    )
     wi = spherical_direction(jnp.deg2rad(jnp.asarray(theta_i_deg)), jnp.asarray(jnp.pi))
     wi = jnp.broadcast_to(wi, wo.shape).astype(wo.dtype)
     f = model.eval(params, wi, wo)[..., channel]
@@ -68,7 +70,7 @@ def plot_lobes(
         ax.set_thetamax(90)
         ax.set_yticklabels([])
         ax.set_title(label, fontsize=9)
-    for ax in axes[len(models):]:
+    for ax in axes[len(models) :]:
         ax.set_visible(False)
     axes[0].legend(loc="lower left", fontsize=7, title="θ_i")
     fig.suptitle("f_r·cos θ_o in the plane of incidence (each curve scaled to its maximum)")

@@ -60,7 +60,11 @@ def main() -> None:
     for off, dt in ((-0.2, "float32"), (0.2, "float64")):
         cases = [next(r.cases for r in rows if r.label == lb and r.dtype == dt) for lb in labels]
         bad = [
-            next(r.nonfinite_values + r.nonfinite_grads for r in rows if r.label == lb and r.dtype == dt)
+            next(
+                r.nonfinite_values + r.nonfinite_grads
+                for r in rows
+                if r.label == lb and r.dtype == dt
+            )
             for lb in labels
         ]
         ax.barh(y + off, cases, height=0.4, label=f"{dt}: cases (non-finite: {sum(bad)})")

@@ -150,7 +150,9 @@ def test_gradients_match_finite_differences(entry):
             xp, xm = x.copy(), x.copy()
             xp[idx] += h
             xm[idx] -= h
-            num[idx] = (fn({**p, name: jnp.asarray(xp)}) - fn({**p, name: jnp.asarray(xm)})) / (2 * h)
+            num[idx] = (fn({**p, name: jnp.asarray(xp)}) - fn({**p, name: jnp.asarray(xm)})) / (
+                2 * h
+            )
         np.testing.assert_allclose(np.asarray(g[name]), num, rtol=1e-5, atol=1e-7, err_msg=name)
 
 
@@ -168,7 +170,9 @@ def test_property_finite_values_and_gradients(dtype, data):
     p = random_params(m, jax.random.PRNGKey(seed), (), channels=3, dtype=dtype)
 
     def direction(label):
-        z = data.draw(st.one_of(st.just(0.0), st.just(1e-6), st.just(1.0), unit), label=f"{label}.z")
+        z = data.draw(
+            st.one_of(st.just(0.0), st.just(1e-6), st.just(1.0), unit), label=f"{label}.z"
+        )
         phi = data.draw(st.floats(0.0, 2 * np.pi), label=f"{label}.phi")
         r = np.sqrt(max(0.0, 1.0 - z * z))
         return jnp.asarray([r * np.cos(phi), r * np.sin(phi), z], dtype=dtype)

@@ -7,73 +7,51 @@ Every model follows the contract of :class:`BRDF` (see ``jaxrefl/brdf/_base.py``
 from ._base import BRDF as BRDF
 from ._base import Param as Param
 from ._base import Params as Params
-from ._convert import (
-    alpha_to_phong_exponent as alpha_to_phong_exponent,
-)
-from ._convert import (
-    alpha_to_roughness as alpha_to_roughness,
-)
-from ._convert import (
-    phong_exponent_to_alpha as phong_exponent_to_alpha,
-)
-from ._convert import (
-    roughness_to_alpha as roughness_to_alpha,
-)
-from ._merl import MERL as MERL
-from ._microfacet import (
-    ALPHA_MIN as ALPHA_MIN,
-    GGX as GGX,
-    Beckmann as Beckmann,
-    Distribution as Distribution,
-    Shadowing as Shadowing,
-    SmithHeightCorrelated as SmithHeightCorrelated,
-    SmithSeparable as SmithSeparable,
-    VGroove as VGroove,
-)
-from ._registry import available as available
-from ._merl import MERL as MERL
-from ._microfacet import (
-    ALPHA_MIN as ALPHA_MIN,
-    GGX as GGX,
-    Beckmann as Beckmann,
-    Distribution as Distribution,
-    Shadowing as Shadowing,
-    SmithHeightCorrelated as SmithHeightCorrelated,
-    SmithSeparable as SmithSeparable,
-    VGroove as VGroove,
-)
-from ._registry import get as get
-from ._rusinkiewicz import from_half_diff as from_half_diff, to_half_diff as to_half_diff
-from ._sum import Sum as Sum
+from ._convert import alpha_to_phong_exponent as alpha_to_phong_exponent
+from ._convert import alpha_to_roughness as alpha_to_roughness
+from ._convert import phong_exponent_to_alpha as phong_exponent_to_alpha
+from ._convert import roughness_to_alpha as roughness_to_alpha
 from ._cook_torrance import CookTorrance as CookTorrance
-from ._diagnostics import (
-    directional_albedo as directional_albedo,
-    furnace_test as furnace_test,
-    hemisphere_grid as hemisphere_grid,
-    reciprocity_error as reciprocity_error,
-)
+from ._diagnostics import directional_albedo as directional_albedo
+from ._diagnostics import furnace_test as furnace_test
+from ._diagnostics import hemisphere_grid as hemisphere_grid
+from ._diagnostics import reciprocity_error as reciprocity_error
 from ._dichromatic import Dichromatic as Dichromatic
-from ._fresnel import (
-    ConductorFresnel as ConductorFresnel,
-    DielectricFresnel as DielectricFresnel,
-    FresnelPart as FresnelPart,
-    NoFresnel as NoFresnel,
-    SchlickFresnel as SchlickFresnel,
-    f0_from_eta as f0_from_eta,
-    fresnel_conductor as fresnel_conductor,
-    fresnel_dielectric as fresnel_dielectric,
-    fresnel_dielectric_polarized as fresnel_dielectric_polarized,
-    fresnel_schlick as fresnel_schlick,
-)
-from ._frame import (
-    cos_theta as cos_theta,
-    half_vector as half_vector,
-    reflect as reflect,
-    spherical_direction as spherical_direction,
-)
-from ._zoo import (
-    ZooEntry as ZooEntry,
-    model_zoo as model_zoo,
-    random_directions as random_directions,
-    random_params as random_params,
-)
+from ._frame import cos_theta as cos_theta
+from ._frame import half_vector as half_vector
+from ._frame import reflect as reflect
+from ._frame import spherical_direction as spherical_direction
+from ._fresnel import ConductorFresnel as ConductorFresnel
+from ._fresnel import DielectricFresnel as DielectricFresnel
+from ._fresnel import FresnelPart as FresnelPart
+from ._fresnel import NoFresnel as NoFresnel
+from ._fresnel import SchlickFresnel as SchlickFresnel
+from ._fresnel import f0_from_eta as f0_from_eta
+from ._fresnel import fresnel_conductor as fresnel_conductor
+from ._fresnel import fresnel_dielectric as fresnel_dielectric
+from ._fresnel import fresnel_dielectric_polarized as fresnel_dielectric_polarized
+from ._fresnel import fresnel_schlick as fresnel_schlick
+from ._lafortune import Lafortune as Lafortune
+from ._lambert import Lambert as Lambert
+from ._lambert import OrenNayar as OrenNayar
+from ._merl import MERL as MERL
+from ._microfacet import ALPHA_MIN as ALPHA_MIN
+from ._microfacet import GGX as GGX
+from ._microfacet import Beckmann as Beckmann
+from ._microfacet import Distribution as Distribution
+from ._microfacet import Shadowing as Shadowing
+from ._microfacet import SmithHeightCorrelated as SmithHeightCorrelated
+from ._microfacet import SmithSeparable as SmithSeparable
+from ._microfacet import VGroove as VGroove
+from ._phong import BlinnPhong as BlinnPhong
+from ._phong import Phong as Phong
+from ._registry import available as available
+from ._registry import get as get
+from ._rusinkiewicz import from_half_diff as from_half_diff
+from ._rusinkiewicz import to_half_diff as to_half_diff
+from ._sum import Sum as Sum
+from ._ward import Ward as Ward
+from ._zoo import ZooEntry as ZooEntry
+from ._zoo import model_zoo as model_zoo
+from ._zoo import random_directions as random_directions
+from ._zoo import random_params as random_params

@@ -133,6 +133,7 @@ class BRDF(eqx.Module):
                 f"wi and wo must have a trailing axis of length 3, got {wi.shape} and {wo.shape}"
             )
         p = self._prepare(params, wi.dtype)
+        p, wi, wo = self._align_ranks(p, wi, wo)
         ok = upper_hemisphere(wi, wo)
         # Gradient-safe guard: evaluate below-horizon samples at the normal, then zero them.
         up = jnp.asarray([0.0, 0.0, 1.0], dtype=wi.dtype)
@@ -176,6 +177,25 @@ class BRDF(eqx.Module):
                 )
             p[q.name] = v
         return p
+
+    def _align_ranks(
+        self, p: dict[str, Array], wi: Array, wo: Array
+    ) -> tuple[dict[str, Array], Array, Array]:
+        """Give every input the same number of batch axes (leading singleton axes).
+
+        Inputs may differ in batch rank ((3,) directions with (N,) parameters); padding them
+        here once means no model relies on implicit rank promotion, which the test suite
+        turns into an error.
+        """
+        trailing = {"scalar": 0, "color": 1, "lobes": 2}
+        kinds = {q.name: q.kind for q in self.params}
+        rank = max(wi.ndim - 1, wo.ndim - 1, *(v.ndim - trailing[kinds[n]] for n, v in p.items()))
+
+        def pad(v: Array, core: int) -> Array:
+            return v.reshape((1,) * (rank + core - v.ndim) + v.shape)
+
+        p = {n: pad(v, trailing[kinds[n]]) for n, v in p.items()}
+        return p, pad(wi, 1), pad(wo, 1)
 
 
 def scalar(p: Array) -> Array:

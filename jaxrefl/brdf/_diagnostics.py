@@ -61,7 +61,7 @@ def directional_albedo(
 def furnace_test(
     model: BRDF,
     params: Params,
-    thetas_deg: Float[Array, " M"] = jnp.asarray([0.0, 30.0, 60.0, 75.0, 85.0]),
+    thetas_deg: Float[Array, " M"] | tuple[float, ...] = (0.0, 30.0, 60.0, 75.0, 85.0),
     n_theta: int = 256,
     n_phi: int = 512,
 ) -> dict[str, Array]:
@@ -72,12 +72,13 @@ def furnace_test(
     """
     th = jnp.deg2rad(jnp.asarray(thetas_deg, dtype=jnp.float64))
     wo = spherical_direction(th, jnp.zeros_like(th))
-    return {"theta_deg": jnp.asarray(thetas_deg), "albedo": directional_albedo(model, params, wo, n_theta, n_phi)}
+    return {
+        "theta_deg": jnp.asarray(thetas_deg),
+        "albedo": directional_albedo(model, params, wo, n_theta, n_phi),
+    }
 
 
-def reciprocity_error(
-    model: BRDF, params: Params, key: PRNGKeyArray, n: int = 4096
-) -> Array:
+def reciprocity_error(model: BRDF, params: Params, key: PRNGKeyArray, n: int = 4096) -> Array:
     """max |f(wi, wo) - f(wo, wi)| / max(|f|, tiny) over ``n`` random direction pairs."""
     k1, k2 = jax.random.split(key)
     wi = random_directions(k1, (n,))

@@ -100,7 +100,9 @@ def _lobe_sets(default: np.ndarray) -> list[np.ndarray]:
 
 def parameter_sets(model: BRDF) -> list[tuple[str, dict[str, np.ndarray]]]:
     """Defaults, one-at-a-time edge values, and all-hardest-at-once."""
-    base = {k: np.asarray(v, dtype=np.float64) for k, v in model.default_params(jnp.float64).items()}
+    base = {
+        k: np.asarray(v, dtype=np.float64) for k, v in model.default_params(jnp.float64).items()
+    }
     sets: list[tuple[str, dict[str, np.ndarray]]] = [("defaults", base)]
     hardest = dict(base)
     for q in model.params:
@@ -190,14 +192,23 @@ def _check_fresnel(dtype) -> list[StabilityRow]:
                 gmax = max(gmax, float(np.max(np.abs(gg[np.isfinite(gg)]))))
         rows.append(
             StabilityRow(
-                label, jnp.dtype(dtype).name, v.size, int(bad_v.sum()), int(bad_g.sum()),
-                float(np.max(np.abs(v[np.isfinite(v)]))), gmax,
+                label,
+                jnp.dtype(dtype).name,
+                v.size,
+                int(bad_v.sum()),
+                int(bad_g.sum()),
+                float(np.max(np.abs(v[np.isfinite(v)]))),
+                gmax,
             )
         )
 
     run("fresnel_dielectric (incl. TIR)", fresnel_dielectric, (cos, etas))
     run("fresnel_conductor", lambda c, e, k: fresnel_conductor(jnp.abs(c), e, k), (cos, etas, ks))
-    run("fresnel_schlick", lambda c, f0: fresnel_schlick(jnp.abs(c), f0), (cos, np.array([0.0, 0.04, 1.0])))
+    run(
+        "fresnel_schlick",
+        lambda c, f0: fresnel_schlick(jnp.abs(c), f0),
+        (cos, np.array([0.0, 0.04, 1.0])),
+    )
     return rows
 
 

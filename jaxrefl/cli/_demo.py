@@ -81,7 +81,9 @@ def run(args: argparse.Namespace) -> int:
     np.savez_compressed(out / "truth" / "params.npz", **truth)
     _write_png(out / "truth" / "albedo.png", truth["albedo"] ** (1 / 2.2))
     _write_png(out / "truth" / "roughness.png", truth["roughness"])
-    print(f"render: compile {t_compile:.2f} s, run {t_run * 1e3:.1f} ms ({jax.devices()[0].platform})")
+    print(
+        f"render: compile {t_compile:.2f} s, run {t_run * 1e3:.1f} ms ({jax.devices()[0].platform})"
+    )
     print(f"wrote {k} photos, parameters.json and truth maps to {out}/")
     return 0
 

@@ -1,0 +1,62 @@
+"""Pixels to best parameters: batched least squares for reflectance models.
+
+Quick use::
+
+    import jaxrefl
+    from jaxrefl import fit
+
+    model = jaxrefl.brdf.get("cook_torrance", distribution="ggx", diffuse="lambert")
+    data = fit.pixel_data(obs, wi, wo, scale=irradiance_cos)   # (N, K, C), (N, K, 3) ...
+    result = fit.fit_pixels(model, data)                       # lean batched LM, float32
+    result.params["alpha"], result.status_counts()
+
+Parts: :class:`ParamSpace` and the bijections (unconstrained parametrisation), :class:`PixelData`
+and :func:`make_residual` (noise models, robust losses, censoring), :func:`initial_theta`
+(closed-form colours on a roughness grid), :func:`lm_solve` / :func:`batched_lm` (the lean
+Levenberg-Marquardt as pure init/step functions), :func:`solve` (lean, optimistix or
+jaxopt), and per-pixel :class:`Status` codes.
+"""
+
+from ._backends import FitInfo as FitInfo
+from ._backends import solve as solve
+from ._init import diffuse_albedo as diffuse_albedo
+from ._init import grid_values as grid_values
+from ._init import initial_theta as initial_theta
+from ._init import linear_params as linear_params
+from ._lm import LMInfo as LMInfo
+from ._lm import LMOptions as LMOptions
+from ._lm import LMResult as LMResult
+from ._lm import LMState as LMState
+from ._lm import batched_lm as batched_lm
+from ._lm import cho_solve_unrolled as cho_solve_unrolled
+from ._lm import cholesky_unrolled as cholesky_unrolled
+from ._lm import lm_init as lm_init
+from ._lm import lm_solve as lm_solve
+from ._lm import lm_step as lm_step
+from ._problem import FitResult as FitResult
+from ._problem import fit_pixels as fit_pixels
+from ._problem import fit_samples as fit_samples
+from ._residual import L2 as L2
+from ._residual import Cauchy as Cauchy
+from ._residual import GaussianNoise as GaussianNoise
+from ._residual import Huber as Huber
+from ._residual import Loss as Loss
+from ._residual import NoiseModel as NoiseModel
+from ._residual import PixelData as PixelData
+from ._residual import Residual as Residual
+from ._residual import ShotNoise as ShotNoise
+from ._residual import make_residual as make_residual
+from ._residual import pixel_data as pixel_data
+from ._status import STATUS_MEANINGS as STATUS_MEANINGS
+from ._status import Status as Status
+from ._status import classify as classify
+from ._status import describe as describe
+from ._status import equilibrated_condition as equilibrated_condition
+from ._transform import Bijection as Bijection
+from ._transform import Exp as Exp
+from ._transform import Identity as Identity
+from ._transform import Log as Log
+from ._transform import ParamSpace as ParamSpace
+from ._transform import ScaledSigmoid as ScaledSigmoid
+from ._transform import Softplus as Softplus
+from ._transform import UnitVector as UnitVector

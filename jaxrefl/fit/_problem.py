@@ -1,0 +1,281 @@
+"""The public fitting API: many pixels (:func:`fit_pixels`) or one measured material
+(:func:`fit_samples`), returning a :class:`FitResult`.
+
+Pipeline: a :class:`ParamSpace` (bounds, fixed values, unconstrained theta), a
+:class:`Residual` (noise whitening, robust loss, censoring, defensive masking), a start
+(:func:`initial_theta` by default: closed-form colours on a roughness grid), and a batched
+least-squares backend (:func:`solve`: ``"lean"``, ``"optimistix"`` or ``"jaxopt"``).
+
+Failures are values (``Status``), never exceptions in the middle of a batch:
+
+* a pixel with fewer usable observations (finite, weight > 0) than free parameters is
+  MASKED; if non-finite values are what left it short, NONFINITE_INPUT. Such pixels still
+  pass through the solver (their residual is identically 0, so they stop at once; shapes
+  stay static) but get NaN ``params``, ``theta`` and ``cost``: no estimate, rather than a
+  made-up one.
+* non-finite observations in an otherwise usable pixel are masked out (weight 0) and the
+  pixel is fitted from the rest; ``n_used`` counts what was used.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Float, Int
+
+from jaxrefl.brdf import BRDF
+
+from ._backends import Backend, solve
+from ._init import initial_theta
+from ._lm import LMOptions
+from ._residual import L2, GaussianNoise, Loss, NoiseModel, PixelData, make_residual, pixel_data
+from ._status import Status, describe
+from ._transform import ParamSpace
+
+__all__ = ["FitResult", "fit_pixels", "fit_samples"]
+
+Init = Literal["auto", "defaults"] | ArrayLike | Mapping[str, ArrayLike]
+
+
+@dataclass(frozen=True, eq=False)
+class FitResult:
+    """Outcome of a fit.
+
+    params:     natural parameters, leading axis N (pixels) for :func:`fit_pixels`; for
+                :func:`fit_samples` none (joint channels) or C (channels fitted separately)
+    theta:      (..., P) unconstrained vector (``space.labels`` names the entries)
+    status:     (...) int32 :class:`Status` codes; ``status_counts()`` summarises them
+    cost:       (...) final 1/2 |r|^2 (whitened, robust); NaN where there is no estimate
+    iterations: (...) solver iterations
+    n_used:     (...) usable observations (entries of the K x C grid)
+    """
+
+    params: dict[str, Array]
+    theta: Float[Array, "*n P"]
+    status: Int[Array, "*n"]
+    cost: Float[Array, "*n"]
+    iterations: Int[Array, "*n"]
+    n_used: Int[Array, "*n"]
+    space: ParamSpace
+    model: BRDF
+    backend: str = "lean"
+
+    def status_counts(self) -> dict[str, int]:
+        """``{"CONVERGED": ..., "MAX_ITERATIONS": ..., ...}`` (see :func:`describe`)."""
+        return describe(self.status)
+
+    @property
+    def has_estimate(self) -> Array:
+        """Where params are defined (not MASKED / NONFINITE_INPUT)."""
+        return self.status < Status.MASKED
+
+
+def _theta0(res, data: PixelData, init: Any, dtype) -> Array:
+    n = data.obs.shape[0]
+    space = res.space
+    if isinstance(init, str):
+        if init == "auto":
+            return initial_theta(res, data)
+        if init == "defaults":
+            return jnp.broadcast_to(space.default_theta(dtype), (n, space.size))
+        raise ValueError(f"init must be 'auto', 'defaults', an array or a dict, not {init!r}")
+    if isinstance(init, Mapping):
+        t = space.from_natural(init, dtype=dtype)
+    else:
+        t = jnp.asarray(init, dtype=dtype)
+    if t.shape[-1:] != (space.size,):
+        raise ValueError(f"init theta must end in P = {space.size} {space.labels}; got {t.shape}")
+    return jnp.broadcast_to(t, (n, space.size))
+
+
+@eqx.filter_jit
+def _data_checks(res, data):
+    return res.n_usable(data), res.nonfinite_input(data)
+
+
+@eqx.filter_jit
+def _finalise(theta, status, cost, n_used, nonfinite, p):
+    short = n_used < p
+    status = jnp.where(short & nonfinite, Status.NONFINITE_INPUT, status).astype(jnp.int32)
+    none = status >= Status.MASKED
+    return jnp.where(none[:, None], jnp.nan, theta), status, jnp.where(none, jnp.nan, cost)
+
+
+def _run(model, data, space, noise, loss, backend, init, max_iters, options):
+    res = make_residual(model, space, noise, loss)
+    dtype = data.obs.dtype
+    n_used, nonfinite = _data_checks(res, data)
+    theta0 = _theta0(res, data, init, dtype)
+    theta, info = solve(
+        res,
+        theta0,
+        data,
+        backend,
+        options=options,
+        max_iters=max_iters,
+        space=space,
+        n_usable=n_used,
+    )
+    theta, status, cost = _finalise(theta, info.status, info.cost, n_used, nonfinite, space.size)
+    return theta, status, cost, info.iterations, n_used
+
+
+def fit_pixels(
+    model: BRDF,
+    data: PixelData,
+    *,
+    space: ParamSpace | None = None,
+    noise: NoiseModel | None = None,
+    loss: Loss | None = None,
+    backend: Backend = "lean",
+    init: Init = "auto",
+    max_iters: int | None = None,
+    dtype=None,
+    options: LMOptions | None = None,
+    bounds: Mapping[str, tuple[float, float]] | None = None,
+    fixed: Mapping[str, ArrayLike] | None = None,
+) -> FitResult:
+    """Fit ``model`` to every pixel of ``data`` (:class:`PixelData` with a leading N axis).
+
+    space:    the parameter space (default ``ParamSpace(model, C, bounds, fixed)``)
+    noise:    :class:`GaussianNoise` (default, sigma 1) or :class:`ShotNoise`
+    loss:     :class:`L2` (default), :class:`Huber` or :class:`Cauchy`
+    backend:  ``"lean"`` (default), ``"optimistix"`` or ``"jaxopt"`` (see :func:`solve`)
+    init:     ``"auto"`` (closed-form colours on a roughness grid), ``"defaults"`` (the
+              model's defaults), a theta array ((P,) or (N, P)) or a dict of natural values
+    max_iters: iteration budget (lean default 40, libraries 256)
+    dtype:    computation dtype (default: that of ``data.obs``); float32 is the fast one
+    """
+    if data.obs.ndim != 3:
+        raise ValueError(f"fit_pixels expects data of shape (N, K, C); got {data.obs.shape}")
+    if dtype is not None:
+        data = data.astype(dtype)
+    c = data.obs.shape[-1]
+    if space is None:
+        space = ParamSpace(model, channels=c, bounds=bounds, fixed=fixed)
+    elif bounds is not None or fixed is not None:
+        raise ValueError("give bounds/fixed through the ParamSpace when passing space")
+    if space.channels != c:
+        raise ValueError(f"space has {space.channels} channels, data has {c}")
+    theta, status, cost, iters, n_used = _run(
+        model,
+        data,
+        space,
+        GaussianNoise() if noise is None else noise,
+        L2() if loss is None else loss,
+        backend,
+        init,
+        max_iters,
+        options,
+    )
+    return FitResult(
+        space.to_natural(theta), theta, status, cost, iters, n_used, space, model, backend
+    )
+
+
+def fit_samples(
+    model: BRDF,
+    measured: Any,
+    *,
+    channels: Literal["joint", "separate"] = "joint",
+    cosine: bool = False,
+    space: ParamSpace | None = None,
+    noise: NoiseModel | None = None,
+    loss: Loss | None = None,
+    backend: Backend = "lean",
+    init: Init = "auto",
+    max_iters: int | None = None,
+    dtype=None,
+    options: LMOptions | None = None,
+    bounds: Mapping[str, tuple[float, float]] | None = None,
+    fixed: Mapping[str, ArrayLike] | None = None,
+) -> FitResult:
+    """Fit ``model`` to measured f_r samples: one problem with K = number of samples.
+
+    measured: a :class:`jaxrefl.io.MeasuredBRDF` (``wi``, ``wo`` (K, 3), ``values`` (K, C)
+              f_r in 1/sr) or a tuple ``(wi, wo, values)``. Non-finite values and samples at
+              or below the horizon get weight 0.
+    channels: ``"joint"``: one problem, colour parameters per channel and shared scalars
+              (results without a leading axis); ``"separate"``: every channel is its own
+              problem with its own scalars (results with a leading axis C, colour
+              parameters as (C,)).
+    cosine:   fit f_r cos(theta_i) instead of f_r (scale = cos_i), which down-weights the
+              noisy grazing samples.
+    dtype:    default float64 if enabled in JAX, else float32.
+
+    The other arguments are those of :func:`fit_pixels`; with the default L2 loss and
+    sigma 1 the cost is in (1/sr)^2.
+    """
+    if isinstance(measured, tuple):
+        wi, wo, values = measured
+        names = None
+    else:
+        wi, wo, values = measured.wi, measured.wo, measured.values
+        names = tuple(measured.channels)
+    if dtype is None:
+        dtype = jnp.asarray(0.0).dtype
+    wi = jnp.asarray(wi, dtype)
+    wo = jnp.asarray(wo, dtype)
+    values = jnp.asarray(values, dtype)
+    if values.ndim == 1:
+        values = values[:, None]
+    k, c = values.shape
+    above = (wi[:, 2] > 0) & (wo[:, 2] > 0)
+    weight = jnp.broadcast_to(above[:, None], (k, c)).astype(dtype)
+    scale = None
+    if cosine:  # observations and predictions both become f_r cos(theta_i)
+        scale = jnp.broadcast_to(jnp.where(above, wi[:, 2], 0.0)[:, None], (k, c))
+        values = values * scale
+    if channels == "joint":
+        s1 = None if scale is None else scale[None]
+        data = pixel_data(values[None], wi[None], wo[None], scale=s1, weight=weight[None])
+        n_ch, ch_names = c, names
+    elif channels == "separate":
+        obs = jnp.transpose(values)[..., None]  # (C, K, 1)
+        data = pixel_data(
+            obs,
+            jnp.broadcast_to(wi, (c, k, 3)),
+            jnp.broadcast_to(wo, (c, k, 3)),
+            scale=None if scale is None else jnp.transpose(scale)[..., None],
+            weight=jnp.transpose(weight)[..., None],
+        )
+        n_ch, ch_names = 1, None
+    else:
+        raise ValueError(f"channels must be 'joint' or 'separate', not {channels!r}")
+    if space is None:
+        if ch_names is not None and len(ch_names) != n_ch:
+            ch_names = None
+        space = ParamSpace(model, channels=n_ch, bounds=bounds, fixed=fixed, channel_names=ch_names)
+    r = fit_pixels(
+        model,
+        data,
+        space=space,
+        noise=noise,
+        loss=loss,
+        backend=backend,
+        init=init,
+        max_iters=max_iters,
+        options=options,
+    )
+    if channels == "joint":
+        return FitResult(
+            jax.tree.map(lambda x: x[0], r.params),
+            r.theta[0],
+            r.status[0],
+            r.cost[0],
+            r.iterations[0],
+            r.n_used[0],
+            r.space,
+            model,
+            backend,
+        )
+    kinds = {q.name: q.kind for q in model.params}
+    params = {n: (v[:, 0] if kinds[n] == "color" else v) for n, v in r.params.items()}
+    return FitResult(
+        params, r.theta, r.status, r.cost, r.iterations, r.n_used, r.space, model, backend
+    )

@@ -1,0 +1,330 @@
+"""The per-pixel least-squares problem: data, noise models, robust losses, residuals.
+
+One pixel (or one measured material) is K observations in C channels. For parameters x,
+
+    pred_kc = f_r(x; wi_k, wo_k)_c * scale_kc                      (model.eval, 1/sr * scale)
+    z_kc    = (pred_kc - obs_kc) / std_kc                           (whitening, noise model)
+    r_kc    = sqrt(weight_kc) * sign(z) sqrt(2 rho(z_kc))           (robust loss, weights)
+    cost    = 1/2 sum r^2 = sum_kc weight_kc rho(z_kc)
+
+``scale`` turns f_r into what was observed: for a flash capture (light and camera together)
+it is irradiance * cos(theta_i) (radiance = f_r E cos_i), for measured f_r samples it is 1.
+Censored observations (``censored`` = +1: the sensor saturated, the true value is >= obs;
+-1: clipped dark, the true value is <= obs) contribute only when the prediction is on the
+wrong side: z is set to 0 where pred >= obs (saturated) or pred <= obs (dark). This is the
+one-sided (hinge) residual of a Tobit-style likelihood's mode, keeping the problem a least
+squares problem. Censored observations count as usable in :meth:`Residual.n_usable`.
+
+Defensive masking: an observation is usable only where obs, scale, weight and both
+directions are finite and weight > 0; everything else is swapped for harmless values
+*before* any arithmetic (gradient-safe), so one NaN never poisons a pixel's residual or its
+Jacobian. Callers should still zero-weight bad observations themselves.
+"""
+
+from __future__ import annotations
+
+import numbers
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
+
+from jaxrefl.brdf import BRDF
+
+from ._transform import ParamSpace
+
+__all__ = [
+    "L2",
+    "Cauchy",
+    "GaussianNoise",
+    "Huber",
+    "Loss",
+    "NoiseModel",
+    "PixelData",
+    "Residual",
+    "ShotNoise",
+    "make_residual",
+    "pixel_data",
+]
+
+
+class PixelData(eqx.Module):
+    """Observations of one pixel (fields as below) or of N pixels (a leading N axis on every
+    field). Build it with :func:`pixel_data`, which fills defaults and checks shapes.
+
+    obs:      (K, C) observed linear radiance (or f_r values for measured BRDF samples)
+    wi, wo:   (K, 3) unit directions in the local frame, away from the surface
+    scale:    (K, C) factor such that prediction = model.eval(params, wi, wo) * scale
+    weight:   (K, C) >= 0; 0 masks an observation out
+    censored: (K, C) int8; 0 none, +1 saturated (true >= obs), -1 dark-clipped (true <= obs)
+    colocated: static flag, True when wo == wi for every observation (a flash capture with
+              the light at the camera). The residual then evaluates ``model.eval(p, wi, wi)``
+              so the compiler can share the wi and wo halves of the BRDF (about 2x faster).
+    """
+
+    obs: Float[Array, "*n K C"]
+    wi: Float[Array, "*n K 3"]
+    wo: Float[Array, "*n K 3"]
+    scale: Float[Array, "*n K C"]
+    weight: Float[Array, "*n K C"]
+    censored: Int[Array, "*n K C"]
+    colocated: bool = eqx.field(default=False, static=True)
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        """(*n, K, C)."""
+        return tuple(self.obs.shape)
+
+    def astype(self, dtype) -> PixelData:
+        """The same data with floating fields cast to ``dtype``."""
+        return PixelData(
+            self.obs.astype(dtype),
+            self.wi.astype(dtype),
+            self.wo.astype(dtype),
+            self.scale.astype(dtype),
+            self.weight.astype(dtype),
+            self.censored,
+            self.colocated,
+        )
+
+
+def pixel_data(
+    obs: ArrayLike,
+    wi: ArrayLike,
+    wo: ArrayLike | None = None,
+    scale: ArrayLike | None = None,
+    weight: ArrayLike | None = None,
+    censored: ArrayLike | None = None,
+    dtype=None,
+) -> PixelData:
+    """Build :class:`PixelData`, broadcasting ``scale`` (default 1), ``weight`` (default 1)
+    and ``censored`` (default 0) to the shape of ``obs`` ((*n, K, C)); ``wi``/``wo`` are
+    broadcast to (*n, K, 3). ``wo=None`` (or ``wo is wi``) means co-located light and view:
+    wo = wi and ``colocated=True``. ``dtype`` defaults to the dtype of ``obs`` (float32 if it
+    is not floating)."""
+    colocated = wo is None or wo is wi
+    obs = jnp.asarray(obs)
+    if dtype is None:
+        dtype = obs.dtype if jnp.issubdtype(obs.dtype, jnp.floating) else jnp.float32
+    obs = obs.astype(dtype)
+    if obs.ndim < 2:
+        raise ValueError(f"obs must have shape (*n, K, C), got {obs.shape}")
+    lead = obs.shape[:-1]
+
+    def full(v, default):
+        v = jnp.asarray(default if v is None else v, dtype=dtype)
+        return jnp.broadcast_to(v.reshape((1,) * (obs.ndim - v.ndim) + v.shape), obs.shape)
+
+    def direction(w, name):
+        w = jnp.asarray(w, dtype=dtype)
+        if w.shape[-1:] != (3,):
+            raise ValueError(f"{name} must have a trailing axis of 3, got {w.shape}")
+        return jnp.broadcast_to(w.reshape((1,) * (obs.ndim - w.ndim) + w.shape), (*lead, 3))
+
+    cens = jnp.zeros(obs.shape, jnp.int8) if censored is None else jnp.asarray(censored)
+    cens = cens.astype(jnp.int8).reshape((1,) * (obs.ndim - cens.ndim) + cens.shape)
+    cens = jnp.broadcast_to(cens, obs.shape)
+    wi_b = direction(wi, "wi")
+    wo_b = wi_b if colocated else direction(wo, "wo")
+    return PixelData(obs, wi_b, wo_b, full(scale, 1.0), full(weight, 1.0), cens, colocated)
+
+
+# ---------------------------------------------------------------------------- noise models
+class NoiseModel(eqx.Module):
+    """Standard deviation of each observation, used to whiten residuals."""
+
+    def std(self, obs: Float[Array, "K C"]) -> Float[Array, "K C"]:
+        raise NotImplementedError
+
+
+def _lift(v: Array, like: Array) -> Array:
+    return jnp.broadcast_to(v.reshape((1,) * (like.ndim - v.ndim) + v.shape), like.shape)
+
+
+class GaussianNoise(NoiseModel):
+    """Additive Gaussian noise of standard deviation ``sigma`` (scalar or per channel (C,)).
+
+    ``sigma=None`` means unknown: the fit uses sigma = 1 (the optimum of an L2 fit does not
+    depend on a common sigma) and sigma can be estimated afterwards from the residuals
+    (``jaxrefl.infer``). Robust-loss thresholds are in units of sigma, so give sigma when
+    using Huber or Cauchy.
+    """
+
+    sigma: float | Array | None = None
+
+    def std(self, obs):
+        if self.sigma is None:
+            return jnp.ones_like(obs)
+        return _lift(jnp.asarray(self.sigma, dtype=obs.dtype), obs)
+
+
+class ShotNoise(NoiseModel):
+    """Photon (shot) plus read noise: variance = read^2 + gain * max(obs, 0).
+
+    The variance is computed from the *observations*, not from the prediction, and stays
+    fixed during the fit: the problem remains a plain weighted least squares (a variance
+    that moves with the prediction adds a log-determinant term and a second, competing
+    gradient, and lets the solver "explain" residuals by inflating the predicted variance).
+    For well-exposed pixels obs ~ pred, so the two differ by O(1/sqrt(counts)).
+    ``read`` > 0 (in the units of obs) keeps the variance positive at obs <= 0; ``gain`` in
+    units of obs per photo-electron.
+    """
+
+    read: float | Array = 0.01
+    gain: float | Array = 0.0
+
+    def __check_init__(self):
+        if isinstance(self.read, numbers.Real) and not self.read > 0:
+            raise ValueError(f"ShotNoise needs read > 0 (the variance at obs = 0), got {self.read}")
+        if isinstance(self.gain, numbers.Real) and self.gain < 0:
+            raise ValueError(f"ShotNoise needs gain >= 0, got {self.gain}")
+
+    def std(self, obs):
+        read = _lift(jnp.asarray(self.read, dtype=obs.dtype), obs)
+        gain = _lift(jnp.asarray(self.gain, dtype=obs.dtype), obs)
+        var = read * read + gain * jnp.maximum(obs, 0.0)
+        # Floor at the dtype's smallest normal: only a traced read = 0 reaches it.
+        return jnp.sqrt(jnp.maximum(var, jnp.finfo(obs.dtype).tiny))
+
+
+# ---------------------------------------------------------------------------- robust losses
+class Loss(eqx.Module):
+    """A robust loss rho(z) on whitened residuals, applied as r = sign(z) sqrt(2 rho(z))."""
+
+    def rho(self, z: Float[Array, "*b"]) -> Float[Array, "*b"]:
+        raise NotImplementedError
+
+    def residual(self, z: Float[Array, "*b"]) -> Float[Array, "*b"]:
+        """sign(z) sqrt(2 rho(z)), written so that it and its derivative are finite at 0."""
+        raise NotImplementedError
+
+
+class L2(Loss):
+    """rho(z) = z^2 / 2: ordinary least squares (r = z)."""
+
+    def rho(self, z):
+        return 0.5 * z * z
+
+    def residual(self, z):
+        return z
+
+
+class Huber(Loss):
+    """rho(z) = z^2/2 for |z| <= delta, delta (|z| - delta/2) beyond (Huber 1964).
+
+    r = z inside, sign(z) sqrt(2 delta |z| - delta^2) outside: quadratic near 0, the cost
+    grows linearly beyond delta (r grows like sqrt|z|).
+    """
+
+    delta: float = 1.0
+
+    def rho(self, z):
+        a = jnp.abs(z)
+        return jnp.where(a <= self.delta, 0.5 * z * z, self.delta * (a - 0.5 * self.delta))
+
+    def residual(self, z):
+        a = jnp.abs(z)
+        inside = a <= self.delta
+        # Gradient-safe: the outer branch is evaluated at |z| >= delta only (sqrt arg >= delta^2).
+        a_out = jnp.where(inside, self.delta, a)
+        outer = jnp.sign(z) * jnp.sqrt(2.0 * self.delta * a_out - self.delta * self.delta)
+        return jnp.where(inside, z, outer)
+
+
+class Cauchy(Loss):
+    """rho(z) = c^2/2 log(1 + (z/c)^2) (Cauchy / Lorentzian loss).
+
+    r = z sqrt(log1p(t)/t) with t = (z/c)^2, equal to sign(z) c sqrt(log1p(t)); the ratio
+    log1p(t)/t -> 1 - t/2 is used for tiny t, so r and dr/dz are finite at z = 0.
+    """
+
+    c: float = 1.0
+
+    def rho(self, z):
+        return 0.5 * self.c * self.c * jnp.log1p((z / self.c) ** 2)
+
+    def residual(self, z):
+        t = (z / self.c) ** 2
+        # Below 1e-6 the series 1 - t/2 is exact to O(t^2) ~ 1e-12 and avoids 0/0 at z = 0.
+        small = t < 1e-6
+        t_safe = jnp.where(small, 1.0, t)
+        ratio = jnp.where(small, 1.0 - 0.5 * t, jnp.log1p(t_safe) / t_safe)
+        return z * jnp.sqrt(ratio)
+
+
+# ---------------------------------------------------------------------------- residual
+class Residual(eqx.Module):
+    """r(theta, data): the whitened, weighted, censored, robust residual of one pixel.
+
+    Call with theta (P,) and unbatched :class:`PixelData` ((K, C) fields); returns (K*C,),
+    ordered k-major (entry k*C + c).
+    """
+
+    model: BRDF
+    space: ParamSpace
+    noise: NoiseModel
+    loss: Loss
+
+    def usable(self, data: PixelData) -> Bool[Array, "*n K C"]:
+        """Observations that take part: finite inputs and weight > 0."""
+        row_ok = jnp.all(jnp.isfinite(data.wi) & jnp.isfinite(data.wo), axis=-1)
+        ok = jnp.isfinite(data.obs) & jnp.isfinite(data.scale) & jnp.isfinite(data.weight)
+        return ok & (data.weight > 0) & row_ok[..., None]
+
+    def n_usable(self, data: PixelData) -> Int[Array, "*n"]:
+        """Number of usable observations (entries of the (K, C) grid) per pixel."""
+        return jnp.sum(self.usable(data), axis=(-2, -1))
+
+    def nonfinite_input(self, data: PixelData) -> Bool[Array, "*n"]:
+        """Whether a pixel has a non-finite value in an observation that was not already
+        masked by weight 0 (it is masked here; this says the caller did not do it)."""
+        row_bad = ~jnp.all(jnp.isfinite(data.wi) & jnp.isfinite(data.wo), axis=-1)
+        bad = ~(jnp.isfinite(data.obs) & jnp.isfinite(data.scale)) | row_bad[..., None]
+        bad = (bad & (data.weight != 0)) | ~jnp.isfinite(data.weight)
+        return jnp.any(bad, axis=(-2, -1))
+
+    def predict(self, theta: Float[Array, " P"], data: PixelData) -> Float[Array, "K C"]:
+        """model.eval(params, wi, wo) * scale with unusable observations swapped out."""
+        ok = self.usable(data)
+        row_ok = jnp.all(jnp.isfinite(data.wi) & jnp.isfinite(data.wo), axis=-1)
+        up = jnp.asarray([0.0, 0.0, 1.0], dtype=theta.dtype)
+        # Gradient-safe: non-finite directions are replaced by the normal before evaluation.
+        wi = jnp.where(row_ok[..., None], data.wi.astype(theta.dtype), up)
+        wo = wi if data.colocated else jnp.where(row_ok[..., None], data.wo.astype(theta.dtype), up)
+        scale = jnp.where(ok, data.scale.astype(theta.dtype), 0.0)
+        # Parameters get a leading unit axis so they align with the (K, 3) directions
+        # without implicit rank promotion.
+        params = self.space.to_natural(theta[None, :])
+        return self.model.eval(params, wi, wo) * scale
+
+    def __call__(self, theta: Float[Array, " P"], data: PixelData) -> Float[Array, " KC"]:
+        dtype = theta.dtype
+        ok = self.usable(data)
+        obs = jnp.where(ok, data.obs.astype(dtype), 0.0)
+        w = jnp.where(ok, data.weight.astype(dtype), 0.0)
+        pred = self.predict(theta, data)
+        z = (pred - obs) / self.noise.std(obs)
+        sat = data.censored > 0
+        dark = data.censored < 0
+        # One-sided residuals of censored observations (see the module docstring).
+        z = jnp.where((sat & (pred >= obs)) | (dark & (pred <= obs)), 0.0, z)
+        r = jnp.sqrt(w) * self.loss.residual(z)
+        return r.reshape(-1)
+
+
+def make_residual(
+    model: BRDF,
+    space: ParamSpace | None = None,
+    noise: NoiseModel | None = None,
+    loss: Loss | None = None,
+) -> Residual:
+    """The residual function ``r(theta (P,), data: PixelData (unbatched)) -> (K*C,)``.
+
+    Defaults: ``ParamSpace(model)`` (3 channels), ``GaussianNoise()`` (sigma 1), ``L2()``.
+    """
+    return Residual(
+        model,
+        ParamSpace(model) if space is None else space,
+        GaussianNoise() if noise is None else noise,
+        L2() if loss is None else loss,
+    )

@@ -1,0 +1,135 @@
+"""Per-pixel outcome codes of a fit: failures are values, never exceptions mid-batch.
+
+Every solver in :mod:`jaxrefl.fit` returns one integer per problem (pixel), in the spirit of
+optimistix's ``RESULTS``: a batch of a million pixels must finish even when some pixels have
+no data, NaN inputs or an unidentifiable parameter. The codes are ordered by severity; where
+several apply, the most severe (listed first below) wins:
+
+=================  ====  ==========================================================
+NONFINITE_INPUT     5    non-finite values that could not be masked (a non-finite
+                         initial guess; every observation of the pixel non-finite),
+                         or a non-finite result
+MASKED              4    fewer usable observations (finite, weight > 0) than free
+                         parameters: the problem is not posed; no estimate (NaN)
+AT_BOUND            2    a parameter sits at (or beyond) a bound of its range; its
+                         value is an extreme, not an interior optimum
+ILL_CONDITIONED     3    J^T J at the solution is numerically singular after
+                         scaling its columns to unit diagonal: some combination of
+                         parameters is not identified by the data
+MAX_ITERATIONS      1    the iteration limit was reached before the convergence test
+                         passed (the value is the best one found, often fine)
+CONVERGED           0    the convergence test passed
+=================  ====  ==========================================================
+"""
+
+from __future__ import annotations
+
+import enum
+from typing import TYPE_CHECKING
+
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
+
+if TYPE_CHECKING:
+    from ._transform import ParamSpace
+
+__all__ = [
+    "SEVERITY",
+    "STATUS_MEANINGS",
+    "Status",
+    "classify",
+    "describe",
+    "equilibrated_condition",
+]
+
+
+class Status(enum.IntEnum):
+    """Per-pixel outcome of a fit (see the module docstring for precedence)."""
+
+    CONVERGED = 0
+    MAX_ITERATIONS = 1
+    AT_BOUND = 2
+    ILL_CONDITIONED = 3
+    MASKED = 4
+    NONFINITE_INPUT = 5
+
+
+STATUS_MEANINGS: dict[int, str] = {
+    Status.CONVERGED: "converged: the relative cost change and step size fell below tolerance",
+    Status.MAX_ITERATIONS: "stopped at the iteration limit before the convergence test passed",
+    Status.AT_BOUND: "a parameter is at (or beyond) a bound of its range",
+    Status.ILL_CONDITIONED: "J^T J is numerically singular: parameters not identified by the data",
+    Status.MASKED: "fewer usable observations than free parameters: no estimate",
+    Status.NONFINITE_INPUT: "non-finite input that could not be masked, or a non-finite result",
+}
+
+# Most severe first: where several conditions hold, the first one listed is reported.
+SEVERITY: tuple[Status, ...] = (
+    Status.NONFINITE_INPUT,
+    Status.MASKED,
+    Status.AT_BOUND,
+    Status.ILL_CONDITIONED,
+    Status.MAX_ITERATIONS,
+    Status.CONVERGED,
+)
+
+
+def describe(status_map: ArrayLike) -> dict[str, int]:
+    """Count pixels per status: ``{"CONVERGED": 9812, "AT_BOUND": 170, ...}``.
+
+    Every status name appears (with 0 where absent), in the order of :class:`Status`; codes
+    that are not a :class:`Status` are counted under ``"UNKNOWN"`` (only if present).
+    """
+    s = np.asarray(status_map).reshape(-1).astype(np.int64)
+    out = {st.name: int(np.sum(s == st.value)) for st in Status}
+    unknown = int(s.size - sum(out.values()))
+    if unknown:
+        out["UNKNOWN"] = unknown
+    return out
+
+
+def equilibrated_condition(jtj: Float[Array, "*b P P"]) -> Float[Array, "*b"]:
+    """Condition number of D^-1/2 J^T J D^-1/2 with D = diag(J^T J).
+
+    Column scaling removes the units of the parameters (and the saturation of a sigmoid),
+    so the number measures only how collinear the columns of J are: 1 for orthogonal
+    columns, inf for a zero column or exact dependence.
+    """
+    d = jnp.diagonal(jtj, axis1=-2, axis2=-1)
+    dmax = jnp.max(d, axis=-1, keepdims=True)
+    # A column below eps^2 of the largest one is numerically zero (J's column below eps).
+    tiny = jnp.finfo(jtj.dtype).eps ** 2
+    zero_col = jnp.any(d <= tiny * dmax, axis=-1) | ~jnp.all(jnp.isfinite(jtj), axis=(-2, -1))
+    s = 1.0 / jnp.sqrt(jnp.where(d > tiny * dmax, d, 1.0))
+    c = jtj * s[..., :, None] * s[..., None, :]
+    c = jnp.where(zero_col[..., None, None], jnp.eye(jtj.shape[-1], dtype=jtj.dtype), c)
+    ev = jnp.linalg.eigvalsh(c)
+    lo, hi = ev[..., 0], ev[..., -1]
+    cond = jnp.where(lo > 0, hi / jnp.where(lo > 0, lo, 1.0), jnp.inf)
+    return jnp.where(zero_col, jnp.inf, cond)
+
+
+def classify(
+    theta: Float[Array, " P"],
+    cost: Float[Array, ""],
+    jtj: Float[Array, "P P"],
+    converged: Bool[Array, ""],
+    valid: Bool[Array, ""],
+    *,
+    cond_max: float,
+    space: ParamSpace | None = None,
+    n_usable: Int[Array, ""] | None = None,
+    bound_rtol: float = 1e-3,
+) -> Int[Array, ""]:
+    """The :class:`Status` of one pixel; the most severe condition wins (see ``_status``)."""
+    status = jnp.where(converged, Status.CONVERGED, Status.MAX_ITERATIONS)
+    ill = equilibrated_condition(jtj) > cond_max
+    status = jnp.where(ill, Status.ILL_CONDITIONED, status)
+    if space is not None:
+        status = jnp.where(jnp.any(space.at_bound(theta, bound_rtol)), Status.AT_BOUND, status)
+    if n_usable is not None:
+        status = jnp.where(n_usable < theta.shape[-1], Status.MASKED, status)
+    finite = valid & jnp.isfinite(cost) & jnp.all(jnp.isfinite(theta))
+    status = jnp.where(finite, status, Status.NONFINITE_INPUT)
+    return status.astype(jnp.int32)
