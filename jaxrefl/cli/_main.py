@@ -3,16 +3,20 @@
 from __future__ import annotations
 
 import argparse
+import importlib
 import sys
 from collections.abc import Sequence
 
-from . import _demo, _models
-
 __all__ = ["main"]
 
+# Command name -> module defining HELP, add_arguments(parser) and run(args) -> int.
 _COMMANDS = {
-    "demo": _demo,
-    "models": _models,
+    "demo": "jaxrefl.cli._demo",
+    "fit": "jaxrefl.cli._fit",
+    "sample": "jaxrefl.cli._sample",
+    "ps": "jaxrefl.cli._ps",
+    "fit-brdf": "jaxrefl.cli._fit_brdf",
+    "models": "jaxrefl.cli._models",
 }
 
 
@@ -25,7 +29,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"jaxrefl {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name, module in _COMMANDS.items():
+    for name, module_name in _COMMANDS.items():
+        module = importlib.import_module(module_name)
         p = sub.add_parser(name, help=module.HELP, description=module.__doc__)
         module.add_arguments(p)
         p.set_defaults(_run=module.run)
