@@ -223,15 +223,15 @@ def _read_spd(path: Path) -> tuple[np.ndarray, np.ndarray, list[str]]:
         try:
             if len(fields) != 2:
                 raise ValueError
-            lam, val = float(fields[0]), float(fields[1])
+            w_nm, v = float(fields[0]), float(fields[1])
         except ValueError:
             raise ValueError(
                 f"{path}:{lineno}: expected two numbers 'wavelength value', got {raw!r} "
                 f"(corrupt or truncated file?)"
             ) from None
-        if not (np.isfinite(lam) and np.isfinite(val)):
+        if not (np.isfinite(w_nm) and np.isfinite(v)):
             raise ValueError(f"{path}:{lineno}: non-finite number in {raw!r}")
-        rows.append((lam, val))
+        rows.append((w_nm, v))
     if len(rows) < 2:
         raise ValueError(f"{path}: needs at least two data rows, found {len(rows)}")
     data = np.asarray(rows, dtype=np.float64)

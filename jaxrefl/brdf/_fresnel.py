@@ -166,7 +166,7 @@ def fresnel_schlick(
     c = jnp.clip(jnp.asarray(cos_theta), 0.0, 1.0)  # clamp: round-off of unit-vector dots
     m = 1.0 - c
     m2 = m * m
-    return f0 + (1.0 - f0) * (m2 * m2 * m)
+    return jnp.asarray(f0 + (1.0 - f0) * (m2 * m2 * m))
 
 
 def f0_from_eta(eta: Float[ArrayLike, "*b"]) -> Float[Array, "*b"]:

@@ -18,6 +18,7 @@ so row 0 is the top (+y) edge and column 0 the left (-x) edge, as a photo seen f
 from __future__ import annotations
 
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from ..brdf._frame import safe_normalize
@@ -117,7 +118,7 @@ def planar_points(
     data), or ``(S_x, S_y)`` for a rectangle: x = ((j + 0.5)/W - 0.5) S_x,
     y = -((i + 0.5)/H - 0.5) S_y, z = 0 (module docstring).
     """
-    sx, sy = (side, side) if jnp.ndim(side) == 0 else side
+    sx, sy = (side, side) if np.ndim(side) == 0 else side  # type: ignore[misc]
     dtype = dtype if dtype is not None else jnp.result_type(float)
     j = (jnp.arange(width, dtype=dtype) + 0.5) / width - 0.5
     i = (jnp.arange(height, dtype=dtype) + 0.5) / height - 0.5

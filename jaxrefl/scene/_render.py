@@ -113,7 +113,7 @@ def _same_layout(items: Sequence) -> bool:
     s0 = jax.tree.structure(items[0])
     leaves0 = [(a.shape, a.dtype) for a in jax.tree.leaves(items[0])]
     for it in items[1:]:
-        if jax.tree.structure(it) != s0:
+        if jax.tree.structure(it) != s0:  # type: ignore[operator]  # PyTreeDef has __ne__
             return False
         if [(a.shape, a.dtype) for a in jax.tree.leaves(it)] != leaves0:
             return False
