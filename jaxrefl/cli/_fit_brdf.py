@@ -1,13 +1,127 @@
-"""Placeholder: this command is being written; replaced by its implementation."""
+"""Fit analytic BRDF models to one measured material and report error, parameters and time.
+
+    jaxrefl fit-brdf FILE [--models NAME ...] --out OUT_DIR
+
+FILE is a Cornell ASTM E1392 file (``.astm``; spectral, converted to linear sRGB under
+``--illuminant`` with the CIE 1931 2-degree colour-matching functions, or fitted band by
+band with ``--spectral bands``), a CURET value file (``abrdf.dat``; ``--sample N`` picks one
+of the 61 samples, ``--curet-table`` the geometry table, default ``table.txt`` beside it) or
+a MERL binary file (``.binary``; ``--merl-samples`` random cells). Default models: lambert,
+blinn_phong, ward, cook_torrance_beckmann, cook_torrance_ggx, lafortune_1..3.
+
+Writes OUT_DIR/report.json (per model: parameters, the cosine-weighted L2 of Ngan et al.
+2005, log-space and relative L2, fit wall time without compilation, compilation time, number
+of parameters, solver status, float64 retry) and OUT_DIR/lobes.png (polar plots of measured
+against fitted f_r cos(theta_o) in the plane of incidence at several incidence angles).
+"""
+
+from __future__ import annotations
 
 import argparse
+import json
+from pathlib import Path
 
-HELP = "fit measured BRDFs (in progress)"
+HELP = "fit analytic models to a measured BRDF (Cornell, CURET, MERL)"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("path", nargs="?")
+    from jaxrefl.measured import DEFAULT_MODELS
+
+    p.add_argument("path", metavar="FILE", help="measured BRDF file (.astm, .dat, .binary)")
+    p.add_argument(
+        "--models",
+        nargs="+",
+        default=None,
+        metavar="NAME",
+        help=f"models to fit (default: all of {', '.join(DEFAULT_MODELS)}); "
+        "names may also be comma-separated",
+    )
+    p.add_argument("--out", required=True, type=Path, help="output folder")
+    p.add_argument(
+        "--spectral",
+        choices=("rgb", "bands"),
+        default="rgb",
+        help="spectral data: convert to RGB (default) or fit every band separately",
+    )
+    p.add_argument("--illuminant", choices=("D65", "E"), default="D65")
+    p.add_argument("--sample", type=int, default=None, help="CURET sample number (1..61)")
+    p.add_argument("--curet-table", type=Path, default=None, help="CURET geometry table")
+    p.add_argument(
+        "--merl-samples", type=int, default=20_000, help="MERL cells drawn at random (0: all)"
+    )
+    p.add_argument(
+        "--max-theta",
+        type=float,
+        default=80.0,
+        help="leave out directions beyond this angle from the normal, degrees (default 80, "
+        "as Ngan et al. 2005; a negative value keeps all)",
+    )
+    p.add_argument("--no-cosine", action="store_true", help="fit f_r, not f_r cos(theta_i)")
+    p.add_argument("--backend", choices=("lean", "optimistix", "jaxopt"), default="lean")
+    p.add_argument("--dtype", choices=("float32", "float64"), default="float32")
+    p.add_argument("--no-retry", action="store_true", help="no automatic float64 retry")
+    p.add_argument("--max-iters", type=int, default=None, help="solver iteration budget")
+    p.add_argument(
+        "--thetas",
+        type=float,
+        nargs="+",
+        default=None,
+        help="incidence angles of the lobe plots, degrees (default: spread over the data)",
+    )
+    p.add_argument("--no-plot", action="store_true", help="skip lobes.png")
+
+
+def _model_names(raw: list[str] | None) -> list[str] | None:
+    if raw is None:
+        return None
+    names = [n.strip() for item in raw for n in item.split(",") if n.strip()]
+    from jaxrefl.measured import DEFAULT_MODELS
+
+    unknown = [n for n in names if n not in DEFAULT_MODELS]
+    if unknown:
+        raise ValueError(f"unknown model(s) {unknown}; choose from {', '.join(DEFAULT_MODELS)}")
+    return names
 
 
 def run(args: argparse.Namespace) -> int:
-    raise ValueError("this command is not available yet")
+    from jaxrefl import measured as jm
+
+    names = _model_names(args.models)
+    m = jm.load_measured(
+        args.path,
+        curet_table=args.curet_table,
+        curet_sample=args.sample,
+        merl_samples=None if args.merl_samples == 0 else args.merl_samples,
+    )
+    max_theta = None if args.max_theta < 0 else args.max_theta
+    print(f"{m.name}: {len(m)} samples, {m.n_channels} channels from {args.path}")
+    report = jm.fit_brdf(
+        m,
+        names,
+        spectral=args.spectral,
+        illuminant=args.illuminant,
+        max_theta_deg=max_theta,
+        cosine=not args.no_cosine,
+        backend=args.backend,
+        dtype=args.dtype,
+        retry_float64=not args.no_retry,
+        max_iters=args.max_iters,
+        progress=lambda name: print(f"  fitting {name} ...", flush=True),
+    )
+    args.out.mkdir(parents=True, exist_ok=True)
+    report_path = args.out / "report.json"
+    report_path.write_text(json.dumps(report.to_dict(), indent=2, allow_nan=True) + "\n")
+    print(report.table())
+    print(f"best (cosine-weighted L2): {report.best()}")
+    print(f"wrote {report_path}")
+    if not args.no_plot:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        fig = jm.plot_fit_lobes(report, thetas_deg=args.thetas)
+        fig.savefig(args.out / "lobes.png", dpi=100)
+        plt.close(fig)
+        print(f"wrote {args.out / 'lobes.png'}")
+    return 0

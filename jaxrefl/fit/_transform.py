@@ -239,6 +239,7 @@ class _Block(eqx.Module):
     start: int = eqx.field(static=True)
     stop: int = eqx.field(static=True)
     runs: tuple[_Run, ...]
+    grey: bool = eqx.field(default=False, static=True)  # one entry shared by all channels
 
 
 def _channel_labels(channels: int) -> tuple[str, ...]:
@@ -270,7 +271,8 @@ class ParamSpace(eqx.Module):
     lobe. ``labels`` names each entry: ``("albedo.R", ..., "specular.B", "alpha")``.
 
     Fixed values are global constants (the same for every pixel); a colour given as a scalar
-    is broadcast to C channels.
+    is broadcast to C channels. ``grey`` names colour parameters fitted as one value shared
+    by every channel (e.g. a dielectric's specular F0): one entry, labelled by the name.
     """
 
     model: BRDF
@@ -289,8 +291,13 @@ class ParamSpace(eqx.Module):
         fixed: Mapping[str, ArrayLike] | None = None,
         transforms: Mapping[str, Bijection] | None = None,
         channel_names: tuple[str, ...] | None = None,
+        grey: tuple[str, ...] | list[str] = (),
     ):
         bounds = dict(bounds or {})
+        grey = tuple(grey)
+        for g in grey:
+            if g not in model.param_names or model.param_spec(g).kind != "color":
+                raise KeyError(f"grey names {g!r}, which is not a colour parameter of the model")
         fixed = dict(fixed or {})
         transforms = dict(transforms or {})
         names = model.param_names
@@ -311,7 +318,8 @@ class ParamSpace(eqx.Module):
             if q.name in fixed:
                 continue
             shape = _natural_shape(q, channels)
-            n = int(np.prod(shape, dtype=int))
+            is_grey = q.name in grey
+            n = 1 if is_grey else int(np.prod(shape, dtype=int))
             lo, hi = (float(v) for v in bounds.get(q.name, (q.lower, q.upper)))
             if not hi > lo:
                 raise ValueError(f"bounds for {q.name!r} must satisfy lower < upper: {lo, hi}")
@@ -331,8 +339,8 @@ class ParamSpace(eqx.Module):
                 bij = _default_bijection(q, lo, hi, user_upper=q.name in bounds)
                 b_lo, b_hi = bij.range
                 runs.append(_Run(start, start + n, bij, max(lo, b_lo), min(hi, b_hi)))
-            blocks.append(_Block(q.name, q.kind, shape, start, start + n, tuple(runs)))
-            labels.extend(self._labels_for(q, shape))
+            blocks.append(_Block(q.name, q.kind, shape, start, start + n, tuple(runs), is_grey))
+            labels.extend([q.name] if is_grey else self._labels_for(q, shape))
             start += n
         self.blocks = tuple(blocks)
         self.size = start
@@ -422,7 +430,10 @@ class ParamSpace(eqx.Module):
                 v = self.fixed[q.name].astype(theta.dtype)
                 out[q.name] = jnp.broadcast_to(v, (*batch, *v.shape))
         for b in self.blocks:
-            out[b.name] = x[..., b.start : b.stop].reshape((*batch, *b.shape))
+            v = x[..., b.start : b.stop]
+            if b.grey:  # one entry shared by the C channels
+                v = jnp.broadcast_to(v, (*batch, *b.shape))
+            out[b.name] = v.reshape((*batch, *b.shape))
         return {q.name: out[q.name] for q in self.model.params}
 
     def from_natural(self, params: Mapping[str, ArrayLike], dtype=None) -> Float[Array, "*b P"]:
@@ -445,6 +456,8 @@ class ParamSpace(eqx.Module):
         parts = []
         for b in self.blocks:
             v = jnp.broadcast_to(vals[b.name].astype(dtype), (*batch, *b.shape))
+            if b.grey:  # a shared channel value: the mean of the given colour
+                v = jnp.mean(v, axis=-1, keepdims=True)
             v = v.reshape((*batch, b.stop - b.start))
             for r in b.runs:
                 parts.append(r.bijection.inverse(v[..., r.start - b.start : r.stop - b.start]))

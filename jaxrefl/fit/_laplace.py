@@ -1,0 +1,224 @@
+"""Laplace (Gauss–Newton) uncertainty of every fitted pixel, in natural units.
+
+At the least-squares optimum theta* of a pixel, the Gauss–Newton approximation of the
+posterior of the unconstrained parameters (flat prior in theta) is Gaussian:
+
+    theta ~ N(theta*, Sigma_theta),   Sigma_theta = s^2 (J^T J)^-1,   J = dr/dtheta at theta*
+
+where r is the whitened, weighted residual of :class:`Residual` (so J^T J = J_pred^T W J_pred
+for W = weight / std^2), and s^2 is the noise scale:
+
+* ``noise="known"``: s^2 = 1 (the noise model's std is trusted; r is already whitened);
+* ``noise="estimate"`` (default): s^2 = 2 cost / (n - P), the residual variance with n the
+  number of active residuals (usable observations minus censored ones that are satisfied,
+  since those contribute neither residual nor Jacobian) and P free parameters; pixels with
+  n <= P keep s^2 = 1 and get ``NOT_IDENTIFIED``.
+
+Natural parameters x = g(theta) (the bijections of :class:`ParamSpace`) get the delta-method
+covariance Sigma_x = A Sigma_theta A^T with A = dx/dtheta: ``std`` (N, P) and ``corr``
+(N, P, P) in the units of :attr:`ParamSpace.labels`. For log-scale parameters (alpha,
+exponents) the Gaussian in theta is a log-normal in x; ``theta_std`` gives its log-width.
+
+Reliability flags (bits of ``flag``; 0 = the Gaussian approximation is trusted):
+
+=========================  ====  =====================================================
+``NO_ESTIMATE``              1    the fit gave no estimate (MASKED / NONFINITE_INPUT)
+``NOT_POSITIVE_DEFINITE``    2    J^T J has a non-positive pivot or a non-finite entry:
+                                  no covariance (std NaN)
+``AT_BOUND``                 4    a parameter sits at a bound: the posterior is cut
+                                  off there, a Gaussian is the wrong shape
+``NOT_IDENTIFIED``           8    some parameter's theta-space std exceeds
+                                  ``max_theta_std`` (default 1: the data do not pin it
+                                  down within a factor e of a log-scale parameter, or
+                                  within ~one logit unit of an albedo; e.g. roughness where
+                                  no highlight was observed), the equilibrated condition
+                                  number of J^T J exceeds ``cond_max``, or n <= P
+``NONFINITE``               16    a std or correlation is not finite
+=========================  ====  =====================================================
+
+Cost: one forward-mode Jacobian (P tangents) and a P x P Cholesky per pixel, about the cost
+of one LM iteration; the fit takes tens of them.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+from typing import Literal
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float, Int
+
+from ._lm import cho_solve_unrolled, cholesky_unrolled
+from ._residual import PixelData, Residual
+from ._status import Status, equilibrated_condition
+
+__all__ = ["LaplaceFlag", "LaplaceResult", "laplace"]
+
+
+class LaplaceFlag(enum.IntFlag):
+    """Bits of :attr:`LaplaceResult.flag` (module docstring)."""
+
+    NO_ESTIMATE = 1
+    NOT_POSITIVE_DEFINITE = 2
+    AT_BOUND = 4
+    NOT_IDENTIFIED = 8
+    NONFINITE = 16
+
+
+@dataclass(frozen=True, eq=False)
+class LaplaceResult:
+    """Per-pixel Laplace covariance (leading axis N; P = ``len(labels)``).
+
+    std:        (N, P) standard deviation of each natural parameter
+    corr:       (N, P, P) correlation matrix of the natural parameters
+    cov:        (N, P, P) natural-unit covariance
+    theta_std:  (N, P) standard deviation in the unconstrained space
+    noise_var:  (N,) s^2 used (estimated or 1)
+    flag:       (N,) int32 bit set of :class:`LaplaceFlag`; 0 = reliable
+    identified: (N, P) bool, per-parameter theta_std <= max_theta_std
+    """
+
+    labels: tuple[str, ...]
+    std: Float[Array, "N P"]
+    corr: Float[Array, "N P P"]
+    cov: Float[Array, "N P P"]
+    theta_std: Float[Array, "N P"]
+    noise_var: Float[Array, " N"]
+    flag: Int[Array, " N"]
+    identified: Array
+
+    @property
+    def reliable(self) -> Array:
+        """(N,) bool: flag == 0."""
+        return self.flag == 0
+
+    def flag_counts(self) -> dict[str, int]:
+        """Pixels per flag bit (a pixel may count under several), plus ``reliable``."""
+        f = np.asarray(self.flag)
+        out = {b.name or str(b.value): int(np.sum((f & b.value) != 0)) for b in LaplaceFlag}
+        out["reliable"] = int(np.sum(f == 0))
+        return out
+
+    def std_of(self, label: str) -> Array:
+        """(N,) std of the entry named ``label`` (e.g. ``"alpha"``, ``"albedo[G]"``)."""
+        return self.std[:, self.labels.index(label)]
+
+
+def _pixel(res: Residual, theta, data: PixelData, cost, estimate: bool, unroll_max: int):
+    p = theta.shape[-1]
+    ok = jnp.all(jnp.isfinite(theta))
+    # Gradient-safe: a pixel without an estimate is linearised at 0 and flagged.
+    t = jnp.where(ok, theta, 0.0)
+    jac = jax.jacfwd(res)(t, data)  # (K*C, P)
+    # A non-finite Jacobian entry makes the pixel NOT_POSITIVE_DEFINITE (through jtj).
+    jtj = jac.T @ jac
+    r = res(t, data)
+    active = jnp.sum(jnp.any(jac != 0.0, axis=-1) | (r != 0.0))
+    dof = active - p
+    c = 0.5 * jnp.sum(r * r) if cost is None else cost
+    if estimate:
+        s2 = jnp.where(dof > 0, 2.0 * c / jnp.where(dof > 0, dof, 1), 1.0)
+    else:
+        s2 = jnp.ones((), theta.dtype)
+    # Column scaling (equilibration) before the factorisation keeps float32 pivots sane when
+    # albedo and log-alpha columns differ by orders of magnitude.
+    d = jnp.diagonal(jtj)
+    scale = 1.0 / jnp.sqrt(jnp.where(d > 0, d, 1.0))
+    a = jtj * scale[:, None] * scale[None, :]
+    eye = jnp.eye(p, dtype=theta.dtype)
+    if p <= unroll_max:
+        l_fac, pd = cholesky_unrolled(a)
+        l_safe = jnp.where(pd, l_fac, eye)  # gradient-safe: a failed factor is not used
+        inv_a = cho_solve_unrolled(l_safe[None], eye).T
+    else:
+        l_fac = jnp.linalg.cholesky(a)
+        pd = jnp.all(jnp.isfinite(l_fac))
+        l_safe = jnp.where(pd, l_fac, eye)
+        inv_a = jax.scipy.linalg.cho_solve((l_safe, True), eye)
+    pd = pd & jnp.all(jnp.isfinite(jtj)) & jnp.all(d > 0) & jnp.all(jnp.isfinite(inv_a))
+    cov_t = s2 * inv_a * scale[:, None] * scale[None, :]
+    cov_t = jnp.where(pd, cov_t, jnp.nan)
+    amat = res.space.jacobian_natural(t)  # (P, P): dx/dtheta
+    cov_x = amat @ cov_t @ amat.T
+    std_t = jnp.sqrt(jnp.maximum(jnp.diagonal(cov_t), 0.0))
+    std_x = jnp.sqrt(jnp.maximum(jnp.diagonal(cov_x), 0.0))
+    # Safe division: a zero std (a parameter pinned exactly) gives correlation 0, not NaN.
+    denom = std_x[:, None] * std_x[None, :]
+    corr = jnp.where(denom > 0, cov_x / jnp.where(denom > 0, denom, 1.0), 0.0)
+    corr = jnp.where(pd, corr, jnp.nan)
+    cond = equilibrated_condition(jtj)
+    return std_x, corr, cov_x, std_t, s2, pd, cond, dof, ok
+
+
+@eqx.filter_jit
+def _laplace_jit(res, theta, data, cost, status, estimate, max_theta_std, cond_max, unroll):
+    fn = jax.vmap(lambda t, d, c: _pixel(res, t, d, c, estimate, unroll))
+    std, corr, cov, std_t, s2, pd, cond, dof, ok = fn(theta, data, cost)
+    at_bound = jnp.any(res.space.at_bound(jnp.where(ok[:, None], theta, 0.0)), axis=-1)
+    identified = std_t <= max_theta_std
+    none = (status >= Status.MASKED) | ~ok
+    flag = jnp.zeros(theta.shape[:1], jnp.int32)
+    flag = flag | jnp.where(none, LaplaceFlag.NO_ESTIMATE, 0)
+    flag = flag | jnp.where(~pd & ~none, LaplaceFlag.NOT_POSITIVE_DEFINITE, 0)
+    flag = flag | jnp.where(at_bound & ~none, LaplaceFlag.AT_BOUND, 0)
+    not_id = (~jnp.all(identified, axis=-1) | (cond > cond_max) | (dof <= 0)) & pd & ~none
+    flag = flag | jnp.where(not_id, LaplaceFlag.NOT_IDENTIFIED, 0)
+    finite = jnp.all(jnp.isfinite(std), axis=-1) & jnp.all(jnp.isfinite(corr), axis=(-2, -1))
+    flag = flag | jnp.where(~finite & pd & ~none, LaplaceFlag.NONFINITE, 0)
+    nan = jnp.nan
+    std = jnp.where(none[:, None], nan, std)
+    std_t = jnp.where(none[:, None], nan, std_t)
+    corr = jnp.where(none[:, None, None], nan, corr)
+    cov = jnp.where(none[:, None, None], nan, cov)
+    return std, corr, cov, std_t, s2, flag.astype(jnp.int32), identified & ~none[:, None]
+
+
+def laplace(
+    fit,
+    data: PixelData,
+    *,
+    residual: Residual | None = None,
+    noise: Literal["estimate", "known"] = "estimate",
+    max_theta_std: float = 1.0,
+    cond_max: float | None = None,
+    unroll_max: int = 8,
+) -> LaplaceResult:
+    """Laplace covariance of every pixel of a :class:`FitResult` from :func:`fit_pixels`.
+
+    fit:       the result (its ``theta``, ``status``, ``space``, ``model``)
+    data:      the :class:`PixelData` it was fitted to (leading N axis)
+    residual:  the residual used in the fit (default: Gaussian sigma 1, L2, as
+               :func:`fit_pixels` defaults); pass it when the fit used another noise or loss
+    noise:     ``"estimate"`` the noise scale from the residuals, or ``"known"``
+    max_theta_std, cond_max: thresholds of ``NOT_IDENTIFIED`` (cond_max default 1e7 in
+               float32, 1e10 in float64, as the fit's ILL_CONDITIONED)
+    """
+    from ._residual import make_residual
+
+    res = make_residual(fit.model, fit.space) if residual is None else residual
+    theta = jnp.asarray(fit.theta)
+    if theta.ndim != 2:
+        raise ValueError(f"laplace expects a batch fit with theta (N, P); got {theta.shape}")
+    data = data.astype(theta.dtype)
+    if cond_max is None:
+        cond_max = 1e7 if jnp.finfo(theta.dtype).bits <= 32 else 1e10
+    if noise not in ("estimate", "known"):
+        raise ValueError(f"noise must be 'estimate' or 'known', not {noise!r}")
+    cost = jnp.where(jnp.isfinite(fit.cost), fit.cost, 0.0).astype(theta.dtype)
+    out = _laplace_jit(
+        res,
+        theta,
+        data,
+        cost,
+        jnp.asarray(fit.status),
+        noise == "estimate",
+        float(max_theta_std),
+        float(cond_max),
+        int(unroll_max),
+    )
+    std, corr, cov, std_t, s2, flag, identified = out
+    return LaplaceResult(fit.space.labels, std, corr, cov, std_t, s2, flag, identified)

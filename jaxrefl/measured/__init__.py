@@ -1,0 +1,44 @@
+"""Analytic models fitted to measured BRDFs: error metrics, the default model set, fits with
+timing and an automatic float64 retry, reports and lobe plots.
+
+Quick use::
+
+    from jaxrefl import measured as jm
+    from jaxrefl.io import read_cornell
+
+    m = read_cornell("acryl_blue.astm")            # 31 bands, f_r in 1/sr
+    report = jm.fit_brdf(m)                         # every default model, RGB under D65
+    print(report.table())
+    report.to_dict()                                # what `jaxrefl fit-brdf` writes
+
+Parts: :mod:`._metrics` (cosine-weighted L2 of Ngan et al. 2005, log-space and relative
+L2), :mod:`._models` (the named model set), :mod:`._data` (reading, RGB conversion, angle
+limit), :mod:`._fit` (fit one model / all of them), :mod:`._retry` (float32 -> float64),
+:mod:`._plots` (measured vs fitted lobes), :mod:`._stiff` (stiff synthetic fits for the
+stability benchmark).
+"""
+
+from ._data import detect_format as detect_format
+from ._data import load_measured as load_measured
+from ._data import restrict as restrict
+from ._data import to_rgb as to_rgb
+from ._fit import FitReport as FitReport
+from ._fit import ModelFit as ModelFit
+from ._fit import fit_brdf as fit_brdf
+from ._fit import fit_model as fit_model
+from ._fit import predict as predict
+from ._metrics import METRICS as METRICS
+from ._metrics import cosine_weighted_l2 as cosine_weighted_l2
+from ._metrics import error_metrics as error_metrics
+from ._metrics import log_l2 as log_l2
+from ._metrics import relative_l2 as relative_l2
+from ._metrics import sample_weights as sample_weights
+from ._metrics import usable_samples as usable_samples
+from ._models import DEFAULT_MODELS as DEFAULT_MODELS
+from ._models import MODEL_DESCRIPTIONS as MODEL_DESCRIPTIONS
+from ._models import build_model as build_model
+from ._models import resolve_models as resolve_models
+from ._plots import in_plane_samples as in_plane_samples
+from ._plots import incidence_angles as incidence_angles
+from ._plots import plot_fit_lobes as plot_fit_lobes
+from ._retry import float64_reasons as float64_reasons

@@ -1,0 +1,400 @@
+"""Fit analytic models to one measured material and report error, parameters and time.
+
+:func:`fit_model` fits one model with :func:`jaxrefl.fit.fit_samples` (lean batched
+Levenberg-Marquardt by default; ``backend`` picks optimistix or jaxopt) and returns a
+:class:`ModelFit`; :func:`fit_brdf` prepares the samples once (spectra to RGB or per band,
+angle limit, solid-angle weights) and fits a whole set of models into a :class:`FitReport`
+whose :meth:`FitReport.to_dict` is the ``report.json`` of ``jaxrefl fit-brdf``.
+
+What is minimised: with ``cosine=True`` (default) the residual is
+(f̂ - f) cos(theta_i) per sample and channel, i.e. exactly the quantity inside the
+cosine-weighted L2 of Ngan et al. 2005 (unweighted in the solver: the solid-angle weights
+enter only the reported metrics); ``cosine=False`` fits f_r itself. Samples beyond
+``max_theta_deg`` (default 80 degrees, as Ngan et al.) from the normal are left out of the
+fit and of the metrics.
+
+Time: ``fit_time_s`` is the wall time of a second, identical call (compiled code is cached
+by then), ``compile_time_s`` the extra time of the first call (tracing + XLA compilation +
+the first run's transfers). With ``retry_float64`` a float32 fit that shows a reason of
+:func:`~jaxrefl.measured._retry.float64_reasons` is redone in float64; both times are then
+included and the report says why, and which result was kept.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxrefl.brdf import BRDF
+from jaxrefl.fit import FitResult, Status, fit_samples
+from jaxrefl.io import MeasuredBRDF
+
+from ._data import restrict, to_rgb
+from ._metrics import METRICS, error_metrics, sample_weights, usable_samples
+from ._models import MODEL_DESCRIPTIONS, resolve_models
+from ._retry import choose, float64_enabled, float64_reasons, x64
+
+__all__ = ["FitReport", "ModelFit", "fit_brdf", "fit_model", "predict"]
+
+DType = Literal["float32", "float64"]
+Channels = Literal["joint", "separate"]
+
+
+def _jnp_dtype(name: str):
+    if name not in ("float32", "float64"):
+        raise ValueError(f"dtype must be 'float32' or 'float64', not {name!r}")
+    return jnp.float32 if name == "float32" else jnp.float64
+
+
+def _run(name: str, fn: Callable[[], FitResult]) -> FitResult:
+    if name == "float64" and not float64_enabled():
+        with x64():
+            return fn()
+    return fn()
+
+
+def _timed(dtype: str, fn: Callable[[], FitResult], timing: bool) -> tuple[FitResult, float, float]:
+    t0 = time.perf_counter()
+    r = _run(dtype, fn)
+    jax.block_until_ready(r.theta)
+    t1 = time.perf_counter()
+    if not timing:
+        return r, t1 - t0, float("nan")
+    r = _run(dtype, fn)
+    jax.block_until_ready(r.theta)
+    t2 = time.perf_counter()
+    warm = t2 - t1
+    return r, warm, max(t1 - t0 - warm, 0.0)
+
+
+def predict(
+    result: FitResult, wi: np.ndarray, wo: np.ndarray, channels: Channels = "joint"
+) -> np.ndarray:
+    """f_r (K, C) of a fit of :func:`fit_samples` at the given directions, in float64.
+
+    ``channels="separate"`` (one problem per channel, theta of shape (C, P)) evaluates each
+    channel with its own parameters.
+    """
+    with x64():
+        wi64 = jnp.asarray(wi, jnp.float64)
+        wo64 = jnp.asarray(wo, jnp.float64)
+        theta = jnp.asarray(np.asarray(result.theta), jnp.float64)
+        space = result.space
+        if channels == "joint":
+            f = result.model.eval(space.to_natural(theta[None]), wi64, wo64)
+        else:
+            f = jnp.concatenate(
+                [
+                    result.model.eval(space.to_natural(theta[c : c + 1]), wi64, wo64)
+                    for c in range(theta.shape[0])
+                ],
+                axis=-1,
+            )
+        return np.asarray(f, dtype=np.float64)
+
+
+def _cost64(f_hat: np.ndarray, f: np.ndarray, cos_i: np.ndarray, cosine: bool) -> float:
+    """1/2 sum (f̂ - f)^2 (times cos_i^2 with ``cosine``): the fit's cost, in float64."""
+    d = f_hat - f
+    if cosine:
+        d = d * cos_i[:, None]
+    ok = np.isfinite(f)
+    return float(0.5 * np.sum(np.where(ok, d, 0.0) ** 2)) if np.all(np.isfinite(d[ok])) else np.inf
+
+
+def _status_summary(result: FitResult) -> str | dict[str, int]:
+    s = np.asarray(result.status)
+    if s.ndim == 0:
+        return Status(int(s)).name
+    return {k: v for k, v in result.status_counts().items() if v}
+
+
+def _to_list(x: Any) -> Any:
+    a = np.asarray(x, dtype=np.float64)
+    return float(a) if a.ndim == 0 else a.tolist()
+
+
+@dataclass(frozen=True, eq=False)
+class ModelFit:
+    """One model fitted to one material.
+
+    params:         natural parameters (NumPy; a leading channel axis C when fitted per
+                    channel), from the kept result
+    metrics:        the three errors of :mod:`jaxrefl.measured._metrics` (``METRICS``)
+    cost:           the fit's 1/2 sum of squared residuals, re-evaluated in float64
+    fit_time_s:     wall time of the fit without compilation (both fits if retried)
+    compile_time_s: the extra time of the first call (compilation), NaN if not timed
+    n_params:       free parameters per problem (P), times C problems when per channel
+    dtype:          precision of the kept result
+    retry:          None, or what the float64 retry found (reasons, costs, which was kept)
+    """
+
+    name: str
+    model: BRDF
+    result: FitResult
+    params: dict[str, np.ndarray]
+    metrics: dict[str, float]
+    cost: float
+    fit_time_s: float
+    compile_time_s: float
+    n_params: int
+    dtype: str
+    channels: str
+    backend: str
+    retry: dict[str, Any] | None = None
+
+    @property
+    def status(self) -> str | dict[str, int]:
+        return _status_summary(self.result)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready summary (the per-model entry of ``report.json``)."""
+        return {
+            "model": self.name,
+            "description": MODEL_DESCRIPTIONS.get(self.name, type(self.model).__name__),
+            "n_params": self.n_params,
+            "params": {k: _to_list(v) for k, v in self.params.items()},
+            "metrics": {k: self.metrics[k] for k in METRICS},
+            "cost": self.cost,
+            "status": self.status,
+            "iterations": np.asarray(self.result.iterations).tolist(),
+            "fit_time_s": self.fit_time_s,
+            "compile_time_s": self.compile_time_s,
+            "dtype": self.dtype,
+            "channels": self.channels,
+            "backend": self.backend,
+            "retry": self.retry,
+        }
+
+
+def fit_model(
+    model: BRDF,
+    measured: MeasuredBRDF,
+    *,
+    name: str | None = None,
+    channels: Channels = "joint",
+    cosine: bool = True,
+    backend: str = "lean",
+    dtype: DType = "float32",
+    retry_float64: bool = True,
+    max_iters: int | None = None,
+    max_theta_deg: float | None = 80.0,
+    weight: np.ndarray | None = None,
+    timing: bool = True,
+) -> ModelFit:
+    """Fit ``model`` to ``measured`` (module docstring) and compute the error metrics.
+
+    channels:      ``"joint"`` (colour parameters per channel, shared roughness) or
+                   ``"separate"`` (each channel its own problem, e.g. spectral bands)
+    dtype:         ``"float32"`` (default, fast) or ``"float64"``; float64 works whether or
+                   not JAX runs with x64 enabled (it is switched on around the fit)
+    retry_float64: redo a float32 fit in float64 when it has a non-finite cost or parameter
+                   or a NONFINITE_INPUT / ILL_CONDITIONED status, and keep the float64
+                   result when it is finite and no worse (see ``_retry``)
+    weight:        per-sample solid-angle weights for the metrics (default 1), aligned
+                   with ``measured`` before the angle limit is applied
+    """
+    name = name or type(model).__name__
+    ok = usable_samples(measured.wi, measured.wo, measured.values, max_theta_deg)
+    data = measured.select(ok)
+    w = None if weight is None else np.asarray(weight, dtype=np.float64)[ok]
+    if len(data) == 0:
+        raise ValueError(f"{measured.source}: no usable samples within {max_theta_deg} degrees")
+    f = np.asarray(data.values)
+    cos_i = data.wi[:, 2]
+
+    def run(dt: str) -> tuple[FitResult, float, float]:
+        def fn() -> FitResult:
+            return fit_samples(
+                model,
+                data,
+                channels=channels,
+                cosine=cosine,
+                backend=backend,  # type: ignore[arg-type]
+                dtype=_jnp_dtype(dt),
+                max_iters=max_iters,
+            )
+
+        return _timed(dt, fn, timing)
+
+    result, t_fit, t_comp = run(dtype)
+    kept = dtype
+    f_hat = predict(result, data.wi, data.wo, channels)
+    cost = _cost64(f_hat, f, cos_i, cosine)
+    retry = None
+    if retry_float64 and dtype == "float32":
+        reasons = float64_reasons(result)
+        if not np.isfinite(cost) and "non-finite cost" not in reasons:
+            reasons.append("non-finite cost")
+        if reasons:
+            r64, t64, c64 = run("float64")
+            f_hat64 = predict(r64, data.wi, data.wo, channels)
+            cost64 = _cost64(f_hat64, f, cos_i, cosine)
+            kept = choose(cost, cost64)
+            retry = {
+                "reasons": reasons,
+                "float32_status": _status_summary(result),
+                "float32_cost": cost,
+                "float64_status": _status_summary(r64),
+                "float64_cost": cost64,
+                "kept": kept,
+                "float64_fit_time_s": t64,
+            }
+            t_fit += t64
+            t_comp = t_comp + c64
+            if kept == "float64":
+                result, f_hat, cost = r64, f_hat64, cost64
+    metrics = error_metrics(f, f_hat, data.wi, data.wo, weight=w, max_theta_deg=None)
+    params = {k: np.asarray(v, dtype=np.float64) for k, v in result.params.items()}
+    n_problems = int(np.asarray(result.status).size)
+    return ModelFit(
+        name=name,
+        model=model,
+        result=result,
+        params=params,
+        metrics=metrics,
+        cost=cost,
+        fit_time_s=t_fit,
+        compile_time_s=t_comp,
+        n_params=int(result.space.size) * n_problems,
+        dtype=kept,
+        channels=channels,
+        backend=backend,
+        retry=retry,
+    )
+
+
+@dataclass(frozen=True, eq=False)
+class FitReport:
+    """Every model fitted to one material: :attr:`fits` by model name, the prepared samples
+    (:attr:`measured`, after colour conversion and the angle limit) and the settings."""
+
+    measured: MeasuredBRDF
+    fits: dict[str, ModelFit]
+    settings: dict[str, Any] = field(default_factory=dict)
+    weight: np.ndarray | None = None
+
+    def best(self, metric: str = "cosine_weighted_l2") -> str:
+        """Name of the model with the lowest ``metric`` (NaN counts as worst)."""
+        vals = {k: v.metrics[metric] for k, v in self.fits.items()}
+        return min(vals, key=lambda k: np.inf if not np.isfinite(vals[k]) else vals[k])
+
+    def table(self) -> str:
+        """A Markdown table: model, parameters, the three errors, time, status."""
+        head = (
+            "| model | P | cos-weighted L2 | log L2 | relative L2 | fit ms | compile s | status |"
+        )
+        rows = [head, "|" + "---|" * 8]
+        for k, v in self.fits.items():
+            m = v.metrics
+            st = v.status if isinstance(v.status, str) else ",".join(v.status)
+            if v.retry:
+                st += f" (retried: kept {v.retry['kept']})"
+            rows.append(
+                f"| {k} | {v.n_params} | {m['cosine_weighted_l2']:.4g} | {m['log_l2']:.4g} | "
+                f"{m['relative_l2']:.4g} | {1e3 * v.fit_time_s:.1f} | {v.compile_time_s:.2f} | "
+                f"{st} |"
+            )
+        return "\n".join(rows)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The content of ``report.json``."""
+        m = self.measured
+        meta = {k: v for k, v in m.meta.items() if k in ("format", "sample", "color", "restricted")}
+        return {
+            "material": m.name,
+            "source": m.source,
+            "n_samples": len(m),
+            "channels": list(m.channels),
+            "data": meta,
+            "settings": self.settings,
+            "metrics_definition": {
+                "cosine_weighted_l2": "sqrt(sum_k w_k sum_c (fhat-f)^2 cos_i^2 / (C sum_k w_k)) "
+                "[1/sr], Ngan et al. 2005",
+                "log_l2": "sqrt(sum_k w_k sum_c (ln(1+fhat cos_i) - ln(1+max(f,0) cos_i))^2 "
+                "/ (C sum_k w_k)), Low et al. 2012",
+                "relative_l2": "sqrt(sum_k w_k sum_c (fhat-f)^2 / sum_k w_k sum_c f^2)",
+                "weights": "solid angle per sample (MERL cells) else 1",
+            },
+            "best": {k: self.best(k) for k in METRICS},
+            "models": {k: v.to_dict() for k, v in self.fits.items()},
+            "jax": {"version": jax.__version__, "backend": jax.default_backend()},
+        }
+
+
+def fit_brdf(
+    measured: MeasuredBRDF,
+    models: Iterable[str] | Mapping[str, BRDF] | None = None,
+    *,
+    spectral: Literal["rgb", "bands"] = "rgb",
+    illuminant: Literal["D65", "E"] = "D65",
+    max_theta_deg: float | None = 80.0,
+    cosine: bool = True,
+    backend: str = "lean",
+    dtype: DType = "float32",
+    retry_float64: bool = True,
+    max_iters: int | None = None,
+    timing: bool = True,
+    progress: Callable[[str], None] | None = None,
+) -> FitReport:
+    """Fit every model in ``models`` (default: :data:`~jaxrefl.measured.DEFAULT_MODELS`) to
+    one material and collect a :class:`FitReport`.
+
+    spectral:   for spectral data (``wavelengths_nm`` set, e.g. Cornell): ``"rgb"`` converts
+                to linear sRGB under ``illuminant`` with the CIE 1931 CMFs (:func:`to_rgb`)
+                and fits the three channels jointly; ``"bands"`` fits every band as its own
+                problem (its own roughness too). Other data is fitted jointly as it is.
+    The other options are those of :func:`fit_model`.
+    """
+    built = resolve_models(models)
+    weight_all = sample_weights(measured)
+    channels: Channels = "joint"
+    data = measured
+    if measured.wavelengths_nm is not None:
+        if spectral == "rgb":
+            data = to_rgb(measured, illuminant)
+        elif spectral == "bands":
+            channels = "separate"
+        else:
+            raise ValueError(f"spectral must be 'rgb' or 'bands', not {spectral!r}")
+    ok = usable_samples(data.wi, data.wo, data.values, max_theta_deg)
+    prepared = restrict(data, max_theta_deg)
+    weight = weight_all[ok]
+    if len(prepared) == 0:
+        raise ValueError(f"{measured.source}: no usable samples within {max_theta_deg} degrees")
+    fits = {}
+    for name, model in built.items():
+        if progress is not None:
+            progress(name)
+        fits[name] = fit_model(
+            model,
+            prepared,
+            name=name,
+            channels=channels,
+            cosine=cosine,
+            backend=backend,
+            dtype=dtype,
+            retry_float64=retry_float64,
+            max_iters=max_iters,
+            max_theta_deg=None,
+            weight=weight,
+            timing=timing,
+        )
+    settings = {
+        "spectral": spectral if measured.wavelengths_nm is not None else None,
+        "illuminant": illuminant if channels == "joint" and data is not measured else None,
+        "channels": channels,
+        "max_theta_deg": max_theta_deg,
+        "cosine": cosine,
+        "backend": backend,
+        "dtype": dtype,
+        "retry_float64": retry_float64,
+        "max_iters": max_iters,
+    }
+    return FitReport(prepared, fits, settings, weight)

@@ -1,0 +1,182 @@
+"""Detect a fit that float32 could not handle, and redo it in float64.
+
+float32 (24-bit mantissa, eps = 6e-8) is the fast default, and the guarded models keep
+values and gradients finite, but a stiff problem can still defeat it:
+
+* a non-finite cost or parameter (overflow of a 1e5 exponent's lobe or a 1e-3 roughness's
+  distribution somewhere on the path), reported as ``Status.NONFINITE_INPUT``;
+* an ill-conditioned normal matrix: the lean solver flags ``Status.ILL_CONDITIONED`` when
+  the equilibrated condition number of J^T J exceeds 1e7 in float32 (1e10 in float64).
+  Above ~1/eps a float32 solve has no correct digit along the weakest direction, while
+  float64 still resolves it (nearly collinear lights, grazing-only observations).
+
+:func:`float64_reasons` says which of these a result shows (empty: keep it);
+:func:`choose` keeps the float64 redo where it is finite and at least as good (cost
+re-evaluated in float64 for both, so round-off of the float32 cost does not decide).
+``MASKED`` (no data) is not a precision problem and never triggers a retry.
+"""
+
+from __future__ import annotations
+
+from contextlib import contextmanager
+from dataclasses import dataclass
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxrefl.brdf import BRDF
+from jaxrefl.fit import FitResult, PixelData, Status, fit_pixels, make_residual
+
+__all__ = [
+    "RetryResult",
+    "choose",
+    "cost64",
+    "fit_pixels_retry",
+    "float64_enabled",
+    "float64_reasons",
+    "retry_mask",
+    "x64",
+]
+
+#: Status codes that send a float32 fit to float64.
+RETRY_STATUS = (Status.NONFINITE_INPUT, Status.ILL_CONDITIONED)
+
+
+def float64_reasons(result: FitResult) -> list[str]:
+    """Why ``result`` (any leading shape) should be redone in float64; [] when it is fine.
+
+    Reasons (each at most once): ``"non-finite cost"``, ``"non-finite parameters"``,
+    ``"status NONFINITE_INPUT"``, ``"status ILL_CONDITIONED"``; problems with no estimate
+    (MASKED) are left out.
+    """
+    status = np.atleast_1d(np.asarray(result.status))
+    has = status < Status.MASKED
+    out = []
+    cost = np.atleast_1d(np.asarray(result.cost))
+    if np.any(has & ~np.isfinite(cost)):
+        out.append("non-finite cost")
+    theta = np.asarray(result.theta).reshape(status.shape[0], -1)
+    if np.any(has & ~np.all(np.isfinite(theta), axis=-1)):
+        out.append("non-finite parameters")
+    for s in RETRY_STATUS:
+        if np.any(status == s):
+            out.append(f"status {s.name}")
+    return out
+
+
+def float64_enabled() -> bool:
+    """Whether JAX is running with 64-bit floats by default."""
+    return bool(jax.config.jax_enable_x64)
+
+
+@contextmanager
+def x64():
+    """Enable float64 inside the block (``jax.enable_x64``), restoring the setting after."""
+    with jax.enable_x64(True):
+        yield
+
+
+def choose(cost32: float, cost64: float) -> str:
+    """``"float64"`` when the float64 cost is finite and not worse than the float32 one
+    (relative slack 1e-6: equal optima within round-off keep the more precise answer),
+    else ``"float32"``."""
+    if not np.isfinite(cost64):
+        return "float32"
+    if not np.isfinite(cost32):
+        return "float64"
+    return "float64" if cost64 <= cost32 * (1.0 + 1e-6) + 1e-300 else "float32"
+
+
+def retry_mask(result: FitResult) -> np.ndarray:
+    """(N,) bool: the problems of a batched ``result`` (leading axis N) that
+    :func:`float64_reasons` would send to float64."""
+    status = np.atleast_1d(np.asarray(result.status))
+    has = status < Status.MASKED
+    cost = np.atleast_1d(np.asarray(result.cost))
+    theta = np.asarray(result.theta).reshape(status.shape[0], -1)
+    bad = has & (~np.isfinite(cost) | ~np.all(np.isfinite(theta), axis=-1))
+    return bad | np.isin(status, [int(s) for s in RETRY_STATUS])
+
+
+def cost64(result: FitResult, data: PixelData) -> np.ndarray:
+    """(N,) cost 1/2 |r|^2 of every problem of ``result`` re-evaluated in float64 on ``data``
+    (L2 loss, unit sigma: the default residual); inf where theta is not finite."""
+    with x64():
+        res = make_residual(result.model, result.space)
+        d64 = data.astype(jnp.float64)
+        theta = jnp.asarray(np.asarray(result.theta), jnp.float64)
+        ok = jnp.all(jnp.isfinite(theta), axis=-1)
+        # Gradient-free, but a NaN theta would still give NaN: evaluate it at 0 and mask.
+        t_safe = jnp.where(ok[:, None], theta, 0.0)
+        r = jax.vmap(res)(t_safe, d64)
+        c = 0.5 * jnp.sum(r * r, axis=-1)
+        c = jnp.where(ok & jnp.isfinite(c), c, jnp.inf)
+        return np.asarray(c, dtype=np.float64)
+
+
+@dataclass(frozen=True, eq=False)
+class RetryResult:
+    """A batched fit after the float64 retry.
+
+    result:       float64 arrays; each problem holds the kept result (float32's, or the
+                  float64 redo where that was kept)
+    retried:      (N,) bool, problems sent to float64 (:func:`retry_mask`)
+    kept_float64: (N,) bool, problems whose float64 redo was kept (:func:`choose`)
+    result32:     the original float32 fit
+    """
+
+    result: FitResult
+    retried: np.ndarray
+    kept_float64: np.ndarray
+    result32: FitResult
+
+    @property
+    def theta(self):
+        return self.result.theta
+
+
+def fit_pixels_retry(model: BRDF, data: PixelData, **kw: Any) -> RetryResult:
+    """:func:`jaxrefl.fit.fit_pixels` in float32, then the flagged problems again in float64.
+
+    Only the problems of :func:`retry_mask` are refitted (a batch of that size); per problem
+    the float64 result is kept when :func:`choose` prefers it (costs re-evaluated in
+    float64). Keyword arguments go to both fits (not ``dtype``).
+    """
+    if "dtype" in kw:
+        raise ValueError("fit_pixels_retry chooses the dtypes itself (float32, then float64)")
+    r32 = fit_pixels(model, data.astype(jnp.float32), **kw)
+    retried = retry_mask(r32)
+    kept = np.zeros_like(retried)
+    with x64():
+        merged = {
+            "theta": np.array(r32.theta, np.float64),
+            "status": np.array(r32.status),
+            "cost": np.array(r32.cost, np.float64),
+            "iterations": np.array(r32.iterations),
+            "n_used": np.array(r32.n_used),
+        }
+        idx = np.flatnonzero(retried)
+        if idx.size:
+            sub = jax.tree.map(lambda x: x[idx], data.astype(jnp.float64))
+            r64 = fit_pixels(model, sub, dtype=jnp.float64, **kw)
+            c32 = cost64(r32, data)[idx]
+            c64 = cost64(r64, sub)
+            take = np.asarray([choose(a, b) == "float64" for a, b in zip(c32, c64, strict=True)])
+            kept[idx[take]] = True
+            for key in merged:
+                merged[key][idx[take]] = np.asarray(getattr(r64, key))[take]
+        theta = jnp.asarray(merged["theta"], jnp.float64)
+        result = FitResult(
+            r32.space.to_natural(theta),
+            theta,
+            jnp.asarray(merged["status"]),
+            jnp.asarray(merged["cost"]),
+            jnp.asarray(merged["iterations"]),
+            jnp.asarray(merged["n_used"]),
+            r32.space,
+            model,
+            r32.backend,
+        )
+    return RetryResult(result, retried, kept, r32)

@@ -1,0 +1,49 @@
+"""The automatic float64 retry of jaxrefl.measured on a stiff case float32 cannot resolve:
+nearly collinear lights seen by one camera (J^T J condition 5e5 .. 6e9)."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+
+from jaxrefl import fit
+from jaxrefl import measured as jm
+from jaxrefl.io import MeasuredBRDF
+from jaxrefl.measured._retry import cost64, fit_pixels_retry, retry_mask
+from jaxrefl.measured._stiff import stiff_problems
+
+
+def test_collinear_lights_are_detected_and_redone_in_float64():
+    # Seed 2: problem 0 is flagged in float32, problem 1 is not (k = 32 samples each).
+    pr = stiff_problems("collinear_lights", n=2, k=32, seed=2)
+    rr = fit_pixels_retry(pr.model, pr.data)
+    r32 = rr.result32
+    status32 = np.asarray(r32.status)
+    # Detection: the float32 fits flagged ILL_CONDITIONED are exactly the retried ones.
+    assert np.array_equal(rr.retried, status32 == fit.Status.ILL_CONDITIONED)
+    assert rr.retried.tolist() == [True, False]
+    c32 = cost64(r32, pr.data)
+    c = cost64(rr.result, pr.data)
+    # Kept results are never worse; where float64 was kept the cost went down.
+    assert np.all(c <= c32 * (1 + 1e-6))
+    assert rr.kept_float64.tolist() == [True, False] and np.all(
+        c[rr.kept_float64] < c32[rr.kept_float64]
+    )
+    assert np.array_equal(c[~rr.retried], c32[~rr.retried])  # the others untouched
+    assert rr.result.theta.dtype == jnp.float64 and not retry_mask(rr.result)[~rr.retried].any()
+
+    # The same through the measured-fit API, on one flagged problem.
+    i = int(np.flatnonzero(rr.kept_float64)[0])
+    d = pr.data
+    m = MeasuredBRDF(
+        np.asarray(d.wi[i]), np.asarray(d.wo[i]), np.asarray(d.obs[i]), ("R", "G", "B")
+    )
+    kw = dict(cosine=False, max_theta_deg=None, timing=False)
+    one = jm.fit_model(pr.model, m, **kw)
+    assert one.retry is not None and "status ILL_CONDITIONED" in one.retry["reasons"]
+    assert one.retry["kept"] == "float64" == one.dtype
+    assert one.retry["float64_cost"] < one.retry["float32_cost"]
+    assert one.cost == one.retry["float64_cost"]
+    plain = jm.fit_model(pr.model, m, retry_float64=False, **kw)
+    assert plain.retry is None and plain.dtype == "float32" and plain.cost > one.cost
+    assert jm.float64_reasons(plain.result) == ["status ILL_CONDITIONED"]
