@@ -14,7 +14,8 @@ Parts: :class:`ParamSpace` and the bijections (unconstrained parametrisation), :
 and :func:`make_residual` (noise models, robust losses, censoring), :func:`initial_theta`
 (closed-form colours on a roughness grid), :func:`lm_solve` / :func:`batched_lm` (the lean
 Levenberg-Marquardt as pure init/step functions), :func:`solve` (lean, optimistix or
-jaxopt), and per-pixel :class:`Status` codes.
+jaxopt), per-pixel :class:`Status` codes, and :func:`laplace` (Gauss-Newton covariance in
+natural units with reliability flags).
 """
 
 from ._backends import FitInfo as FitInfo
@@ -23,6 +24,9 @@ from ._init import diffuse_albedo as diffuse_albedo
 from ._init import grid_values as grid_values
 from ._init import initial_theta as initial_theta
 from ._init import linear_params as linear_params
+from ._laplace import LaplaceFlag as LaplaceFlag
+from ._laplace import LaplaceResult as LaplaceResult
+from ._laplace import laplace as laplace
 from ._lm import LMInfo as LMInfo
 from ._lm import LMOptions as LMOptions
 from ._lm import LMResult as LMResult
