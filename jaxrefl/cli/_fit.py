@@ -1,13 +1,95 @@
-"""Placeholder: this command is being written; replaced by its implementation."""
+"""Fit a photographed planar capture: per-pixel reflectance maps with uncertainty.
+
+    jaxrefl fit CAPTURE_DIR --out OUT_DIR [--model ggx|beckmann|ggx_rgb|lambert]
+                [--holdout i,j,...] [--tile-pixels N] [--downsample F] [--restart]
+
+CAPTURE_DIR is in one of the layouts :func:`jaxrefl.io.load_capture` reads (the
+svbrdf-diff-renderer ``parameters.json`` layout, MaterialGAN's text files, or the generic
+JSON). Writes OUT_DIR/maps.exr (parameters, their Laplace std, correlations, status and
+reliability flags), OUT_DIR/report.json (timings with compile apart, pixel counts by status,
+the model, and with --holdout the held-out RMSE in linear radiance, overall and per photo)
+and PNG previews. An interrupted run resumes from OUT_DIR/tiles (--restart to start over).
+"""
+
+from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
-HELP = "fit a capture (in progress)"
+HELP = "fit a capture: per-pixel maps, uncertainty, held-out error"
+
+
+def _indices(text: str) -> tuple[int, ...]:
+    try:
+        return tuple(int(t) for t in text.split(",") if t.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"--holdout takes photo indices separated by commas (e.g. 0,4), not {text!r}"
+        ) from None
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("path", nargs="?")
+    from jaxrefl.svbrdf import CAPTURE_MODELS
+
+    p.add_argument("capture", type=Path, help="capture folder (or generic JSON file)")
+    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument("--model", default="ggx", choices=sorted(CAPTURE_MODELS), help="model")
+    p.add_argument("--holdout", type=_indices, default=(), help="photos to leave out, e.g. 0,4")
+    p.add_argument("--tile-pixels", type=int, default=4096, help="pixels per tile")
+    p.add_argument("--resolution", type=int, default=None, help="image folder to read")
+    p.add_argument("--downsample", type=int, default=1, help="box-filter factor before fitting")
+    p.add_argument("--max-photos", type=int, default=None, help="read at most this many photos")
+    p.add_argument("--backend", default="lean", choices=("lean", "optimistix", "jaxopt"))
+    p.add_argument("--dtype", default="float32", choices=("float32", "float64"))
+    p.add_argument("--noise", default="gaussian", choices=("gaussian", "shot"))
+    p.add_argument("--loss", default="l2", choices=("l2", "huber", "cauchy"))
+    p.add_argument("--restart", action="store_true", help="ignore tiles of an earlier run")
+    p.add_argument("--no-previews", action="store_true", help="skip the PNG previews")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
 def run(args: argparse.Namespace) -> int:
-    raise ValueError("this command is not available yet")
+    from jaxrefl.io import load_capture
+    from jaxrefl.svbrdf import FitJob, fit_capture, write_outputs
+
+    if args.dtype == "float64":
+        import jax
+
+        jax.config.update("jax_enable_x64", True)
+    capture = load_capture(args.capture, resolution=args.resolution, max_photos=args.max_photos)
+    if args.downsample > 1:
+        capture = capture.downsample(args.downsample)
+    job = FitJob(
+        model=args.model,
+        holdout=args.holdout,
+        tile_pixels=args.tile_pixels,
+        backend=args.backend,
+        dtype=args.dtype,
+        noise=args.noise,
+        loss=args.loss,
+    )
+    print(f"{capture}")
+    result = fit_capture(capture, job, args.out, restart=args.restart, progress=not args.quiet)
+    files = write_outputs(result, capture, args.out, previews=not args.no_previews)
+    print_summary(result.report)
+    print(f"wrote {files['maps']}, {files['report']}" + ("" if args.no_previews else " and previews"))
+    return 0
+
+
+def print_summary(report: dict) -> None:
+    t = report["timings"]
+    counts = ", ".join(f"{k} {v}" for k, v in report["status_counts"].items() if v)
+    print(f"model {report['model']}: {report['pixels']} pixels ({counts})")
+    rate = t["pixels_per_s"]
+    rate_s = f", {rate:,.0f} pixels/s" if rate else ""
+    print(
+        f"time: compile {t['compile_s']:.1f} s, run {t['run_s']:.2f} s{rate_s} "
+        f"({t['tiles']} tiles, {t['tiles_loaded']} resumed, {t['devices']} device(s))"
+    )
+    flags = report["laplace_flag_counts"]
+    print(f"Laplace uncertainty reliable on {flags['reliable']} of {report['pixels']} pixels")
+    if report.get("train_rmse") is not None:
+        print(f"fit RMSE (linear radiance, fitted photos): {report['train_rmse']:.5f}")
+    if "heldout_rmse" in report and report["heldout_rmse"] is not None:
+        per = ", ".join(f"{k}: {v:.5f}" for k, v in report["heldout_rmse_per_photo"].items())
+        print(f"held-out RMSE: {report['heldout_rmse']:.5f} ({per})")

@@ -34,6 +34,7 @@ from ._backends import Backend, solve
 from ._init import initial_theta
 from ._lm import LMOptions
 from ._residual import L2, GaussianNoise, Loss, NoiseModel, PixelData, make_residual, pixel_data
+from ._shard import device_count, map_sharded
 from ._status import Status, describe
 from ._transform import ParamSpace
 
@@ -106,21 +107,25 @@ def _finalise(theta, status, cost, n_used, nonfinite, p):
     return jnp.where(none[:, None], jnp.nan, theta), status, jnp.where(none, jnp.nan, cost)
 
 
-def _run(model, data, space, noise, loss, backend, init, max_iters, options):
+def _run(model, data, space, noise, loss, backend, init, max_iters, options, devices):
     res = make_residual(model, space, noise, loss)
     dtype = data.obs.dtype
     n_used, nonfinite = _data_checks(res, data)
     theta0 = _theta0(res, data, init, dtype)
-    theta, info = solve(
-        res,
-        theta0,
-        data,
-        backend,
-        options=options,
-        max_iters=max_iters,
-        space=space,
-        n_usable=n_used,
-    )
+
+    def solve_batch(theta0, data, n_used):
+        return solve(
+            res,
+            theta0,
+            data,
+            backend,
+            options=options,
+            max_iters=max_iters,
+            space=space,
+            n_usable=n_used,
+        )
+
+    theta, info = map_sharded(solve_batch, (theta0, data, n_used), device_count(devices))
     theta, status, cost = _finalise(theta, info.status, info.cost, n_used, nonfinite, space.size)
     return theta, status, cost, info.iterations, n_used
 
@@ -139,6 +144,7 @@ def fit_pixels(
     options: LMOptions | None = None,
     bounds: Mapping[str, tuple[float, float]] | None = None,
     fixed: Mapping[str, ArrayLike] | None = None,
+    devices: int | None = None,
 ) -> FitResult:
     """Fit ``model`` to every pixel of ``data`` (:class:`PixelData` with a leading N axis).
 
@@ -150,6 +156,8 @@ def fit_pixels(
               model's defaults), a theta array ((P,) or (N, P)) or a dict of natural values
     max_iters: iteration budget (lean default 40, libraries 256)
     dtype:    computation dtype (default: that of ``data.obs``); float32 is the fast one
+    devices:  how many of JAX's devices share the pixels (default all; see ``_shard``);
+              results do not depend on it
     """
     if data.obs.ndim != 3:
         raise ValueError(f"fit_pixels expects data of shape (N, K, C); got {data.obs.shape}")
@@ -172,6 +180,7 @@ def fit_pixels(
         init,
         max_iters,
         options,
+        devices,
     )
     return FitResult(
         space.to_natural(theta), theta, status, cost, iters, n_used, space, model, backend

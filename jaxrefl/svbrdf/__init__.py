@@ -1,0 +1,29 @@
+"""Planar SVBRDF captures to per-pixel reflectance maps: the main job.
+
+Quick use::
+
+    from jaxrefl.io import load_capture
+    from jaxrefl import svbrdf
+
+    cap = load_capture("bath_tile")                          # any of the three layouts
+    result = svbrdf.fit_capture(cap, svbrdf.FitJob(model="ggx", holdout=(0,)), "out")
+    svbrdf.write_outputs(result, cap, "out")                # maps.exr, report.json, PNGs
+    result.report["heldout_rmse"], result.maps["roughness"]
+
+Parts: :mod:`._models` (named capture models), :mod:`._data` (capture pixels as least-squares
+data: weights, censoring, geometry), :mod:`._job` (tiled fit with Laplace uncertainty and
+resume), :mod:`._outputs` (EXR maps, report, previews).
+"""
+
+from ._data import is_colocated as is_colocated
+from ._data import pixel_block as pixel_block
+from ._job import CaptureFit as CaptureFit
+from ._job import FitJob as FitJob
+from ._job import fit_capture as fit_capture
+from ._job import status_meanings as status_meanings
+from ._models import CAPTURE_MODELS as CAPTURE_MODELS
+from ._models import capture_model as capture_model
+from ._outputs import predict_photos as predict_photos
+from ._outputs import write_maps as write_maps
+from ._outputs import write_outputs as write_outputs
+from ._outputs import write_previews as write_previews

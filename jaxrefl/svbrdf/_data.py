@@ -54,7 +54,7 @@ def pixel_block(
     photos: boolean (K,) of the photos to fit (default all); the others get weight 0 and
             stay in the data (so held-out predictions use the same arrays).
     """
-    k, h, w, c = capture.shape
+    k, h, w, _ = capture.shape
     n = stop - start
     size = n if size is None else int(size)
     if not 0 <= start < stop <= h * w or size < n:
@@ -87,7 +87,10 @@ def pixel_block(
         pad = size - n
 
         def padded(a, fill=None):
-            rep = np.repeat(a[-1:], pad, axis=0) if fill is None else np.full((pad, *a.shape[1:]), fill, a.dtype)
+            if fill is None:
+                rep = np.repeat(a[-1:], pad, axis=0)
+            else:
+                rep = np.full((pad, *a.shape[1:]), fill, a.dtype)
             return np.concatenate([a, rep], axis=0)
 
         obs, scale, wi, wo, censored = (padded(a) for a in (obs, scale, wi, wo, censored))

@@ -1,0 +1,55 @@
+"""Spread a batch of independent pixels over every device JAX sees.
+
+Pixels are independent problems, so the batch axis is split into equal contiguous shards, one
+per device (``jax.shard_map`` over a 1-D mesh named ``"pixels"``); each device runs the same
+compiled solver on its shard, and no communication is needed. A pixel's result does not
+depend on the batch it is in (the lean LM freezes converged pixels; see ``_lm``), so the
+results equal those of one device. The batch is padded to a multiple of the device count
+with copies of its last pixel, which are dropped afterwards.
+
+On the CPU, ``XLA_FLAGS=--xla_force_host_platform_device_count=2`` (set before JAX starts)
+gives two host devices: that is how the tests check it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh, PartitionSpec
+
+__all__ = ["device_count", "map_sharded"]
+
+
+def device_count(devices: int | None = None) -> int:
+    """The number of devices to use: ``devices`` (clipped to what exists) or all of them."""
+    n = jax.device_count()
+    return n if devices is None else max(1, min(int(devices), n))
+
+
+def map_sharded(fn: Callable[..., Any], args: tuple, n_devices: int) -> Any:
+    """``fn(*args)`` with every array leaf of ``args`` split along axis 0 over ``n_devices``.
+
+    ``fn`` maps batched inputs (leading axis N) to batched outputs (leading axis N).
+    """
+    leaves = [x for x in jax.tree.leaves(args) if hasattr(x, "shape")]
+    n = int(leaves[0].shape[0])
+    if n_devices <= 1 or n < n_devices:
+        return fn(*args)
+    pad = (-n) % n_devices
+
+    def padded(x):
+        if not hasattr(x, "shape") or pad == 0:
+            return x
+        return jnp.concatenate([x, jnp.repeat(x[-1:], pad, axis=0)], axis=0)
+
+    args = jax.tree.map(padded, args)
+    mesh = Mesh(np.asarray(jax.devices()[:n_devices]), ("pixels",))
+    spec = PartitionSpec("pixels")
+    # Checking replication is irrelevant here (nothing is replicated); it also does not
+    # know every primitive of the solver.
+    out = jax.shard_map(fn, mesh=mesh, in_specs=spec, out_specs=spec, check_vma=False)(*args)
+    return jax.tree.map(lambda x: x[:n], out)

@@ -1,0 +1,435 @@
+"""The main job: a planar capture in, per-pixel reflectance maps with uncertainty out.
+
+:func:`fit_capture` fits every pixel of a :class:`jaxrefl.io.Capture` independently
+(:func:`jaxrefl.fit.fit_pixels`, lean batched LM by default), computes the Laplace
+covariance of every pixel (:func:`jaxrefl.fit.laplace`) and, for held-out photos, the
+prediction error. Pixels go through in tiles of ``tile_pixels`` (row-major, the last one
+padded), so the working set is one tile whatever the image size; every tile has the same
+shape and reuses one compiled program.
+
+Interruption and resume: with an ``out_dir``, each finished tile is written to
+``out_dir/tiles/tile_NNNNN.npz`` (temporary file + rename: a tile file is complete or
+absent) beside a ``manifest.json`` naming the job and the capture. A rerun with the same
+job and capture loads the tiles already there and computes only the missing ones (none is
+lost, none recomputed); a different job or capture in the same folder is refused with a
+message, and a corrupt tile file is recomputed.
+
+Timings: ``compile_s`` is measured by a warm-up call on the first tile's data (time of that
+call minus the time of the same tile in the run), ``run_s`` is the sum of the tiles' times.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxrefl import fit
+from jaxrefl.fit import Status
+
+from ._data import pixel_block
+from ._models import capture_model
+
+__all__ = ["CaptureFit", "FitJob", "fit_capture"]
+
+_NOISE = {"gaussian": fit.GaussianNoise, "shot": fit.ShotNoise}
+_LOSS = {"l2": fit.L2, "huber": fit.Huber, "cauchy": fit.Cauchy}
+
+
+@dataclass(frozen=True)
+class FitJob:
+    """What to fit and how (everything that changes the result; see :func:`fit_capture`).
+
+    model:      a name of :data:`jaxrefl.svbrdf.CAPTURE_MODELS` (default ``ggx``)
+    holdout:    photo indices left out of the fit and used to measure prediction error
+    tile_pixels: pixels per tile (memory is constant in the image size, about 1 kB a pixel)
+    backend:    ``lean`` (default), ``optimistix`` or ``jaxopt``
+    dtype:      ``float32`` (default) or ``float64``
+    noise:      ``gaussian`` (constant sigma; the Laplace step estimates its scale per
+                pixel) or ``shot`` (variance proportional to the signal)
+    loss:       ``l2`` (default), ``huber`` or ``cauchy`` (robust to highlights/outliers)
+    max_iters:  LM iteration budget (None: the backend's default)
+    """
+
+    model: str = "ggx"
+    holdout: tuple[int, ...] = ()
+    tile_pixels: int = 4096
+    backend: str = "lean"
+    dtype: str = "float32"
+    noise: str = "gaussian"
+    loss: str = "l2"
+    max_iters: int | None = None
+
+    def __post_init__(self) -> None:
+        capture_model(self.model)  # raises for an unknown name
+        if self.noise not in _NOISE:
+            raise ValueError(f"noise must be one of {sorted(_NOISE)}, not {self.noise!r}")
+        if self.loss not in _LOSS:
+            raise ValueError(f"loss must be one of {sorted(_LOSS)}, not {self.loss!r}")
+        if self.dtype not in ("float32", "float64"):
+            raise ValueError(f"dtype must be float32 or float64, not {self.dtype!r}")
+        if self.tile_pixels < 1:
+            raise ValueError(f"tile_pixels must be positive, got {self.tile_pixels}")
+        object.__setattr__(self, "holdout", tuple(sorted({int(i) for i in self.holdout})))
+
+
+@dataclass
+class CaptureFit:
+    """Result of :func:`fit_capture`: maps (H, W) by channel name, and a report.
+
+    maps:    ``albedo.R/G/B``, ``specular``, ``alpha``, ``roughness`` (= sqrt(alpha)), their
+             standard deviations (``albedo_std.R``, ``specular.std``, ``alpha.std``,
+             ``roughness.std``), correlations ``corr.<a>.<b>``, ``status`` (fit
+             :class:`jaxrefl.fit.Status`), ``laplace_flag`` (:class:`jaxrefl.fit.LaplaceFlag`
+             bits), ``noise_std`` (estimated), ``cost``, ``n_used``, ``iterations``
+    report:  what ``report.json`` holds (timings, counts, held-out error, model)
+    """
+
+    maps: dict[str, np.ndarray]
+    report: dict[str, Any]
+    labels: tuple[str, ...]
+    theta: np.ndarray  # (H*W, P)
+    job: FitJob
+    tiles_computed: int = 0
+    tiles_loaded: int = 0
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def params(self) -> dict[str, np.ndarray]:
+        """Natural parameters as (H, W, ...) arrays for ``model.eval``."""
+        _model, space = capture_model(self.job.model, channels=self._channels)
+        h, w = self.maps["status"].shape
+        t = jnp.asarray(np.nan_to_num(self.theta), dtype=self.job.dtype)
+        nat = space.to_natural(t)
+        return {k: np.asarray(v).reshape(h, w, *v.shape[1:]) for k, v in nat.items()}
+
+    @property
+    def _channels(self) -> int:
+        return int(self.extra.get("channels", 3))
+
+
+def _capture_fingerprint(capture) -> dict[str, Any]:
+    k, h, w, c = capture.shape
+    digest = hashlib.sha1()
+    digest.update(np.ascontiguousarray(capture.images[:, :: max(1, h // 16), :: max(1, w // 16)]))
+    digest.update(np.ascontiguousarray(capture.status).tobytes()[:1_000_000])
+    return {
+        "shape": [k, h, w, c],
+        "source": None if capture.source is None else str(capture.source),
+        "digest": digest.hexdigest(),
+    }
+
+
+def _atomic_savez(path: Path, **arrays) -> None:
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    with open(tmp, "wb") as fh:
+        np.savez(fh, **arrays)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+
+
+def _load_tile(path: Path) -> dict[str, np.ndarray] | None:
+    try:
+        with np.load(path) as z:
+            return {k: z[k] for k in z.files}
+    except Exception:  # truncated or corrupt: recompute it
+        return None
+
+
+class _TileFitter:
+    """Fit one tile: fit, Laplace, held-out error; pure function of the tile's data."""
+
+    def __init__(self, capture, job: FitJob):
+        self.capture = capture
+        self.job = job
+        k = capture.n_photos
+        bad = [i for i in job.holdout if not 0 <= i < k]
+        if bad:
+            raise ValueError(f"--holdout photo(s) {bad} out of range: the capture has {k} photos")
+        if len(job.holdout) >= k:
+            raise ValueError("every photo is held out: nothing left to fit")
+        self.train = np.ones(k, bool)
+        self.train[list(job.holdout)] = False
+        self.model, self.space = capture_model(job.model, channels=capture.shape[-1])
+        self.noise = _NOISE[job.noise]()
+        self.loss = _LOSS[job.loss]()
+        self.residual = fit.make_residual(self.model, self.space, self.noise, self.loss)
+        self.dtype = jnp.dtype(job.dtype)
+
+    def data(self, start: int, stop: int):
+        return pixel_block(
+            self.capture, start, stop, self.job.tile_pixels, dtype=np.dtype(self.job.dtype)
+        )
+
+    def __call__(self, data, n: int) -> dict[str, np.ndarray]:
+        train_w = jnp.asarray(self.train, data.weight.dtype)[None, :, None]
+        fit_data = eqx.tree_at(lambda d: d.weight, data, data.weight * train_w)
+        r = fit.fit_pixels(
+            self.model,
+            fit_data,
+            space=self.space,
+            noise=self.noise,
+            loss=self.loss,
+            backend=self.job.backend,  # type: ignore[arg-type]
+            max_iters=self.job.max_iters,
+        )
+        lap = fit.laplace(r, fit_data, residual=self.residual)
+        sse, cnt = _errors(self.residual, r.theta, data)
+        out = {
+            "theta": r.theta,
+            "status": r.status,
+            "cost": r.cost,
+            "iterations": r.iterations,
+            "n_used": r.n_used,
+            "std": lap.std,
+            "corr": lap.corr,
+            "noise_var": lap.noise_var,
+            "flag": lap.flag,
+            "sse": sse,
+            "cnt": cnt,
+        }
+        return {k: np.asarray(v)[:n] for k, v in out.items()}
+
+
+@eqx.filter_jit
+def _errors(res, theta, data):
+    """Per pixel and photo: sum of squared radiance errors and count over the observations
+    that are values (weight > 0, not censored); NaN theta (no estimate) counts nothing."""
+    ok_t = jnp.all(jnp.isfinite(theta), axis=-1)
+    t = jnp.where(ok_t[:, None], theta, 0.0)
+    pred = jax.vmap(res.predict)(t, data)
+    use = (data.weight > 0) & (data.censored == 0) & ok_t[:, None, None]
+    err = jnp.where(use, pred - data.obs, 0.0)
+    return jnp.sum(err * err, axis=-1), jnp.sum(use, axis=-1)
+
+
+def _tiles(h: int, w: int, size: int) -> list[tuple[int, int]]:
+    n = h * w
+    return [(s, min(s + size, n)) for s in range(0, n, size)]
+
+
+def _manifest(job: FitJob, capture, n_tiles: int) -> dict[str, Any]:
+    from jaxrefl import __version__
+
+    return {
+        "job": asdict(job),
+        "capture": _capture_fingerprint(capture),
+        "n_tiles": n_tiles,
+        "jaxrefl": __version__,
+    }
+
+
+def _prepare_dir(out_dir: Path, manifest: dict[str, Any], restart: bool) -> Path:
+    tiles = out_dir / "tiles"
+    tiles.mkdir(parents=True, exist_ok=True)
+    mpath = tiles / "manifest.json"
+    if mpath.exists() and not restart:
+        try:
+            old = json.loads(mpath.read_text())
+        except json.JSONDecodeError:
+            old = None
+        same = old is not None and all(old.get(k) == manifest[k] for k in ("job", "capture"))
+        if not same:
+            raise ValueError(
+                f"{mpath}: the tiles in {tiles} belong to a different fit (another model, "
+                "holdout, tile size or capture); use another --out folder or --restart"
+            )
+        return tiles
+    for old_tile in tiles.glob("tile_*.npz"):
+        old_tile.unlink()
+    tmp = mpath.with_suffix(".tmp")
+    tmp.write_text(json.dumps(manifest, indent=2))
+    os.replace(tmp, mpath)
+    return tiles
+
+
+def fit_capture(
+    capture,
+    job: FitJob | None = None,
+    out_dir: str | Path | None = None,
+    *,
+    restart: bool = False,
+    progress: bool = False,
+    on_tile: Callable[[int, int], None] | None = None,
+) -> CaptureFit:
+    """Fit every pixel of ``capture`` (module docstring); returns the maps and a report.
+
+    out_dir:  where tiles go (resume); None keeps everything in memory
+    restart:  discard the tiles of an earlier run in ``out_dir``
+    progress: show a tqdm progress bar over tiles
+    on_tile:  called as ``on_tile(index, n_tiles)`` after each tile is saved (for tests
+              and front ends; an exception raised there interrupts the run like Ctrl-C)
+    """
+    job = FitJob() if job is None else job
+    _k, h, w, c = capture.shape
+    fitter = _TileFitter(capture, job)
+    tiles = _tiles(h, w, job.tile_pixels)
+    tdir = None
+    if out_dir is not None:
+        tdir = _prepare_dir(Path(out_dir), _manifest(job, capture, len(tiles)), restart)
+
+    results: list[dict[str, np.ndarray] | None] = [None] * len(tiles)
+    loaded = 0
+    if tdir is not None:
+        for i in range(len(tiles)):
+            p = tdir / f"tile_{i:05d}.npz"
+            if p.exists():
+                results[i] = _load_tile(p)
+                loaded += results[i] is not None
+    todo = [i for i, r in enumerate(results) if r is None]
+
+    compile_s = 0.0
+    times: list[float] = []
+    if todo:
+        s0, e0 = tiles[todo[0]]
+        t0 = time.perf_counter()
+        jax.block_until_ready(fitter(fitter.data(s0, e0), e0 - s0))
+        warm = time.perf_counter() - t0
+    iterator: Any = todo
+    if progress and todo:
+        from tqdm.auto import tqdm
+
+        iterator = tqdm(todo, desc="fit tiles", unit="tile")
+    for i in iterator:
+        s, e = tiles[i]
+        t0 = time.perf_counter()
+        out = fitter(fitter.data(s, e), e - s)
+        times.append(time.perf_counter() - t0)
+        if tdir is not None:
+            _atomic_savez(tdir / f"tile_{i:05d}.npz", **out)
+        results[i] = out
+        if on_tile is not None:
+            on_tile(i, len(tiles))
+    if todo:
+        compile_s = max(0.0, warm - times[0])
+
+    cat = {key: np.concatenate([r[key] for r in results]) for key in results[0]}  # type: ignore[index]
+    maps = _maps(fitter, cat, h, w)
+    report = _report(fitter, cat, capture, job, maps, compile_s, times, len(tiles), loaded)
+    return CaptureFit(
+        maps=maps,
+        report=report,
+        labels=fitter.space.labels,
+        theta=cat["theta"],
+        job=job,
+        tiles_computed=len(todo),
+        tiles_loaded=loaded,
+        extra={"channels": c, "sse": cat["sse"], "cnt": cat["cnt"]},
+    )
+
+
+def _map_name(label: str, suffix: str = "") -> str:
+    """``albedo.R`` -> ``albedo{suffix}.R``; ``alpha`` -> ``alpha.std`` for suffix ``_std``."""
+    if "." in label:
+        base, ch = label.rsplit(".", 1)
+        return f"{base}{suffix}.{ch}"
+    return f"{label}.{suffix[1:]}" if suffix else label
+
+
+def _maps(fitter: _TileFitter, cat, h: int, w: int) -> dict[str, np.ndarray]:
+    space = fitter.space
+    theta = cat["theta"]
+    ok = np.all(np.isfinite(theta), axis=-1)
+    nat = np.asarray(space.natural_vector(jnp.asarray(np.where(ok[:, None], theta, 0.0))))
+    nat = np.where(ok[:, None], nat, np.nan)
+    maps: dict[str, np.ndarray] = {}
+    labels = space.labels
+    for j, lab in enumerate(labels):
+        maps[_map_name(lab)] = nat[:, j]
+        maps[_map_name(lab, "_std")] = cat["std"][:, j]
+    if "alpha" in labels:
+        j = labels.index("alpha")
+        a = nat[:, j]
+        root = np.sqrt(np.maximum(a, 0.0))
+        maps["roughness"] = root
+        # d sqrt(alpha) / d alpha = 1 / (2 sqrt(alpha)): the delta method, as for every map.
+        maps["roughness.std"] = cat["std"][:, j] / np.where(root > 0, 2.0 * root, np.nan)
+    for a in range(len(labels)):
+        for b in range(a + 1, len(labels)):
+            name = f"corr.{labels[a].replace('.', '_')}.{labels[b].replace('.', '_')}"
+            maps[name] = cat["corr"][:, a, b]
+    maps["status"] = cat["status"].astype(np.uint32)
+    maps["laplace_flag"] = cat["flag"].astype(np.uint32)
+    maps["noise_std"] = np.sqrt(cat["noise_var"])
+    maps["cost"] = cat["cost"]
+    maps["n_used"] = cat["n_used"].astype(np.uint32)
+    maps["iterations"] = cat["iterations"].astype(np.uint32)
+    return {
+        k: np.asarray(v).reshape(h, w).astype(v.dtype if v.dtype == np.uint32 else np.float32)
+        for k, v in maps.items()
+    }
+
+
+def _rmse(sse: np.ndarray, cnt: np.ndarray) -> float | None:
+    n = float(np.sum(cnt))
+    return float(np.sqrt(np.sum(sse) / n)) if n > 0 else None
+
+
+def _report(fitter, cat, capture, job, maps, compile_s, times, n_tiles, loaded) -> dict:
+    from jaxrefl import __version__
+
+    k, h, w, c = capture.shape
+    run_s = float(np.sum(times))
+    n_px = h * w
+    sse, cnt = cat["sse"], cat["cnt"]
+    holdout = list(job.holdout)
+    train = [i for i in range(k) if i not in holdout]
+    report: dict[str, Any] = {
+        "jaxrefl": __version__,
+        "model": job.model,
+        "model_description": type(fitter.model).__name__,
+        "parameters": list(fitter.space.labels),
+        "job": asdict(job),
+        "capture": {
+            "layout": capture.layout,
+            "source": None if capture.source is None else str(capture.source),
+            "photos": k,
+            "height": h,
+            "width": w,
+            "channels": c,
+            "observations": capture.summary(),
+        },
+        "pixels": n_px,
+        "status_counts": fit.describe(maps["status"]),
+        "laplace_flag_counts": _flag_counts(maps["laplace_flag"]),
+        "timings": {
+            "compile_s": compile_s,
+            "run_s": run_s,
+            "pixels_per_s": (n_px * (n_tiles - loaded) / n_tiles) / run_s if run_s > 0 else None,
+            "tiles": n_tiles,
+            "tiles_loaded": loaded,
+            "tile_pixels": job.tile_pixels,
+            "devices": jax.device_count(),
+            "platform": jax.devices()[0].platform,
+        },
+        "train_rmse": _rmse(sse[:, train], cnt[:, train]),
+        "units": "radiance in the capture's linear units; albedo, specular: 1; alpha: GGX width",
+    }
+    if holdout:
+        report["holdout"] = holdout
+        report["heldout_rmse"] = _rmse(sse[:, holdout], cnt[:, holdout])
+        report["heldout_rmse_per_photo"] = {str(i): _rmse(sse[:, i], cnt[:, i]) for i in holdout}
+        report["heldout_observations"] = int(np.sum(cnt[:, holdout]))
+    return report
+
+
+def _flag_counts(flag: np.ndarray) -> dict[str, int]:
+    f = flag.reshape(-1)
+    out = {b.name: int(np.sum((f & b.value) != 0)) for b in fit.LaplaceFlag if b.name}
+    out["reliable"] = int(np.sum(f == 0))
+    return out
+
+
+def status_meanings() -> dict[str, str]:
+    """Readable meanings of the ``status`` map's codes."""
+    return {str(int(s)): f"{s.name}: {fit.STATUS_MEANINGS[s]}" for s in Status}

@@ -1,0 +1,187 @@
+"""Files of a capture fit: ``maps.exr``, ``report.json`` and PNG previews.
+
+``maps.exr`` (single part, float32 channels, ZIP): every map of
+:class:`~jaxrefl.svbrdf.CaptureFit` under its name (``albedo.R``, ``specular``,
+``roughness``, ``roughness.std``, ``status``, ...), with metadata ``jaxrefl/model``,
+``jaxrefl/units``, ``jaxrefl/status_codes``, ``jaxrefl/laplace_flags`` and
+``jaxrefl/version``. Writes are atomic (:func:`jaxrefl.io.write_exr`).
+
+Previews (8-bit PNG, at most ``preview_side`` pixels a side, strided):
+``params.png`` (albedo, specular, roughness, status), ``uncertainty.png`` (std maps and
+the Laplace flag), ``compare.png`` (photographed against fitted, linear radiance shown with
+the capture's gamma, for up to three photos, held-out ones first).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import jax.numpy as jnp
+import numpy as np
+
+from jaxrefl import fit
+
+from ._data import pixel_block
+from ._job import CaptureFit, status_meanings
+from ._models import CAPTURE_MODELS, capture_model
+
+__all__ = ["predict_photos", "write_outputs"]
+
+
+def _atomic_text(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def write_maps(result: CaptureFit, path: Path) -> Path:
+    """The maps as one EXR file (module docstring)."""
+    from jaxrefl.io import write_exr
+
+    meta = {
+        "model": result.job.model,
+        "model_description": CAPTURE_MODELS[result.job.model],
+        "parameters": list(result.labels),
+        "units": {
+            "albedo": "diffuse albedo, 1 (f_r = albedo/pi)",
+            "specular": "Schlick F0, 1",
+            "alpha": "GGX/Beckmann width alpha (not perceptual)",
+            "roughness": "perceptual roughness sqrt(alpha)",
+            "*.std": "Laplace standard deviation, same units",
+            "noise_std": "estimated noise std, radiance units of the capture",
+        },
+        "status_codes": status_meanings(),
+        "laplace_flags": {b.name: int(b.value) for b in fit.LaplaceFlag},
+    }
+    return write_exr(path, result.maps, metadata=meta)
+
+
+def _strided(capture, step: int):
+    if step == 1:
+        return capture
+    return replace(
+        capture,
+        images=capture.images[:, ::step, ::step],
+        status=capture.status[:, ::step, ::step],
+        points=capture.points[::step, ::step],
+    )
+
+
+def predict_photos(result: CaptureFit, capture, photos, step: int = 1) -> tuple[Any, Any]:
+    """(photographed, fitted) linear radiance (len(photos), H/step, W/step, C)."""
+    sub = _strided(capture.select(list(photos)), step)
+    k, h, w, c = sub.shape
+    model, space = capture_model(result.job.model, channels=c)
+    theta = result.theta.reshape(*result.maps["status"].shape, -1)[::step, ::step]
+    theta = theta.reshape(h * w, -1)
+    ok = np.all(np.isfinite(theta), axis=-1)
+    data = pixel_block(sub, 0, h * w)
+    res = fit.make_residual(model, space)
+    import jax
+
+    pred = jax.jit(jax.vmap(res.predict))(jnp.asarray(np.where(ok[:, None], theta, 0.0)), data)
+    pred = np.where(ok[:, None, None], np.asarray(pred), np.nan)
+    pred = np.moveaxis(pred.reshape(h, w, k, c), 2, 0)
+    return sub.images, pred
+
+
+def _encode(x: np.ndarray, gamma: float = 2.2) -> np.ndarray:
+    return np.clip(np.nan_to_num(x, nan=0.0), 0.0, 1.0) ** (1.0 / gamma)
+
+
+def write_previews(result: CaptureFit, capture, out: Path, preview_side: int = 384) -> list[Path]:
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    h, w = result.maps["status"].shape
+    step = max(1, -(-max(h, w) // preview_side))
+    m = {k: v[::step, ::step] for k, v in result.maps.items()}
+    paths = []
+
+    def show(ax, img, title, **kw):
+        im = ax.imshow(img, **kw)
+        ax.set_title(title, fontsize=9)
+        ax.axis("off")
+        return im
+
+    # Parameter maps.
+    names = [n for n in ("specular", "roughness") if n in m]
+    fig, axes = plt.subplots(1, 2 + len(names), figsize=(3.2 * (2 + len(names)), 3.4))
+    if "albedo.R" in m:
+        alb = np.stack([m["albedo.R"], m["albedo.G"], m["albedo.B"]], -1)
+        show(axes[0], _encode(alb), "diffuse albedo (gamma 2.2)")
+    for ax, n in zip(axes[1:], names, strict=False):
+        fig.colorbar(show(ax, m[n], n, cmap="viridis"), ax=ax, fraction=0.046)
+    fig.colorbar(
+        show(axes[-1], m["status"], "fit status", cmap="tab10", vmin=0, vmax=9),
+        ax=axes[-1],
+        fraction=0.046,
+    )
+    fig.tight_layout()
+    paths.append(out / "params.png")
+    fig.savefig(paths[-1], dpi=100)
+    plt.close(fig)
+
+    # Uncertainty maps.
+    std_names = [n for n in ("albedo_std.G", "specular.std", "roughness.std") if n in m]
+    fig, axes = plt.subplots(1, len(std_names) + 1, figsize=(3.2 * (len(std_names) + 1), 3.4))
+    axes = np.atleast_1d(axes)
+    for ax, n in zip(axes, std_names, strict=False):
+        v = m[n]
+        hi = np.nanpercentile(v, 99) if np.any(np.isfinite(v)) else 1.0
+        fig.colorbar(show(ax, v, n, cmap="magma", vmin=0, vmax=hi), ax=ax, fraction=0.046)
+    fig.colorbar(
+        show(axes[-1], m["laplace_flag"], "Laplace flag (0 = reliable)", cmap="tab20"),
+        ax=axes[-1],
+        fraction=0.046,
+    )
+    fig.tight_layout()
+    paths.append(out / "uncertainty.png")
+    fig.savefig(paths[-1], dpi=100)
+    plt.close(fig)
+
+    # Photographed against fitted.
+    k = capture.n_photos
+    photos = list(result.job.holdout) + [i for i in range(k) if i not in result.job.holdout]
+    photos = photos[:3]
+    shot, pred = predict_photos(result, capture, photos, step)
+    fig, axes = plt.subplots(len(photos), 2, figsize=(6.4, 3.2 * len(photos)), squeeze=False)
+    for row, i in enumerate(photos):
+        tag = " (held out)" if i in result.job.holdout else ""
+        show(axes[row, 0], _encode(shot[row]), f"photo {i}{tag}")
+        show(axes[row, 1], _encode(pred[row]), f"fitted {i}")
+    fig.tight_layout()
+    paths.append(out / "compare.png")
+    fig.savefig(paths[-1], dpi=100)
+    plt.close(fig)
+    return paths
+
+
+def write_outputs(result: CaptureFit, capture, out_dir: str | Path, previews: bool = True) -> dict:
+    """Write maps.exr, report.json and (optionally) the previews; return the file list."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    files = {"maps": str(write_maps(result, out / "maps.exr"))}
+    if previews:
+        files["previews"] = [str(p) for p in write_previews(result, capture, out)]
+    report = dict(result.report)
+    report["files"] = files
+    _atomic_text(out / "report.json", json.dumps(report, indent=2, default=_json_default))
+    files["report"] = str(out / "report.json")
+    return files
+
+
+def _json_default(o):
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
