@@ -58,7 +58,7 @@ def demo_scene(size: int = 128, seed: int = 0, dtype=jnp.float32) -> DemoScene:
     n = 4
     patch_albedo = rng.uniform(0.05, 0.8, size=(n, n, 3))
     patch_spec = rng.uniform(0.02, 0.12, size=(n, n))
-    patch_rough = rng.uniform(0.15, 0.7, size=(n, n))  # perceptual roughness, alpha = r^2
+    patch_rough = rng.uniform(0.3, 0.75, size=(n, n))  # perceptual roughness, alpha = r^2
     idx = (np.arange(size) * n) // size
     rows, cols = np.meshgrid(idx, idx, indexing="ij")
     u = (np.arange(size) % (size // n)) / (size // n)  # position inside a patch, 0..1

@@ -43,6 +43,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dtype", default="float32", choices=("float32", "float64"))
     p.add_argument("--noise", default="gaussian", choices=("gaussian", "shot"))
     p.add_argument("--loss", default="l2", choices=("l2", "huber", "cauchy"))
+    p.add_argument(
+        "--alpha-min",
+        type=float,
+        default=None,
+        help="lower bound of alpha (default: the narrowest lobe the capture resolves)",
+    )
     p.add_argument("--restart", action="store_true", help="ignore tiles of an earlier run")
     p.add_argument("--no-previews", action="store_true", help="skip the PNG previews")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -67,12 +73,15 @@ def run(args: argparse.Namespace) -> int:
         dtype=args.dtype,
         noise=args.noise,
         loss=args.loss,
+        alpha_min=args.alpha_min,
     )
     print(f"{capture}")
     result = fit_capture(capture, job, args.out, restart=args.restart, progress=not args.quiet)
     files = write_outputs(result, capture, args.out, previews=not args.no_previews)
     print_summary(result.report)
-    print(f"wrote {files['maps']}, {files['report']}" + ("" if args.no_previews else " and previews"))
+    print(
+        f"wrote {files['maps']}, {files['report']}" + ("" if args.no_previews else " and previews")
+    )
     return 0
 
 

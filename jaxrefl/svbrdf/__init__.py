@@ -17,6 +17,7 @@ resume), :mod:`._outputs` (EXR maps, report, previews).
 
 from ._data import is_colocated as is_colocated
 from ._data import pixel_block as pixel_block
+from ._data import resolvable_alpha as resolvable_alpha
 from ._job import CaptureFit as CaptureFit
 from ._job import FitJob as FitJob
 from ._job import fit_capture as fit_capture

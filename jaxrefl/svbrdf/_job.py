@@ -37,7 +37,7 @@ import numpy as np
 from jaxrefl import fit
 from jaxrefl.fit import Status
 
-from ._data import pixel_block
+from ._data import pixel_block, resolvable_alpha
 from ._models import capture_model
 
 __all__ = ["CaptureFit", "FitJob", "fit_capture"]
@@ -55,10 +55,15 @@ class FitJob:
     tile_pixels: pixels per tile (memory is constant in the image size, about 1 kB a pixel)
     backend:    ``lean`` (default), ``optimistix`` or ``jaxopt``
     dtype:      ``float32`` (default) or ``float64``
-    noise:      ``gaussian`` (constant sigma; the Laplace step estimates its scale per
-                pixel) or ``shot`` (variance proportional to the signal)
+    noise:      ``gaussian`` (constant ``sigma``; None: unknown, the Laplace step
+                estimates its scale per pixel) or ``shot`` (variance read^2 + gain * obs)
+    sigma, read, gain: the noise model's parameters (linear radiance units); robust-loss
+                thresholds are in these units
     loss:       ``l2`` (default), ``huber`` or ``cauchy`` (robust to highlights/outliers)
     max_iters:  LM iteration budget (None: the backend's default)
+    alpha_min:  lower bound of alpha; None: the capture's resolvable width
+                (:func:`jaxrefl.svbrdf.resolvable_alpha`); 1e-3 lets lobes be as narrow
+                as the models allow
     """
 
     model: str = "ggx"
@@ -69,6 +74,10 @@ class FitJob:
     noise: str = "gaussian"
     loss: str = "l2"
     max_iters: int | None = None
+    alpha_min: float | None = None
+    sigma: float | None = None
+    read: float = 0.002
+    gain: float = 0.002
 
     def __post_init__(self) -> None:
         capture_model(self.model)  # raises for an unknown name
@@ -160,8 +169,14 @@ class _TileFitter:
             raise ValueError("every photo is held out: nothing left to fit")
         self.train = np.ones(k, bool)
         self.train[list(job.holdout)] = False
-        self.model, self.space = capture_model(job.model, channels=capture.shape[-1])
-        self.noise = _NOISE[job.noise]()
+        self.alpha_min = resolvable_alpha(capture) if job.alpha_min is None else job.alpha_min
+        self.model, self.space = capture_model(
+            job.model, channels=capture.shape[-1], alpha_min=self.alpha_min
+        )
+        if job.noise == "shot":
+            self.noise = fit.ShotNoise(read=job.read, gain=job.gain)
+        else:
+            self.noise = fit.GaussianNoise(sigma=job.sigma)
         self.loss = _LOSS[job.loss]()
         self.residual = fit.make_residual(self.model, self.space, self.noise, self.loss)
         self.dtype = jnp.dtype(job.dtype)
@@ -324,7 +339,7 @@ def fit_capture(
         job=job,
         tiles_computed=len(todo),
         tiles_loaded=loaded,
-        extra={"channels": c, "sse": cat["sse"], "cnt": cat["cnt"]},
+        extra={"channels": c, "sse": cat["sse"], "cnt": cat["cnt"], "alpha_min": fitter.alpha_min},
     )
 
 
@@ -389,6 +404,13 @@ def _report(fitter, cat, capture, job, maps, compile_s, times, n_tiles, loaded) 
         "model": job.model,
         "model_description": type(fitter.model).__name__,
         "parameters": list(fitter.space.labels),
+        "bounds": {
+            lab: [float(lo), float(hi)]
+            for lab, lo, hi in zip(
+                fitter.space.labels, fitter.space.lower, fitter.space.upper, strict=True
+            )
+        },
+        "alpha_min": fitter.alpha_min if "alpha" in fitter.space.labels else None,
         "job": asdict(job),
         "capture": {
             "layout": capture.layout,

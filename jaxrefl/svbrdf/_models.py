@@ -5,10 +5,11 @@ name            model (``jaxrefl.brdf``) and free parameters per pixel
 =============  ============================================================================
 ``ggx``         Cook–Torrance, GGX distribution, height-correlated Smith shadowing, Schlick
                 Fresnel, on a Lambertian base: diffuse ``albedo`` (RGB), ``specular`` F0
-                (grey: one value shared by R, G, B) and ``alpha`` (GGX width; the maps
-                also give perceptual ``roughness`` = sqrt(alpha)). The default.
+                (grey: one value shared by R, G, B; a dielectric's, in [0, 0.25]) and
+                ``alpha`` (GGX width in [1e-3, 1]; the maps also give perceptual
+                ``roughness`` = sqrt(alpha)). The default.
 ``beckmann``    the same with the Beckmann distribution
-``ggx_rgb``     ``ggx`` with a coloured specular F0 (metals): 7 parameters
+``ggx_rgb``     ``ggx`` with a coloured specular F0 in [0, 1] (metals): 7 parameters
 ``lambert``     Lambertian ``albedo`` (RGB) only: the diffuse-only baseline
 =============  ============================================================================
 """
@@ -18,7 +19,16 @@ from __future__ import annotations
 from jaxrefl import brdf
 from jaxrefl.fit import ParamSpace
 
-__all__ = ["CAPTURE_MODELS", "capture_model"]
+__all__ = ["ALPHA_RANGE", "CAPTURE_MODELS", "DIELECTRIC_F0", "capture_model"]
+
+# A grey specular is a dielectric's: F0 = ((eta - 1)/(eta + 1))^2 <= 0.25 for eta <= 3
+# (glass 0.04, diamond 0.17). Without the cap, pixels whose highlight was only seen
+# saturated (censored: any brighter prediction fits) run off to F0 -> 1 with a needle lobe.
+DIELECTRIC_F0 = (0.0, 0.25)
+# alpha above 1 makes the specular lobe broader than a cosine: indistinguishable from more
+# diffuse albedo, so the pair is not identified. The lower end is the capture's resolvable
+# width (``jaxrefl.svbrdf.resolvable_alpha``), at least 1e-3 (the microfacet models' floor).
+ALPHA_RANGE = (1e-3, 1.0)
 
 CAPTURE_MODELS: dict[str, str] = {
     "ggx": "Cook-Torrance GGX + Lambert, grey specular F0 (albedo RGB, specular, alpha)",
@@ -28,8 +38,13 @@ CAPTURE_MODELS: dict[str, str] = {
 }
 
 
-def capture_model(name: str, channels: int = 3) -> tuple[brdf.BRDF, ParamSpace]:
-    """(model, parameter space) of a capture model named in :data:`CAPTURE_MODELS`."""
+def capture_model(
+    name: str, channels: int = 3, alpha_min: float | None = None
+) -> tuple[brdf.BRDF, ParamSpace]:
+    """(model, parameter space) of a capture model named in :data:`CAPTURE_MODELS`;
+    ``alpha_min`` raises the lower bound of alpha (default 1e-3)."""
+    lo = ALPHA_RANGE[0] if alpha_min is None else max(ALPHA_RANGE[0], float(alpha_min))
+    alpha_range = (lo, ALPHA_RANGE[1])
     if name == "lambert":
         m = brdf.get("lambert")
         return m, ParamSpace(m, channels=channels)
@@ -41,6 +56,8 @@ def capture_model(name: str, channels: int = 3) -> tuple[brdf.BRDF, ParamSpace]:
             fresnel="schlick",
             diffuse="lambert",
         )
-        grey = () if name == "ggx_rgb" else ("specular",)
-        return m, ParamSpace(m, channels=channels, grey=grey)
+        if name == "ggx_rgb":
+            return m, ParamSpace(m, channels=channels, bounds={"alpha": alpha_range})
+        bounds = {"specular": DIELECTRIC_F0, "alpha": alpha_range}
+        return m, ParamSpace(m, channels=channels, grey=("specular",), bounds=bounds)
     raise ValueError(f"unknown capture model {name!r}; choose from {', '.join(CAPTURE_MODELS)}")

@@ -75,7 +75,9 @@ def predict_photos(result: CaptureFit, capture, photos, step: int = 1) -> tuple[
     """(photographed, fitted) linear radiance (len(photos), H/step, W/step, C)."""
     sub = _strided(capture.select(list(photos)), step)
     k, h, w, c = sub.shape
-    model, space = capture_model(result.job.model, channels=c)
+    model, space = capture_model(
+        result.job.model, channels=c, alpha_min=result.extra.get("alpha_min")
+    )
     theta = result.theta.reshape(*result.maps["status"].shape, -1)[::step, ::step]
     theta = theta.reshape(h * w, -1)
     ok = np.all(np.isfinite(theta), axis=-1)
