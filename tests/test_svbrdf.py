@@ -113,15 +113,13 @@ def test_laplace_std_is_calibrated_on_noisy_pixels(noise):
     for j, label in enumerate(space.labels):
         s = np.std(z[use, j])
         assert 0.8 <= s <= 1.25, (label, s)
-    # Natural-unit std is the delta method of the theta std.
-    j = space.labels.index("alpha")
-    a = np.asarray(r.params["alpha"])
-    np.testing.assert_allclose(
-        np.asarray(lap.std)[:, j], a * np.asarray(lap.theta_std)[:, j], rtol=1e-6
-    )
+    # Natural std = |d natural / d theta| * theta std (elementwise bijections).
+    dnat = np.abs(np.asarray(space.dnatural(r.theta)))
+    np.testing.assert_allclose(np.asarray(lap.std), dnat * np.asarray(lap.theta_std), rtol=1e-6)
     if noise == "estimate":
+        # The residuals were whitened by the true sigma: the estimated scale factor is ~1.
         s_hat = np.sqrt(np.asarray(lap.noise_var))
-        assert abs(np.median(s_hat) / sigma - 1) < 0.05
+        assert abs(np.median(s_hat) - 1) < 0.05
 
 
 def test_laplace_flags_unidentified_roughness():
@@ -273,14 +271,18 @@ def test_sharded_fit_equals_one_device():
     """Two forced host devices (a fresh process: the flag must precede JAX's start)."""
     code = """
 import numpy as np, jax
+jax.config.update("jax_enable_x64", True)
 from jaxrefl import fit, brdf
 import tests.test_svbrdf as t
 assert jax.device_count() == 2
-model, space, data, _ = t._synthetic_pixels(301, 16, 0.01, seed=5, dtype=np.float32)
+# float64: in float32 the rounding of a differently laid-out batch moves poorly determined
+# parameters along flat valleys (seen: 0.02 in theta on 9% of pixels, equal costs).
+model, space, data, _ = t._synthetic_pixels(301, 16, 0.01, seed=5, dtype=np.float64)
 a = fit.fit_pixels(model, data, space=space)
 b = fit.fit_pixels(model, data, space=space, devices=1)
 np.testing.assert_array_equal(np.asarray(a.status), np.asarray(b.status))
-np.testing.assert_allclose(np.asarray(a.theta), np.asarray(b.theta), rtol=1e-5, atol=1e-6)
+np.testing.assert_allclose(np.asarray(a.theta), np.asarray(b.theta), rtol=1e-6, atol=1e-8)
+np.testing.assert_allclose(np.asarray(a.cost), np.asarray(b.cost), rtol=1e-10)
 print("ok")
 """
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")

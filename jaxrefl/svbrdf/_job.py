@@ -253,7 +253,8 @@ def _prepare_dir(out_dir: Path, manifest: dict[str, Any], restart: bool) -> Path
             old = json.loads(mpath.read_text())
         except json.JSONDecodeError:
             old = None
-        same = old is not None and all(old.get(k) == manifest[k] for k in ("job", "capture"))
+        new = json.loads(json.dumps(manifest))  # as it reads back (tuples become lists)
+        same = old is not None and all(old.get(k) == new[k] for k in ("job", "capture"))
         if not same:
             raise ValueError(
                 f"{mpath}: the tiles in {tiles} belong to a different fit (another model, "
