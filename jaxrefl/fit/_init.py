@@ -391,14 +391,19 @@ def initial_theta(
     *,
     exclude_brightest: float = 0.2,
     grid_size: int = 12,
+    devices: int | None = 1,
 ) -> Float[Array, "N P"]:
     """Unconstrained starting points (N, P) for the pixels of ``data`` (leading N axis).
 
     ``res`` supplies the model, the parameter space (bounds, fixed values) and the noise
-    model used to whiten. See the module docstring for the method.
+    model used to whiten. See the module docstring for the method. ``devices``: how many of
+    JAX's devices share the pixels (None: all; see ``_shard``).
     """
+    from ._shard import device_count, map_sharded
+
     if data.obs.ndim != 3:
         raise ValueError(f"initial_theta expects batched data (N, K, C), got {data.obs.shape}")
     how, lin, names, grid = _plan(res, int(grid_size))  # eager: checks affinity numerically
     plan = (how, lin, names, tuple(float(v) for v in grid))
-    return _initial_theta_jit(res, data, plan, float(exclude_brightest))
+    run = lambda d: _initial_theta_jit(res, d, plan, float(exclude_brightest))  # noqa: E731
+    return map_sharded(run, (data,), device_count(devices))

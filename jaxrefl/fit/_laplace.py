@@ -54,6 +54,7 @@ from jaxtyping import Array, Float, Int
 
 from ._lm import cho_solve_unrolled, cholesky_unrolled
 from ._residual import PixelData, Residual
+from ._shard import device_count, map_sharded
 from ._status import Status, equilibrated_condition
 
 __all__ = ["LaplaceFlag", "LaplaceResult", "laplace"]
@@ -186,6 +187,7 @@ def laplace(
     max_theta_std: float = 1.0,
     cond_max: float | None = None,
     unroll_max: int = 8,
+    devices: int | None = None,
 ) -> LaplaceResult:
     """Laplace covariance of every pixel of a :class:`FitResult` from :func:`fit_pixels`.
 
@@ -196,6 +198,7 @@ def laplace(
     noise:     ``"estimate"`` the noise scale from the residuals, or ``"known"``
     max_theta_std, cond_max: thresholds of ``NOT_IDENTIFIED`` (cond_max default 1e7 in
                float32, 1e10 in float64, as the fit's ILL_CONDITIONED)
+    devices:   how many of JAX's devices share the pixels (default all)
     """
     from ._residual import make_residual
 
@@ -209,16 +212,22 @@ def laplace(
     if noise not in ("estimate", "known"):
         raise ValueError(f"noise must be 'estimate' or 'known', not {noise!r}")
     cost = jnp.where(jnp.isfinite(fit.cost), fit.cost, 0.0).astype(theta.dtype)
-    out = _laplace_jit(
-        res,
-        theta,
-        data,
-        cost,
-        jnp.asarray(fit.status),
-        noise == "estimate",
-        float(max_theta_std),
-        float(cond_max),
-        int(unroll_max),
-    )
+
+    def run(theta, data, cost, status):
+        return _laplace_jit(
+            res,
+            theta,
+            data,
+            cost,
+            status,
+            noise == "estimate",
+            float(max_theta_std),
+            float(cond_max),
+            int(unroll_max),
+        )
+
+    # Pixels are independent: spread them over every device, as the fit does (``_shard``).
+    args = (theta, data, cost, jnp.asarray(fit.status))
+    out = map_sharded(run, args, device_count(devices))
     std, corr, cov, std_t, s2, flag, identified = out
     return LaplaceResult(fit.space.labels, std, corr, cov, std_t, s2, flag, identified)

@@ -111,7 +111,12 @@ def _run(model, data, space, noise, loss, backend, init, max_iters, options, dev
     res = make_residual(model, space, noise, loss)
     dtype = data.obs.dtype
     n_used, nonfinite = _data_checks(res, data)
-    theta0 = _theta0(res, data, init, dtype)
+    ndev = device_count(devices)
+    if isinstance(init, str) and init == "auto":
+        # The default start is per pixel too: spread it like the solver.
+        theta0 = initial_theta(res, data, devices=ndev)
+    else:
+        theta0 = _theta0(res, data, init, dtype)
 
     def solve_batch(theta0, data, n_used):
         return solve(
@@ -125,7 +130,7 @@ def _run(model, data, space, noise, loss, backend, init, max_iters, options, dev
             n_usable=n_used,
         )
 
-    theta, info = map_sharded(solve_batch, (theta0, data, n_used), device_count(devices))
+    theta, info = map_sharded(solve_batch, (theta0, data, n_used), ndev)
     theta, status, cost = _finalise(theta, info.status, info.cost, n_used, nonfinite, space.size)
     return theta, status, cost, info.iterations, n_used
 
