@@ -38,7 +38,7 @@ def demo_dir(tmp_path_factory):
     from jaxrefl.cli import main
 
     out = tmp_path_factory.mktemp("demo")
-    assert main(["demo", "--out", str(out), "--size", str(SIZE), "--no-fit"]) == 0
+    assert main(["demo", "--out", str(out), "--size", str(SIZE), "--no-fit", "--noise", "0"]) == 0
     return out
 
 

@@ -28,6 +28,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--size", type=int, default=128, help="image side in pixels (default 128)")
     p.add_argument("--seed", type=int, default=0, help="seed of the procedural sample")
     p.add_argument("--no-fit", action="store_true", help="only render and write the capture")
+    p.add_argument(
+        "--noise",
+        type=float,
+        default=1.0,
+        help="sensor noise, as a multiple of the default (1%% relative + 0.2%% of full scale)",
+    )
 
 
 def _write_png(path: Path, img) -> None:
@@ -58,8 +64,8 @@ def run(args: argparse.Namespace) -> int:
     linear = np.asarray(jax.block_until_ready(compiled(scene.params)), np.float64)
     t_run = time.perf_counter() - t0
     rng = np.random.default_rng(args.seed + 1)
-    noisy = linear * (1 + _NOISE_REL * rng.standard_normal(linear.shape))
-    noisy = noisy + _NOISE_ABS * rng.standard_normal(linear.shape)
+    noisy = linear * (1 + args.noise * _NOISE_REL * rng.standard_normal(linear.shape))
+    noisy = noisy + args.noise * _NOISE_ABS * rng.standard_normal(linear.shape)
     images = np.clip(noisy, 0.0, 1.0) ** (1.0 / scene.gamma)
 
     out: Path = args.out
