@@ -129,7 +129,9 @@ class CaptureFit:
 def _capture_fingerprint(capture) -> dict[str, Any]:
     k, h, w, c = capture.shape
     digest = hashlib.sha1()
-    digest.update(np.ascontiguousarray(capture.images[:, :: max(1, h // 16), :: max(1, w // 16)]))
+    digest.update(
+        np.ascontiguousarray(capture.images[:, :: max(1, h // 16), :: max(1, w // 16)]).tobytes()
+    )
     digest.update(np.ascontiguousarray(capture.status).tobytes()[:1_000_000])
     return {
         "shape": [k, h, w, c],
@@ -173,6 +175,7 @@ class _TileFitter:
         self.model, self.space = capture_model(
             job.model, channels=capture.shape[-1], alpha_min=self.alpha_min
         )
+        self.noise: fit.NoiseModel
         if job.noise == "shot":
             self.noise = fit.ShotNoise(read=job.read, gain=job.gain)
         else:
@@ -329,7 +332,8 @@ def fit_capture(
     if todo:
         compile_s = max(0.0, warm - times[0])
 
-    cat = {key: np.concatenate([r[key] for r in results]) for key in results[0]}  # type: ignore[index]
+    done = [r for r in results if r is not None]
+    cat = {key: np.concatenate([r[key] for r in done]) for key in done[0]}
     maps = _maps(fitter, cat, h, w)
     report = _report(fitter, cat, capture, job, maps, compile_s, times, len(tiles), loaded)
     return CaptureFit(
@@ -365,8 +369,7 @@ def _maps(fitter: _TileFitter, cat, h: int, w: int) -> dict[str, np.ndarray]:
         maps[_map_name(lab, "_std")] = cat["std"][:, j]
     if "alpha" in labels:
         j = labels.index("alpha")
-        a = nat[:, j]
-        root = np.sqrt(np.maximum(a, 0.0))
+        root = np.sqrt(np.maximum(nat[:, j], 0.0))
         maps["roughness"] = root
         # d sqrt(alpha) / d alpha = 1 / (2 sqrt(alpha)): the delta method, as for every map.
         maps["roughness.std"] = cat["std"][:, j] / np.where(root > 0, 2.0 * root, np.nan)

@@ -134,10 +134,10 @@ def write_previews(result: CaptureFit, capture, out: Path, preview_side: int = 3
     std_names = [n for n in ("albedo_std.G", "specular.std", "roughness.std") if n in m]
     fig, axes = plt.subplots(1, len(std_names) + 1, figsize=(3.2 * (len(std_names) + 1), 3.4))
     axes = np.atleast_1d(axes)
-    for ax, n in zip(axes, std_names, strict=False):
-        v = m[n]
+    for ax, sn in zip(axes, std_names, strict=False):
+        v = m[sn]
         hi = np.nanpercentile(v, 99) if np.any(np.isfinite(v)) else 1.0
-        fig.colorbar(show(ax, v, n, cmap="magma", vmin=0, vmax=hi), ax=ax, fraction=0.046)
+        fig.colorbar(show(ax, v, sn, cmap="magma", vmin=0, vmax=hi), ax=ax, fraction=0.046)
     fig.colorbar(
         show(axes[-1], m["laplace_flag"], "Laplace flag (0 = reliable)", cmap="tab20"),
         ax=axes[-1],
@@ -169,7 +169,7 @@ def write_outputs(result: CaptureFit, capture, out_dir: str | Path, previews: bo
     """Write maps.exr, report.json and (optionally) the previews; return the file list."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    files = {"maps": str(write_maps(result, out / "maps.exr"))}
+    files: dict[str, Any] = {"maps": str(write_maps(result, out / "maps.exr"))}
     if previews:
         files["previews"] = [str(p) for p in write_previews(result, capture, out)]
     report = dict(result.report)
