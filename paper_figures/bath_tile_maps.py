@@ -174,7 +174,7 @@ def figure(results, shot, pred, rows, factor: int):
     h, w = ggx.maps["status"].shape
     fig.suptitle(
         f"bath_tile (MaterialGAN data, Guo et al. 2020), {h}x{w} (downsample {factor}), "
-        f"photos {', '.join(map(str, HOLDOUT))} held out",
+        f"photo{'s' if len(HOLDOUT) > 1 else ''} {', '.join(map(str, HOLDOUT))} held out",
         fontsize=12,
     )
     return fig

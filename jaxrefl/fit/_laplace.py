@@ -105,7 +105,7 @@ class LaplaceResult:
         return out
 
     def std_of(self, label: str) -> Array:
-        """(N,) std of the entry named ``label`` (e.g. ``"alpha"``, ``"albedo[G]"``)."""
+        """(N,) std of the entry named ``label`` (e.g. ``"alpha"``, ``"albedo.G"``)."""
         return self.std[:, self.labels.index(label)]
 
 
