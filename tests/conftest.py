@@ -2,6 +2,10 @@
 
 * float64 is enabled for the whole session (tests that check float32 ask for it explicitly
   with ``dtype=jnp.float32``), and implicit rank promotion is an error.
+* The JAX persistent compilation cache is on for the run (``.pytest_cache/jax-compilation``,
+  or ``JAXREFL_TEST_JAX_CACHE``; ``off`` disables it). Many tests compile the same solver on
+  the same shapes in different processes (xdist workers, notebook kernels, CLI subprocesses);
+  the cache compiles each once. It is set through the environment so subprocesses inherit it.
 * ``shared_data`` locates ``../shared/data`` through ``JAXREFL_SHARED_DATA``. In CI
   (``CI`` set, as ``.ci/run`` does) a missing data folder is a failure, never a skip.
 """
@@ -13,6 +17,21 @@ from pathlib import Path
 
 import jax
 import pytest
+
+_cache = os.environ.get(
+    "JAXREFL_TEST_JAX_CACHE",
+    str(Path(__file__).resolve().parents[1] / ".pytest_cache" / "jax-compilation"),
+)
+if _cache != "off":
+    os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", _cache)
+    os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.5")
+    os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES", "0")
+    jax.config.update("jax_compilation_cache_dir", os.environ["JAX_COMPILATION_CACHE_DIR"])
+    jax.config.update(
+        "jax_persistent_cache_min_compile_time_secs",
+        float(os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"]),
+    )
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
