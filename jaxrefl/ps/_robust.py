@@ -1,0 +1,103 @@
+"""Robust calibrated photometric stereo: shadows and highlights rejected per pixel.
+
+Lambertian least squares (:mod:`._woodham`) is biased wherever an observation breaks
+I = E rho n.l: attached and cast shadows (I ~ 0 where n.l may be > 0) and specular
+highlights (I far above the Lambertian value). Per pixel this module
+
+1. drops dark observations, I_kc < ``shadow`` * max_k I_kc (cast and attached shadows;
+   the threshold is relative, so it does not depend on exposure or albedo);
+2. solves the weighted least squares of Woodham (1980);
+3. repeats ``iters`` times (iteratively reweighted least squares, Holland & Welsch 1977):
+   residuals e_kc = I_kc - E_kc rho_c max(n.l_k, 0); a robust scale
+   s = 1.4826 median |e| (the MAD, consistent with sigma for Gaussian noise), floored at
+   ``scale_floor`` times the median observation; Tukey's biweight
+   w = (1 - (e / (c s))^2)^2 for |e| < c s, else 0 (c = 4.685: 95% efficiency at the
+   Gaussian; Holland & Welsch 1977), and w = 0 where the current normal puts the light
+   below the local horizon (n.l_k <= 0, an attached shadow); then solves again.
+
+A pixel keeps its previous weights if the new ones would leave fewer than 3 lights in a
+channel (the system would not be posed). Observations dropped by the caller (weight 0)
+stay dropped. Noise-free Lambertian data without shadows give the exact normal (all
+weights 1). Highlights are a minority of the lights at a pixel on most objects; where
+they are not (a mirror-like surface), use the non-Lambertian fit (:mod:`._brdf`).
+"""
+
+from __future__ import annotations
+
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import ArrayLike, Float
+
+from ._woodham import PSResult, _woodham, scaled_normals
+
+__all__ = ["robust", "robust_weights"]
+
+# Tukey biweight tuning constant (95% asymptotic efficiency under Gaussian noise).
+_TUKEY_C = 4.685
+# MAD -> standard deviation for Gaussian residuals.
+_MAD_TO_SIGMA = 1.4826
+
+
+def _normals(obs, lights, e, w):
+    b, _, _ = scaled_normals(obs, lights, e, w)
+    total = jnp.sum(b, axis=1)
+    norm = jnp.sqrt(jnp.sum(total * total, axis=-1, keepdims=True))
+    # A pixel with no usable light has b = 0; +z keeps the iteration finite (it is MASKED).
+    n = jnp.where(norm > 0, total / jnp.where(norm > 0, norm, 1.0), jnp.array([0.0, 0.0, 1.0]))
+    rho = jnp.sum(b * n[:, None, :], axis=-1)
+    return n, rho
+
+
+@partial(jax.jit, static_argnames=("iters",))
+def robust_weights(obs, lights, e, w, shadow, scale_floor, iters: int):
+    """The final per-observation weights of the procedure in the module docstring."""
+    peak = jnp.max(jnp.where(w > 0, obs, -jnp.inf), axis=1, keepdims=True)
+    w0 = jnp.where(obs >= shadow * peak, w, 0.0)
+    ref = jnp.nanmedian(jnp.where(w0 > 0, obs, jnp.nan), axis=(1, 2))
+    # Scale floor: noise-free data have s = 0; a floor relative to the pixel's level keeps
+    # the weights at 1 then instead of dividing by zero. All-dark pixels get a floor of 1.
+    floor = scale_floor * jnp.where(jnp.isfinite(ref) & (ref > 0), ref, 1.0)
+    wt = w0
+    for _ in range(iters):
+        n, rho = _normals(obs, lights, e, wt)
+        cos = jnp.einsum("ki,ni->nk", lights, n)
+        pred = e[None] * rho[:, None, :] * jnp.maximum(cos, 0.0)[..., None]
+        r = obs - pred
+        mad = jnp.nanmedian(jnp.where(w0 > 0, jnp.abs(r), jnp.nan), axis=(1, 2))
+        s = jnp.maximum(_MAD_TO_SIGMA * jnp.where(jnp.isfinite(mad), mad, 0.0), floor)
+        u = r / (_TUKEY_C * s[:, None, None])
+        tukey = jnp.where(jnp.abs(u) < 1.0, (1.0 - u * u) ** 2, 0.0)
+        new = w0 * tukey * (cos > 0)[..., None]
+        enough = jnp.all(jnp.sum(new > 0, axis=1) >= 3, axis=-1)
+        wt = jnp.where(enough[:, None, None], new, wt)
+    return wt
+
+
+def robust(
+    obs: Float[ArrayLike, "N K C"],
+    lights: Float[ArrayLike, "K 3"],
+    intensities: Float[ArrayLike, "K C"] | None = None,
+    weight: Float[ArrayLike, "N K C"] | None = None,
+    *,
+    shadow: float = 0.05,
+    scale_floor: float = 1e-3,
+    iters: int = 5,
+) -> PSResult:
+    """Robust normals and albedo of N pixels (module docstring); arguments as
+    :func:`jaxrefl.ps.woodham`, plus ``shadow`` (dark threshold relative to the pixel's
+    brightest observation), ``scale_floor`` and ``iters`` (reweighting rounds)."""
+    obs = jnp.asarray(obs)
+    if not jnp.issubdtype(obs.dtype, jnp.floating):
+        obs = obs.astype(jnp.float32)
+    dt = obs.dtype
+    n, k, c = obs.shape
+    lights = jnp.asarray(lights, dt)
+    e = jnp.ones((k, c), dt) if intensities is None else jnp.asarray(intensities, dt)
+    w = jnp.ones((n, k, c), dt) if weight is None else jnp.asarray(weight, dt)
+    finite = jnp.isfinite(obs) & jnp.isfinite(w)
+    w = jnp.where(finite, w, 0.0)
+    obs = jnp.where(finite, obs, 0.0)
+    wt = robust_weights(obs, lights, e, w, shadow, scale_floor, iters)
+    return _woodham(obs, lights, e, wt)

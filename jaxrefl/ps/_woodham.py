@@ -1,0 +1,123 @@
+"""Calibrated Lambertian photometric stereo: per-pixel weighted least squares (Woodham 1980).
+
+For one pixel, K images in C channels under distant lights l_k (unit, camera frame) of
+intensity E_kc, the Lambertian model is
+
+    I_kc = E_kc rho_c n . l_k  =  E_kc l_k . b_c,      b_c = rho_c n     (n . l_k > 0)
+
+Woodham, "Photometric method for determining surface orientation from multiple images",
+Optical Engineering 19(1), 1980. Each channel's scaled normal b_c solves the 3 x 3 weighted
+normal equations
+
+    (sum_k w_kc E_kc^2 l_k l_k^T) b_c = sum_k w_kc E_kc I_kc l_k
+
+(weights w_kc >= 0: 0 drops a shadowed, saturated or masked observation; per-image and
+per-channel intensities enter as E_kc). The channels share one normal: n = sum_c b_c /
+|sum_c b_c| (the albedo-weighted mean direction, exact when every b_c is parallel), and
+rho_c = b_c . n (least-squares albedo of channel c given n). With noise-free Lambertian
+data and >= 3 non-coplanar lit lights per channel the normal is exact.
+
+Status per pixel (:class:`jaxrefl.fit.Status`): CONVERGED (solved), ILL_CONDITIONED (the
+used lights are nearly coplanar: equilibrated condition number of the 3 x 3 system above
+``cond_max``), MASKED (fewer than 3 usable lights in some channel: normal and albedo NaN),
+NONFINITE_INPUT (a non-finite result).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Float, Int
+
+from jaxrefl.fit import Status, cho_solve_unrolled, cholesky_unrolled, equilibrated_condition
+
+__all__ = ["PSResult", "woodham"]
+
+# Condition number of the equilibrated 3 x 3 light matrix above which the normal is not
+# trusted (float32 keeps ~7 digits; a condition of 1e6 leaves about one).
+_COND_MAX = 1e6
+
+
+class PSResult(eqx.Module):
+    """Per-pixel outcome of a photometric-stereo method (leading axis N: pixels).
+
+    normals: (N, 3) unit normals in the camera frame (NaN where there is no estimate)
+    albedo:  (N, C) rho_c with I = E rho n.l (image units per unit intensity)
+    status:  (N,) :class:`jaxrefl.fit.Status` codes
+    n_used:  (N,) observations (lights x channels) that took part
+    """
+
+    normals: Float[Array, "N 3"]
+    albedo: Float[Array, "N C"]
+    status: Int[Array, " N"]
+    n_used: Int[Array, " N"]
+
+
+def scaled_normals(
+    obs: Float[Array, "N K C"],
+    lights: Float[Array, "K 3"],
+    intensities: Float[Array, "K C"],
+    weight: Float[Array, "N K C"],
+) -> tuple[Float[Array, "N C 3"], Float[Array, "N C"], Array]:
+    """b_c per pixel and channel, the condition number of each system and its Cholesky ok."""
+    e = intensities[None]
+    a = jnp.einsum("nkc,ki,kj->ncij", weight * e * e, lights, lights)
+    rhs = jnp.einsum("nkc,ki->nci", weight * e * obs, lights)
+    cond = equilibrated_condition(a)
+    # Ridge of eps * trace: keeps a rank-deficient system (too few lights) factorisable so
+    # the batch never produces NaN; such pixels are flagged MASKED / ILL_CONDITIONED anyway.
+    eps = jnp.finfo(a.dtype).eps
+    tr = jnp.trace(a, axis1=-2, axis2=-1)[..., None, None]
+    ridge = eps * jnp.maximum(tr, jnp.finfo(a.dtype).tiny) * jnp.eye(3, dtype=a.dtype)
+    chol, ok = cholesky_unrolled(a + ridge)
+    b = cho_solve_unrolled(chol, rhs)
+    return b, cond, ok
+
+
+@jax.jit
+def _woodham(obs, lights, intensities, weight):
+    b, cond, ok = scaled_normals(obs, lights, intensities, weight)
+    total = jnp.sum(b, axis=1)
+    norm = jnp.sqrt(jnp.sum(total * total, axis=-1, keepdims=True))
+    good_norm = norm > 0
+    n = total / jnp.where(good_norm, norm, 1.0)
+    rho = jnp.sum(b * n[:, None, :], axis=-1)
+    used = weight > 0
+    per_channel = jnp.sum(used, axis=1)
+    n_used = jnp.sum(used, axis=(1, 2)).astype(jnp.int32)
+    status = jnp.where(jnp.any(cond > _COND_MAX, axis=-1), Status.ILL_CONDITIONED, 0)
+    finite = jnp.all(jnp.isfinite(n), axis=-1) & jnp.all(jnp.isfinite(rho), axis=-1)
+    finite = finite & good_norm[:, 0] & jnp.all(ok, axis=-1)
+    status = jnp.where(finite, status, Status.NONFINITE_INPUT)
+    status = jnp.where(jnp.any(per_channel < 3, axis=-1), Status.MASKED, status)
+    none = status >= Status.MASKED
+    n = jnp.where(none[:, None], jnp.nan, n)
+    rho = jnp.where(none[:, None], jnp.nan, rho)
+    return PSResult(n, rho, status.astype(jnp.int32), n_used)
+
+
+def woodham(
+    obs: Float[ArrayLike, "N K C"],
+    lights: Float[ArrayLike, "K 3"],
+    intensities: Float[ArrayLike, "K C"] | None = None,
+    weight: Float[ArrayLike, "N K C"] | None = None,
+) -> PSResult:
+    """Least-squares normals and albedo of N pixels (module docstring).
+
+    obs: linear values; lights: unit directions towards the lights; intensities: E_kc
+    (default 1); weight: >= 0 per observation (default 1; 0 drops it). Non-finite
+    observations are dropped (weight 0) before any arithmetic.
+    """
+    obs = jnp.asarray(obs)
+    if not jnp.issubdtype(obs.dtype, jnp.floating):
+        obs = obs.astype(jnp.float32)
+    dt = obs.dtype
+    n, k, c = obs.shape
+    lights = jnp.asarray(lights, dt)
+    e = jnp.ones((k, c), dt) if intensities is None else jnp.asarray(intensities, dt)
+    w = jnp.ones((n, k, c), dt) if weight is None else jnp.asarray(weight, dt)
+    finite = jnp.isfinite(obs) & jnp.isfinite(w)
+    w = jnp.where(finite, w, 0.0)
+    obs = jnp.where(finite, obs, 0.0)
+    return _woodham(obs, lights, e, w)
