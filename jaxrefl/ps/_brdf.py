@@ -178,9 +178,7 @@ def fit_normal_brdf(
         raise ValueError(f"init must be 'grid' or 'diffuse', not {init!r}")
     theta0 = jnp.concatenate([jnp.zeros((n, 2), dt), x0], axis=-1)
     n_usable = jnp.sum(w_fit > 0, axis=(1, 2)).astype(jnp.int32)
-    theta, info = jf.solve(
-        residual, theta0, data, backend, max_iters=max_iters, n_usable=n_usable
-    )
+    theta, info = jf.solve(residual, theta0, data, backend, max_iters=max_iters, n_usable=n_usable)
     normals = tilt_normal(theta[:, :2], n0)
     params = space.to_natural(theta[:, 2:])
     status = jnp.where(has, info.status, jnp.maximum(start.status, jf.Status.MASKED))

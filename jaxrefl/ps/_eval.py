@@ -61,7 +61,11 @@ def error_stats(err: np.ndarray, mask: np.ndarray) -> ErrorStats:
         return ErrorStats(nan, nan, nan, 0, int(e.size))
     v = e[ok]
     return ErrorStats(
-        float(v.mean()), float(np.median(v)), float(np.percentile(v, 90)), int(v.size), int((~ok).sum())
+        float(v.mean()),
+        float(np.median(v)),
+        float(np.percentile(v, 90)),
+        int(v.size),
+        int((~ok).sum()),
     )
 
 

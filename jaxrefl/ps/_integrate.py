@@ -119,7 +119,6 @@ def poisson(
     gc, gr = gradients(normals, mask, nz_min)
     z0 = np.nan_to_num(frankot_chellappa(normals, mask, nz_min))
     dt = jnp.asarray(0.0).dtype
-    z = _poisson_cg(
-        jnp.asarray(gc, dt), jnp.asarray(gr, dt), jnp.asarray(mask), jnp.asarray(z0, dt), tol, maxiter
-    )
+    args = (jnp.asarray(gc, dt), jnp.asarray(gr, dt), jnp.asarray(mask), jnp.asarray(z0, dt))
+    z = _poisson_cg(*args, tol, maxiter)
     return _finish(np.asarray(z), mask)

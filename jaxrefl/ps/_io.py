@@ -77,7 +77,8 @@ def _read_lights_uw(path: Path) -> np.ndarray:
         count = int(rows[0][0])
         d = np.array([[float(x) for x in r] for r in rows[1:]])
     except (ValueError, IndexError):
-        raise PSInputError(path, "expected the light count, then one 'x y z' line per light") from None
+        msg = "expected the light count, then one 'x y z' line per light"
+        raise PSInputError(path, msg) from None
     if d.ndim != 2 or d.shape[1] != 3:
         raise PSInputError(path, "every light line must hold three numbers x y z")
     if count != d.shape[0]:
@@ -129,8 +130,10 @@ def load_uw(obj_dir: str | Path, lights: str | Path | None = None) -> PSCapture:
     raw = np.stack(imgs)
     m = _read_8bit(mask_path)
     if m.shape[:2] != raw.shape[1:3]:
-        raise PSInputError(mask_path, f"mask is {m.shape[1]}x{m.shape[0]}, images are "
-                           f"{raw.shape[2]}x{raw.shape[1]}")
+        raise PSInputError(
+            mask_path,
+            f"mask is {m.shape[1]}x{m.shape[0]}, images are {raw.shape[2]}x{raw.shape[1]}",
+        )
     mask = np.any(m > 127, axis=-1)
     if not mask.any():
         raise PSInputError(mask_path, "the mask is empty (no pixel above 127)")
@@ -193,8 +196,9 @@ def load_diligent(root: str | Path, require_16bit: bool = True) -> PSCapture:
         a = a[..., :3] if a.shape[-1] in (3, 4) else a[..., :1]
         if require_16bit and bits != 16:
             raise PSInputError(
-                f, f"{bits}-bit PNG where DiLiGenT images are 16-bit; the low bits are lost "
-                "(re-export at 16 bits, or pass require_16bit=False)"
+                f,
+                f"{bits}-bit PNG where DiLiGenT images are 16-bit; the low bits are lost "
+                "(re-export at 16 bits, or pass require_16bit=False)",
             )
         if depth is not None and bits != depth:
             raise PSInputError(f, f"{bits}-bit image but {first[0].name} is {depth}-bit")
@@ -208,8 +212,9 @@ def load_diligent(root: str | Path, require_16bit: bool = True) -> PSCapture:
         raise FileNotFoundError(f"{mpath}: mask not found")
     m, _ = read_png(mpath)
     if m.shape[:2] != raw.shape[1:3]:
-        raise PSInputError(mpath, f"mask is {m.shape[1]}x{m.shape[0]}, images are "
-                           f"{raw.shape[2]}x{raw.shape[1]}")
+        raise PSInputError(
+            mpath, f"mask is {m.shape[1]}x{m.shape[0]}, images are {raw.shape[2]}x{raw.shape[1]}"
+        )
     mask = np.any(m[..., : min(3, m.shape[-1])] > 0, axis=-1)
     if not mask.any():
         raise PSInputError(mpath, "the mask is empty (every pixel 0)")

@@ -143,7 +143,7 @@ def run_ps(
     timings["integrate_s"] = time.perf_counter() - t
     gt, ref_name = cap.normals_gt, "ground_truth" if cap.normals_gt is not None else None
     if reference == "sphere":
-        gt, inside = sphere_normals(cap.shape, fit_circle(cap.mask, "capture mask"))
+        gt, _ = sphere_normals(cap.shape, fit_circle(cap.mask, "capture mask"))
         ref_name = "fitted_sphere"
     report["reference"] = ref_name
     report["status_counts"] = describe(maps["status"][cap.mask])
@@ -153,8 +153,12 @@ def run_ps(
     n = maps["normals"]
     write_exr(
         out / "normals.exr",
-        {"normal.X": n[..., 0], "normal.Y": n[..., 1], "normal.Z": n[..., 2],
-         "status": maps["status"].astype(np.uint32)},
+        {
+            "normal.X": n[..., 0],
+            "normal.Y": n[..., 1],
+            "normal.Z": n[..., 2],
+            "status": maps["status"].astype(np.uint32),
+        },
         metadata={"frame": "camera: x right, y up, z towards the camera", "method": method},
     )
     write_png(out / "normals.png", _png8(np.where(has[..., None], (n + 1) / 2, 0.0)))

@@ -132,8 +132,9 @@ def chrome_sphere_lights(
         dirs.append(_mirror(x))
         covs.append(jac @ sigma @ jac.T)
     d = np.array(dirs)
-    return LightCalibration(d / np.linalg.norm(d, axis=1, keepdims=True), None, np.array(covs),
-                            "chrome_sphere", circle)
+    return LightCalibration(
+        d / np.linalg.norm(d, axis=1, keepdims=True), None, np.array(covs), "chrome_sphere", circle
+    )
 
 
 def lights_from_shading(
@@ -145,7 +146,7 @@ def lights_from_shading(
     if v.ndim == 2:
         v = v[..., None]
     n = np.asarray(normals, np.float64)
-    k, m, c = v.shape
+    k, m, _ = v.shape
     if n.shape != (m, 3):
         raise PSInputError(None, f"normals are {n.shape}, expected ({m}, 3) for {m} points")
     if m < 4:

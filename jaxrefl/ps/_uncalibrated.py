@@ -59,9 +59,7 @@ def gbr_matrix(mu: float, nu: float, lam: float) -> np.ndarray:
     return np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [mu, nu, lam]])
 
 
-def apply_gbr(
-    b: np.ndarray, lights: np.ndarray, g: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
+def apply_gbr(b: np.ndarray, lights: np.ndarray, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(b', l') = (G^-T b, G l) for scaled normals b (..., 3) and scaled lights (..., 3):
     b' . l' = b . l, so the images do not change."""
     g_inv_t = np.linalg.inv(g).T
@@ -72,7 +70,8 @@ def factorize(m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(S^ (N, 3), L^ (K, 3), singular values) of the rank-3 SVD of M (N x K)."""
     m = np.asarray(m, np.float64)
     if m.ndim != 2 or min(m.shape) < 3:
-        raise PSInputError(None, f"rank-3 factorisation needs >= 3 pixels and images, got {m.shape}")
+        msg = f"rank-3 factorisation needs >= 3 pixels and images, got {m.shape}"
+        raise PSInputError(None, msg)
     u, w, vt = np.linalg.svd(m, full_matrices=False)
     r = np.sqrt(w[:3])
     return u[:, :3] * r, vt[:3].T * r, w
