@@ -1,0 +1,263 @@
+"""Per-pixel posteriors on every pixel at once: BlackJAX HMC (or NUTS) under ``vmap``.
+
+Each pixel's posterior is independent (:class:`~jaxrefl.posterior.LogPosterior` with that
+pixel's data), so one compiled program runs all of them: ``vmap`` over the chains of a
+pixel, ``lax.map(batch_size=...)`` over pixels (a block of pixels vmapped at a time: the
+working set stays bounded and the batch keeps the vector units busy), ``lax.scan`` over
+steps.
+
+Kernel: fixed-length HMC (``num_integration_steps`` leapfrog steps, default 16) by
+default. Under ``vmap`` every lane of a batch runs the same instructions, so NUTS runs
+every step at the deepest tree of the batch; fixed-length HMC has no such coupling
+(measured in ``../shared/MEASUREMENTS.md``: ~4,600 vs ~1,100 ESS/s per pixel). ``kernel="nuts"``
+is available for small batches.
+
+Adaptation (:func:`_one_chain`: dual averaging of the step size to ``target_accept`` with
+BlackJAX's ``dual_averaging_adaptation``, a mass matrix from the warm-up draws, in the same
+scan as the sampling) runs **per chain, per pixel**:
+nothing is shared. Pixels differ by orders of magnitude in their posterior widths (a
+highlight pins alpha to 1%, a matte pixel leaves it free), so a shared step size or mass
+matrix would be wrong for most of them; adapting per chain costs ``num_warmup`` extra
+steps, which the vmapped batch pays once. A **dense** mass matrix is the default:
+specular F0 and log alpha are strongly correlated (a narrower lobe is brighter), and a
+dense metric roughly triples the ESS there.
+
+Chains start from the LM optimum plus a jitter of ``init_jitter`` times the Laplace
+theta-space std (when given) so that split R-hat compares chains that began apart.
+Pixels with no estimate (NaN theta) are run from theta = 0 and come back NaN.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import blackjax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from blackjax.adaptation.step_size import dual_averaging_adaptation
+from jaxtyping import Array
+
+from jaxrefl.fit import PixelData
+
+from ._logpost import LogPosterior
+
+__all__ = ["HMCOptions", "Samples", "sample_pixels"]
+
+
+@dataclass(frozen=True)
+class HMCOptions:
+    """Settings of :func:`sample_pixels` (module docstring)."""
+
+    num_warmup: int = 300
+    num_samples: int = 500
+    num_chains: int = 4
+    kernel: Literal["hmc", "nuts"] = "hmc"
+    num_integration_steps: int = 16
+    dense_mass: bool = True
+    target_accept: float = 0.8
+    batch_size: int = 100
+    init_jitter: float = 0.5
+    step_jitter: float = 0.2
+
+    def __post_init__(self):
+        if self.kernel not in ("hmc", "nuts"):
+            raise ValueError(f"kernel must be 'hmc' or 'nuts', not {self.kernel!r}")
+        for k in ("num_warmup", "num_samples", "num_chains", "num_integration_steps"):
+            if getattr(self, k) < 1:
+                raise ValueError(f"{k} must be >= 1, got {getattr(self, k)}")
+
+
+@dataclass
+class Samples:
+    """Posterior draws of N pixels (N = 1 for a single problem).
+
+    theta:   (N, chains, draws, D) unconstrained draws
+    natural: (N, chains, draws, D) natural values, named by ``labels``
+    stats:   per-draw sample statistics (N, chains, draws): ``acceptance_rate``,
+             ``diverging`` (bool), ``lp`` (log density)
+    tuning:  per-chain tuned settings, e.g. ``step_size`` (N, chains)
+    method:  ``"hmc"``, ``"nuts"`` or ``"emcee"``
+    compile_s, run_s: time of compilation (first call minus a warm one, or of tracing),
+             and of the sampling itself
+    """
+
+    theta: np.ndarray
+    natural: np.ndarray
+    labels: tuple[str, ...]
+    stats: dict[str, np.ndarray]
+    method: str
+    tuning: dict[str, np.ndarray] = field(default_factory=dict)
+    compile_s: float = float("nan")
+    run_s: float = float("nan")
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def n_pixels(self) -> int:
+        return int(self.theta.shape[0])
+
+    def flat(self, pixel: int = 0) -> np.ndarray:
+        """(chains * draws, D) natural draws of one pixel."""
+        x = self.natural[pixel]
+        return x.reshape(-1, x.shape[-1])
+
+
+def _welford(mean, m2, count, x, on):
+    """One step of Welford's running mean and (dense) scatter matrix, where ``on``."""
+    c1 = count + on
+    delta = x - mean
+    mean1 = mean + jnp.where(on, delta / jnp.maximum(c1, 1), 0.0)
+    m2_1 = m2 + jnp.where(on, jnp.outer(delta, x - mean1), 0.0)
+    return mean1, m2_1, c1
+
+
+def _one_chain(lp: LogPosterior, opts: HMCOptions, key, x0, imm0, data, normals):
+    """Warm-up and sampling of one chain in a single ``lax.scan`` (module docstring).
+
+    Warm-up schedule (Stan's, with one slow window): steps [0, 15%) adapt the step size
+    by dual averaging (Hoffman & Gelman 2014, sec. 3.2) on the initial metric ``imm0``
+    (the Laplace covariance's diagonal where given); steps [15%, 90%) also accumulate the
+    covariance of the draws, which at 90% becomes the inverse mass matrix, regularised as
+    Stan does: n/(n+5) Cov + 1e-3 * 5/(n+5) I; dual averaging restarts then and runs to the
+    end of the warm-up, whose averaged step size is kept. One kernel serves warm-up and
+    sampling, so the model's gradient is compiled once.
+    """
+
+    def logdensity(t):
+        return lp(t, data, normals)
+
+    algo = blackjax.hmc if opts.kernel == "hmc" else blackjax.nuts
+    extra = {"num_integration_steps": opts.num_integration_steps} if opts.kernel == "hmc" else {}
+    n_warm = opts.num_warmup
+    w1, w2 = max(1, int(0.15 * n_warm)), max(2, int(0.9 * n_warm))
+    da_init, da_update, _ = dual_averaging_adaptation(opts.target_accept)
+    d = x0.shape[-1]
+    dtype = x0.dtype
+    eye = jnp.eye(d, dtype=dtype)
+    imm = imm0 if opts.dense_mass else jnp.diagonal(imm0)
+    state = algo(logdensity, 1.0, imm, **extra).init(x0)
+    eps0 = jnp.asarray(0.5, dtype)
+    carry0 = (state, da_init(eps0), imm, jnp.zeros(d, dtype), jnp.zeros((d, d), dtype), 0, eps0)
+
+    def body(carry, xs):
+        state, da, imm, mean, m2, count, final_eps = carry
+        i, k = xs
+        k_eps, k_step = jax.random.split(k)
+        warm = i < n_warm
+        eps = jnp.where(warm, jnp.exp(da.log_step_size), final_eps)
+        # Step size jittered by +-step_jitter each iteration (Neal 2011, sec. 5.4.2): a
+        # fixed trajectory length resonates with the period of a near-Gaussian posterior
+        # (a chain then barely moves); jitter breaks the resonance.
+        lo, hi = 1.0 - opts.step_jitter, 1.0 + opts.step_jitter
+        eps = eps * jax.random.uniform(k_eps, (), dtype, lo, hi)
+        state, info = algo(logdensity, eps, imm, **extra).step(k_step, state)
+        # A NaN acceptance (non-finite energy) counts as a rejection for the adaptation.
+        acc = jnp.where(jnp.isfinite(info.acceptance_rate), info.acceptance_rate, 0.0)
+        da1 = da_update(da, acc)
+        slow = (i >= w1) & (i < w2)
+        mean, m2, count = _welford(mean, m2, count, state.position, slow)
+        end_slow = i == w2 - 1
+        n = jnp.maximum(count, 2).astype(dtype)
+        cov = m2 / (n - 1)
+        reg = (n / (n + 5.0)) * cov + 1e-3 * (5.0 / (n + 5.0)) * eye
+        new_imm = reg if opts.dense_mass else jnp.diagonal(reg)
+        imm = jnp.where(end_slow, new_imm, imm)
+        restart = da_init(jnp.exp(da1.log_step_size))
+        da1 = jax.tree.map(lambda a, b: jnp.where(end_slow, a, b), restart, da1)
+        final_eps = jnp.where(i == n_warm - 1, jnp.exp(da1.log_step_size_avg), final_eps)
+        da = jax.tree.map(lambda a, b: jnp.where(warm, a, b), da1, da)
+        out = (state.position, state.logdensity, acc, info.is_divergent)
+        return (state, da, imm, mean, m2, count, final_eps), out
+
+    total = n_warm + opts.num_samples
+    xs = (jnp.arange(total), jax.random.split(key, total))
+    (_, _, imm, *_, eps), (pos, lpd, acc, div) = jax.lax.scan(body, carry0, xs)
+    keep = slice(n_warm, None)
+    return pos[keep], lpd[keep], acc[keep], div[keep], eps
+
+
+@eqx.filter_jit
+def _run(lp: LogPosterior, opts: HMCOptions, keys, x0, imm0, data: PixelData, normals):
+    def pixel(args):
+        k, x, m, d, n = args
+        n = n if lp.light is not None else None  # zeros stand in when the light is known
+        kc = jax.random.split(k, opts.num_chains)
+        return jax.vmap(lambda kk, xx: _one_chain(lp, opts, kk, xx, m, d, n))(kc, x)
+
+    return jax.lax.map(pixel, (keys, x0, imm0, data, normals), batch_size=opts.batch_size)
+
+
+def sample_pixels(
+    lp: LogPosterior,
+    data: PixelData,
+    theta0: Array,
+    *,
+    theta_std: Array | None = None,
+    normals: Array | None = None,
+    options: HMCOptions | None = None,
+    seed: int = 0,
+    timing: bool = False,
+) -> Samples:
+    """Sample the posterior of every pixel of ``data`` ((N, K, C)) with vmapped HMC.
+
+    theta0:    (N, D) or (D,) start (the LM optimum via :meth:`LogPosterior.init_theta`)
+    theta_std: (N, D) theta-space scale of the start jitter and of the initial metric
+               (Laplace ``theta_std``); NaN or missing entries use 1
+    normals:   (N, K, 3) world normals when the light direction is sampled
+    timing:    run twice on the first batch to measure compilation apart (``compile_s``)
+    """
+    opts = HMCOptions() if options is None else options
+    n = data.obs.shape[0]
+    dtype = data.obs.dtype
+    x = jnp.broadcast_to(jnp.asarray(theta0, dtype), (n, lp.size))
+    if x.shape[-1] != lp.size:
+        raise ValueError(f"theta0 must end in D = {lp.size} {lp.labels}; got {x.shape}")
+    ok = jnp.all(jnp.isfinite(x), axis=-1)
+    x = jnp.where(ok[:, None], x, 0.0)
+    sd = jnp.ones_like(x) if theta_std is None else jnp.asarray(theta_std, dtype)
+    sd = jnp.where(jnp.isfinite(sd) & (sd > 0), jnp.minimum(sd, 1.0), 1.0)
+    key = jax.random.PRNGKey(seed)
+    k_init, k_run = jax.random.split(key)
+    eps = jax.random.normal(k_init, (n, opts.num_chains, lp.size), dtype)
+    x0 = x[:, None, :] + opts.init_jitter * sd[:, None, :] * eps
+    keys = jax.random.split(k_run, n)
+    if normals is None:
+        nrm = jnp.zeros((n, 1, 3), dtype)  # unused without a light; keeps one code path
+    else:
+        nrm = jnp.broadcast_to(jnp.asarray(normals, dtype), (n, data.obs.shape[1], 3))
+
+    imm0 = jax.vmap(jnp.diag)(sd * sd)  # the initial metric: the Laplace scales
+
+    def call():
+        return jax.block_until_ready(_run(lp, opts, keys, x0, imm0, data, nrm))
+
+    t0 = time.perf_counter()
+    out = call()
+    t1 = time.perf_counter()
+    compile_s = float("nan")
+    if timing:
+        out = call()
+        t2 = time.perf_counter()
+        compile_s = max(0.0, (t1 - t0) - (t2 - t1))
+        run_s = t2 - t1
+    else:
+        run_s = t1 - t0
+    pos, lpd, acc, div, step = (np.asarray(a) for a in out)
+    bad = ~np.asarray(ok)
+    pos = pos.astype(np.float64)
+    pos[bad] = np.nan
+    nat = np.asarray(lp.natural(jnp.asarray(pos)), dtype=np.float64)
+    return Samples(
+        theta=pos,
+        natural=nat,
+        labels=lp.labels,
+        stats={"acceptance_rate": acc, "diverging": div, "lp": lpd},
+        method=opts.kernel,
+        tuning={"step_size": step},
+        compile_s=compile_s,
+        run_s=run_s,
+        extra={"options": opts, "no_estimate": bad},
+    )

@@ -1,0 +1,92 @@
+"""A direction on the sphere as an unconstrained 3-vector: no pole, no wrap-around.
+
+Angles (theta, phi) make a sampler's life hard: phi wraps around at 2 pi and the metric
+collapses at the poles (a step of fixed size in phi moves the direction by sin(theta) times
+as much). Instead the light direction is
+
+    l = u / |u|,   u in R^3 unconstrained,
+
+and the sampler works on u. The map forgets the radius r = |u|, so we give r a density of
+its own: in polar coordinates du = r^2 dr dl, so a target p(r, l) = h(r) p(l) is the density
+
+    p(u) = h(|u|) p(u / |u|) / |u|^2
+
+on R^3. With h the chi distribution with 3 degrees of freedom, h(r) ∝ r^2 exp(-r^2 / 2),
+the radial part is exp(-|u|^2 / 2): the density of u is a standard normal times the
+direction prior, smooth everywhere except the single point u = 0, which carries
+no mass and which a sampler only reaches at a density of about exp(0) p(l) <= the typical
+one (no divergence). Marginally, l has exactly the prior p(l) (a von Mises–Fisher or
+uniform, :class:`~jaxrefl.posterior.VonMisesFisher`) times the likelihood: the radius
+never enters the likelihood, and r is independent of l a posteriori. Every direction is
+treated alike: there is no special axis.
+
+R-hat and ESS are computed on the components of l (``light.x``, ``light.y``,
+``light.z``), never on u (whose radius is a nuisance).
+
+:func:`onb` builds a tangent frame about a normal (Duff et al. 2017, *Building an
+Orthonormal Basis, Revisited*, JCGT 6(1)), branchless, to carry world directions into the
+local frame of each surface point.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from ._priors import VonMisesFisher
+
+__all__ = ["SphereDirection", "angle_deg", "onb", "to_local"]
+
+
+class SphereDirection(eqx.Module):
+    """A direction l = u / |u| with prior ``prior`` (module docstring)."""
+
+    prior: VonMisesFisher = VonMisesFisher((0.0, 0.0, 1.0), 0.0)
+
+    size = 3
+    labels = ("light.x", "light.y", "light.z")
+
+    def direction(self, u: Float[Array, "*b 3"]) -> Float[Array, "*b 3"]:
+        n2 = jnp.sum(u * u, axis=-1, keepdims=True)
+        ok = n2 > 0
+        # Gradient-safe: u = 0 (no direction, zero prior mass) is swapped for +z.
+        u_safe = jnp.where(ok, u, jnp.asarray([0.0, 0.0, 1.0], dtype=u.dtype))
+        return u_safe / jnp.sqrt(jnp.where(ok, n2, 1.0))
+
+    def log_density(self, u: Float[Array, "*b 3"]) -> Float[Array, " *b"]:
+        """log p(u) = -|u|^2 / 2 + log p_prior(u / |u|) (chi-3 radius, module docstring)."""
+        return -0.5 * jnp.sum(u * u, axis=-1) + self.prior.log_prob(self.direction(u))
+
+    def init(self, l: Float[Array, "*b 3"]) -> Float[Array, "*b 3"]:
+        """u for direction l at radius sqrt(2), the mode of the chi-3 radius."""
+        l = jnp.asarray(l)
+        return jnp.sqrt(2.0) * l / jnp.linalg.norm(l, axis=-1, keepdims=True)
+
+
+def onb(n: Float[Array, "*b 3"]) -> tuple[Float[Array, "*b 3"], Float[Array, "*b 3"]]:
+    """Tangent and bitangent (t, b) with (t, b, n) right-handed orthonormal (Duff et al.)."""
+    x, y, z = n[..., 0], n[..., 1], n[..., 2]
+    sign = jnp.where(z >= 0, 1.0, -1.0).astype(n.dtype)
+    a = -1.0 / (sign + z)  # |sign + z| >= 1: never a division by zero
+    b = x * y * a
+    t = jnp.stack([1.0 + sign * x * x * a, sign * b, -sign * x], axis=-1)
+    bt = jnp.stack([b, sign + y * y * a, -y], axis=-1)
+    return t, bt
+
+
+def to_local(v: Float[Array, "*b 3"], n: Float[Array, "*b 3"]) -> Float[Array, "*b 3"]:
+    """World direction v in the local frame of normal n (z = n)."""
+    t, b = onb(n)
+    return jnp.stack(
+        [jnp.sum(v * t, axis=-1), jnp.sum(v * b, axis=-1), jnp.sum(v * n, axis=-1)], axis=-1
+    )
+
+
+def angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Angle in degrees between direction arrays (*b, 3) (not necessarily unit)."""
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    c = np.sum(a * b, axis=-1) / (np.linalg.norm(a, axis=-1) * np.linalg.norm(b, axis=-1))
+    return np.degrees(np.arccos(np.clip(c, -1.0, 1.0)))
