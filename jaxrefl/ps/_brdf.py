@@ -152,7 +152,7 @@ def fit_normal_brdf(
         space = jf.ParamSpace(model, channels=c, grey=grey)
     start = robust(obs, lights, e, jnp.where(sat, 0.0, w), shadow=shadow)
     has = start.status < jf.Status.MASKED
-    n0 = jnp.where(has[:, None], start.normals, jnp.array([0.0, 0.0, 1.0], dt))
+    n0 = jnp.where(has[:, None], start.normals, jnp.array([[0.0, 0.0, 1.0]], dt))
     peak_rho = jnp.max(jnp.where(has[:, None], start.albedo, 0.0), axis=-1)
     # Per-pixel scale; a pixel without a start (or black) keeps scale 1.
     s = jnp.where(peak_rho > 0, jnp.pi * peak_rho / _ALBEDO_TARGET, 1.0)

@@ -4,9 +4,12 @@ Lambertian least squares (:mod:`._woodham`) is biased wherever an observation br
 I = E rho n.l: attached and cast shadows (I ~ 0 where n.l may be > 0) and specular
 highlights (I far above the Lambertian value). Per pixel this module
 
-1. drops dark observations, I_kc < ``shadow`` * max_k I_kc (cast and attached shadows;
-   the threshold is relative, so it does not depend on exposure or albedo);
-2. solves the weighted least squares of Woodham (1980);
+1. drops dark observations, I_kc < ``shadow`` * I_ref (cast and attached shadows; I_ref
+   is the brightest observation once the brightest ``trim`` fraction is set aside, so the
+   threshold follows exposure and albedo and is not raised by a highlight);
+2. solves the weighted least squares of Woodham (1980) without the brightest ``trim``
+   fraction (default 25%: where highlights are; a trimmed start, so that the reweighting
+   below begins near the Lambertian answer instead of one a highlight pulled away);
 3. repeats ``iters`` times (iteratively reweighted least squares, Holland & Welsch 1977):
    residuals e_kc = I_kc - E_kc rho_c max(n.l_k, 0); a robust scale
    s = 1.4826 median |e| (the MAD, consistent with sigma for Gaussian noise), floored at
@@ -30,7 +33,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import ArrayLike, Float
 
-from ._woodham import PSResult, _woodham, scaled_normals
+from ._woodham import PSResult, _woodham, cut, pad_pixels, scaled_normals
 
 __all__ = ["robust", "robust_weights"]
 
@@ -38,6 +41,7 @@ __all__ = ["robust", "robust_weights"]
 _TUKEY_C = 4.685
 # MAD -> standard deviation for Gaussian residuals.
 _MAD_TO_SIGMA = 1.4826
+_UP = jnp.array([0.0, 0.0, 1.0])
 
 
 def _normals(obs, lights, e, w):
@@ -45,21 +49,32 @@ def _normals(obs, lights, e, w):
     total = jnp.sum(b, axis=1)
     norm = jnp.sqrt(jnp.sum(total * total, axis=-1, keepdims=True))
     # A pixel with no usable light has b = 0; +z keeps the iteration finite (it is MASKED).
-    n = jnp.where(norm > 0, total / jnp.where(norm > 0, norm, 1.0), jnp.array([0.0, 0.0, 1.0]))
+    n = jnp.where(norm > 0, total / jnp.where(norm > 0, norm, 1.0), _UP[None])
     rho = jnp.sum(b * n[:, None, :], axis=-1)
     return n, rho
 
 
 @partial(jax.jit, static_argnames=("iters",))
-def robust_weights(obs, lights, e, w, shadow, scale_floor, iters: int):
+def robust_weights(obs, lights, e, w, shadow, scale_floor, iters: int, trim: float = 0.25):
     """The final per-observation weights of the procedure in the module docstring."""
-    peak = jnp.max(jnp.where(w > 0, obs, -jnp.inf), axis=1, keepdims=True)
-    w0 = jnp.where(obs >= shadow * peak, w, 0.0)
+    usable = w > 0
+    n_u = jnp.sum(usable, axis=1, keepdims=True)
+    # Rank of each usable observation among the pixel's usable ones (0 = darkest).
+    rank = jnp.argsort(jnp.argsort(jnp.where(usable, obs, -jnp.inf), axis=1), axis=1)
+    rank = rank - (obs.shape[1] - n_u)
+    n_top = jnp.ceil(trim * n_u)
+    top = rank >= n_u - n_top
+    # A high but robust reference level: the brightest observation below the trimmed ones.
+    ref_hi = jnp.max(jnp.where(usable & ~top, obs, -jnp.inf), axis=1, keepdims=True)
+    w0 = jnp.where(obs >= shadow * ref_hi, w, 0.0)
     ref = jnp.nanmedian(jnp.where(w0 > 0, obs, jnp.nan), axis=(1, 2))
     # Scale floor: noise-free data have s = 0; a floor relative to the pixel's level keeps
     # the weights at 1 then instead of dividing by zero. All-dark pixels get a floor of 1.
     floor = scale_floor * jnp.where(jnp.isfinite(ref) & (ref > 0), ref, 1.0)
-    wt = w0
+    # Start without the brightest ``trim`` fraction (where highlights are), if >= 3 remain.
+    start = jnp.where(top, 0.0, w0)
+    enough0 = jnp.all(jnp.sum(start > 0, axis=1) >= 3, axis=-1)
+    wt = jnp.where(enough0[:, None, None], start, w0)
     for _ in range(iters):
         n, rho = _normals(obs, lights, e, wt)
         cos = jnp.einsum("ki,ni->nk", lights, n)
@@ -84,10 +99,12 @@ def robust(
     shadow: float = 0.05,
     scale_floor: float = 1e-3,
     iters: int = 5,
+    trim: float = 0.25,
 ) -> PSResult:
     """Robust normals and albedo of N pixels (module docstring); arguments as
     :func:`jaxrefl.ps.woodham`, plus ``shadow`` (dark threshold relative to the pixel's
-    brightest observation), ``scale_floor`` and ``iters`` (reweighting rounds)."""
+    reference level), ``scale_floor``, ``iters`` (reweighting rounds) and ``trim`` (the
+    brightest fraction left out of the starting fit)."""
     obs = jnp.asarray(obs)
     if not jnp.issubdtype(obs.dtype, jnp.floating):
         obs = obs.astype(jnp.float32)
@@ -99,5 +116,6 @@ def robust(
     finite = jnp.isfinite(obs) & jnp.isfinite(w)
     w = jnp.where(finite, w, 0.0)
     obs = jnp.where(finite, obs, 0.0)
-    wt = robust_weights(obs, lights, e, w, shadow, scale_floor, iters)
-    return _woodham(obs, lights, e, wt)
+    obs, w = pad_pixels(obs, w)
+    wt = robust_weights(obs, lights, e, w, shadow, scale_floor, iters, trim)
+    return cut(_woodham(obs, lights, e, wt), n)

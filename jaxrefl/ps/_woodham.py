@@ -37,6 +37,9 @@ __all__ = ["PSResult", "woodham"]
 # Condition number of the equilibrated 3 x 3 light matrix above which the normal is not
 # trusted (float32 keeps ~7 digits; a condition of 1e6 leaves about one).
 _COND_MAX = 1e6
+# Smallest padded batch: the closed-form methods cost microseconds per pixel, so padding
+# small inputs to 4096 pixels costs nothing and lets them share one compilation.
+_MIN_BUCKET = 4096
 
 
 class PSResult(eqx.Module):
@@ -69,7 +72,7 @@ def scaled_normals(
     # the batch never produces NaN; such pixels are flagged MASKED / ILL_CONDITIONED anyway.
     eps = jnp.finfo(a.dtype).eps
     tr = jnp.trace(a, axis1=-2, axis2=-1)[..., None, None]
-    ridge = eps * jnp.maximum(tr, jnp.finfo(a.dtype).tiny) * jnp.eye(3, dtype=a.dtype)
+    ridge = eps * jnp.maximum(tr, jnp.finfo(a.dtype).tiny) * jnp.eye(3, dtype=a.dtype)[None, None]
     chol, ok = cholesky_unrolled(a + ridge)
     b = cho_solve_unrolled(chol, rhs)
     return b, cond, ok
@@ -97,6 +100,24 @@ def _woodham(obs, lights, intensities, weight):
     return PSResult(n, rho, status.astype(jnp.int32), n_used)
 
 
+def bucket(n: int) -> int:
+    """Padded batch size: the next power of two (>= 4096), so that captures of different
+    sizes share compiled code (a new N would otherwise mean a new compilation)."""
+    return max(_MIN_BUCKET, 1 << max(int(n) - 1, 0).bit_length())
+
+
+def pad_pixels(*arrays):
+    """Pad (N, ...) arrays with zeros to :func:`bucket` (N) rows (zero weight: MASKED)."""
+    n = arrays[0].shape[0]
+    extra = bucket(n) - n
+    return tuple(jnp.pad(a, [(0, extra)] + [(0, 0)] * (a.ndim - 1)) for a in arrays)
+
+
+def cut(r: PSResult, n: int) -> PSResult:
+    """The first n pixels of a padded result."""
+    return PSResult(r.normals[:n], r.albedo[:n], r.status[:n], r.n_used[:n])
+
+
 def woodham(
     obs: Float[ArrayLike, "N K C"],
     lights: Float[ArrayLike, "K 3"],
@@ -120,4 +141,5 @@ def woodham(
     finite = jnp.isfinite(obs) & jnp.isfinite(w)
     w = jnp.where(finite, w, 0.0)
     obs = jnp.where(finite, obs, 0.0)
-    return _woodham(obs, lights, e, w)
+    obs, w = pad_pixels(obs, w)
+    return cut(_woodham(obs, lights, e, w), n)
