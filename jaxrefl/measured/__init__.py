@@ -15,9 +15,22 @@ Parts: :mod:`._metrics` (cosine-weighted L2 of Ngan et al. 2005, log-space and r
 L2), :mod:`._models` (the named model set), :mod:`._data` (reading, RGB conversion, angle
 limit), :mod:`._fit` (fit one model / all of them), :mod:`._retry` (float32 -> float64),
 :mod:`._plots` (measured vs fitted lobes), :mod:`._stiff` (stiff synthetic fits for the
-stability benchmark).
+stability benchmark), :mod:`._components` (models assembled from switched-on components),
+:mod:`._compact` (leave out the pixels a scene does not need), :mod:`._prune` (drop
+components by BIC or Laplace evidence, per material or cluster), :mod:`._plan` (capture
+planning by expected Fisher information).
 """
 
+from ._compact import REASONS as REASONS
+from ._compact import Compacted as Compacted
+from ._compact import compact as compact
+from ._components import COMPONENT_NAMES as COMPONENT_NAMES
+from ._components import Components as Components
+from ._components import Renamed as Renamed
+from ._components import RetroLobe as RetroLobe
+from ._components import fit_components as fit_components
+from ._components import param_space as param_space
+from ._components import start_from as start_from
 from ._data import detect_format as detect_format
 from ._data import load_measured as load_measured
 from ._data import restrict as restrict
@@ -41,4 +54,12 @@ from ._models import resolve_models as resolve_models
 from ._plots import in_plane_samples as in_plane_samples
 from ._plots import incidence_angles as incidence_angles
 from ._plots import plot_fit_lobes as plot_fit_lobes
+from ._prune import CRITERIA as CRITERIA
+from ._prune import GroupPruning as GroupPruning
+from ._prune import PruneReport as PruneReport
+from ._prune import PruneStep as PruneStep
+from ._prune import criteria as criteria
+from ._prune import kmeans as kmeans
+from ._prune import measured_pixel_data as measured_pixel_data
+from ._prune import prune as prune
 from ._retry import float64_reasons as float64_reasons
