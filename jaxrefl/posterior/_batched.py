@@ -203,7 +203,8 @@ def sample_pixels(
 ) -> Samples:
     """Sample the posterior of every pixel of ``data`` ((N, K, C)) with vmapped HMC.
 
-    theta0:    (N, D) or (D,) start (the LM optimum via :meth:`LogPosterior.init_theta`)
+    theta0:    (N, D) or (D,) start (the LM optimum via :meth:`LogPosterior.init_theta`),
+               or (N, chains, D) one start per chain (e.g. dispersed light directions)
     theta_std: (N, D) theta-space scale of the start jitter and of the initial metric
                (Laplace ``theta_std``); NaN or missing entries use 1
     normals:   (N, K, 3) world normals when the light direction is sampled
@@ -212,17 +213,26 @@ def sample_pixels(
     opts = HMCOptions() if options is None else options
     n = data.obs.shape[0]
     dtype = data.obs.dtype
-    x = jnp.broadcast_to(jnp.asarray(theta0, dtype), (n, lp.size))
-    if x.shape[-1] != lp.size:
-        raise ValueError(f"theta0 must end in D = {lp.size} {lp.labels}; got {x.shape}")
-    ok = jnp.all(jnp.isfinite(x), axis=-1)
-    x = jnp.where(ok[:, None], x, 0.0)
-    sd = jnp.ones_like(x) if theta_std is None else jnp.asarray(theta_std, dtype)
-    sd = jnp.where(jnp.isfinite(sd) & (sd > 0), jnp.minimum(sd, 1.0), 1.0)
+    t0_arr = jnp.asarray(theta0, dtype)
+    if t0_arr.shape[-1] != lp.size:
+        raise ValueError(f"theta0 must end in D = {lp.size} {lp.labels}; got {t0_arr.shape}")
+    per_chain = t0_arr.ndim == 3
+    if per_chain:
+        x = jnp.broadcast_to(t0_arr, (n, opts.num_chains, lp.size))
+        ok = jnp.all(jnp.isfinite(x), axis=(-2, -1))
+        x = jnp.where(ok[:, None, None], x, 0.0)
+    else:
+        x = jnp.broadcast_to(t0_arr, (n, lp.size))
+        ok = jnp.all(jnp.isfinite(x), axis=-1)
+        x = jnp.where(ok[:, None], x, 0.0)
+    sd = jnp.ones((n, lp.size), dtype) if theta_std is None else jnp.asarray(theta_std, dtype)
+    sd = jnp.broadcast_to(
+        jnp.where(jnp.isfinite(sd) & (sd > 0), jnp.minimum(sd, 1.0), 1.0), (n, lp.size)
+    )
     key = jax.random.PRNGKey(seed)
     k_init, k_run = jax.random.split(key)
     eps = jax.random.normal(k_init, (n, opts.num_chains, lp.size), dtype)
-    x0 = x[:, None, :] + opts.init_jitter * sd[:, None, :] * eps
+    x0 = (x if per_chain else x[:, None, :]) + opts.init_jitter * sd[:, None, :] * eps
     keys = jax.random.split(k_run, n)
     if normals is None:
         nrm = jnp.zeros((n, 1, 3), dtype)  # unused without a light; keeps one code path

@@ -37,7 +37,14 @@ from jaxtyping import Array, Float
 
 from ._priors import VonMisesFisher
 
-__all__ = ["SphereDirection", "angle_deg", "onb", "to_local"]
+__all__ = [
+    "SphereDirection",
+    "angle_deg",
+    "direction_summary",
+    "lit_geometry",
+    "onb",
+    "to_local",
+]
 
 
 class SphereDirection(eqx.Module):
@@ -90,3 +97,87 @@ def angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     b = np.asarray(b, dtype=np.float64)
     c = np.sum(a * b, axis=-1) / (np.linalg.norm(a, axis=-1) * np.linalg.norm(b, axis=-1))
     return np.degrees(np.arccos(np.clip(c, -1.0, 1.0)))
+
+
+def _vmf_radius_deg(kappa: float, level: float) -> float:
+    """Angle about the mean holding ``level`` of a von Mises–Fisher's mass (inverse of the
+    cosine's CDF, Wood 1994): cos = 1 + log(1 - level (1 - e^(-2 kappa))) / kappa."""
+    if kappa < 1e-8:
+        return float(np.degrees(np.arccos(1.0 - 2.0 * level)))
+    w = 1.0 + np.log1p(-level * (-np.expm1(-2.0 * kappa))) / kappa
+    return float(np.degrees(np.arccos(np.clip(w, -1.0, 1.0))))
+
+
+def lit_geometry(normals: np.ndarray, weight: np.ndarray | None = None, tol: float = 0.05) -> dict:
+    """Can shading pin a light direction down at all? A check on the geometry alone.
+
+    For a Lambertian point, radiance = albedo E max(n . l, 0) / pi is linear in l where
+    lit: three lit points with linearly independent normals fix l; with all normals in one
+    plane (smallest singular value of the (K, 3) normal matrix below ``tol`` times the
+    largest) the component of l out of that plane is seen only through its square, so l
+    and its mirror image fit equally (two modes); fewer than 3 points leave a curve of
+    solutions. Returns ``n_points``, ``rank`` (numerical) and ``identifiable`` (bool).
+    """
+    n = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+    w = np.ones(len(n)) if weight is None else np.asarray(weight, np.float64).reshape(len(n), -1)
+    used = n[np.max(w.reshape(len(n), -1), axis=-1) > 0] if w.size else n
+    if len(used) == 0:
+        return {"n_points": 0, "rank": 0, "identifiable": False}
+    sv = np.linalg.svd(used, compute_uv=False)
+    rank = int(np.sum(sv > tol * sv[0]))
+    return {"n_points": len(used), "rank": rank, "identifiable": len(used) >= 3 and rank == 3}
+
+
+def direction_summary(
+    draws: np.ndarray,
+    prior: VonMisesFisher | None = None,
+    *,
+    level: float = 0.9,
+    max_radius_deg: float = 15.0,
+    rhat: float | None = None,
+    geometry: dict | None = None,
+) -> dict:
+    """Is a direction identified by the data? Summary of posterior draws (M, 3).
+
+    mean:        the mean direction (normalised resultant)
+    resultant:   mean resultant length R in [0, 1] (1: all draws agree)
+    radius_deg:  the angle about the mean holding ``level`` of the draws
+    prior_radius_deg: the same for the prior (vMF closed form)
+    identified:  radius_deg <= max_radius_deg, and below half the prior's radius, and
+                 R-hat (if given) <= 1.05, and the geometry (if given, from
+                 :func:`lit_geometry`) identifiable. Too few observations, or co-planar
+                 normals (the light's component out of their plane is mirrored: two
+                 modes, which chains started apart find) fail it.
+    """
+    x = np.asarray(draws, dtype=np.float64).reshape(-1, 3)
+    x = x[np.all(np.isfinite(x), axis=-1)]
+    if x.size == 0:
+        return {"identified": False, "reason": "no finite draws"}
+    r = x.mean(axis=0)
+    rl = float(np.linalg.norm(r))
+    mean = r / rl if rl > 0 else np.array([0.0, 0.0, 1.0])
+    radius = float(np.quantile(angle_deg(x, mean[None, :]), level))
+    prior_radius = _vmf_radius_deg(prior.kappa, level) if prior is not None else 180.0
+    reasons = []
+    if radius > max_radius_deg:
+        reasons.append(f"{100 * level:.0f}% of the posterior spreads over {radius:.1f} deg")
+    if radius > 0.5 * prior_radius:
+        reasons.append(
+            f"the posterior is not much narrower than the prior ({prior_radius:.1f} deg)"
+        )
+    if geometry is not None and not geometry["identifiable"]:
+        reasons.append(
+            f"{geometry['n_points']} points with normals of rank {geometry['rank']}: "
+            "3 lit points with non-coplanar normals are needed"
+        )
+    if rhat is not None and not rhat <= 1.05:
+        reasons.append(f"chains disagree (R-hat {rhat:.2f}): several modes")
+    return {
+        "mean": mean.tolist(),
+        "resultant": rl,
+        "radius_deg": radius,
+        "prior_radius_deg": prior_radius,
+        "level": level,
+        "identified": not reasons,
+        "reason": "; ".join(reasons) if reasons else "identified",
+    }

@@ -1,0 +1,256 @@
+"""Posterior draws as ArviZ InferenceData; convergence diagnostics; plots; predictive checks.
+
+:func:`to_inference_data` puts :class:`~jaxrefl.posterior.Samples` into an
+``arviz.InferenceData`` with groups ``posterior`` (natural parameters; dims ``(chain,
+draw, pixel)`` for several pixels), ``sample_stats`` (``acceptance_rate``, ``diverging``,
+``lp``), ``observed_data`` (``obs`` (pixel, k, c), ``weight``, ``censored``) and, if asked,
+``posterior_predictive`` (``obs``: a thinned set of draws' predictions plus noise).
+Variable names are the parameter labels with dots as underscores (``albedo.R`` ->
+``albedo_R``; NetCDF names stay portable); the labels are kept in ``attrs``.
+:func:`save_netcdf` writes it (``idata.to_netcdf``), ``arviz.from_netcdf`` reads it back.
+
+Diagnostics (:func:`diagnostics`): rank-normalised split R-hat, bulk and tail ESS (Vehtari
+et al. 2021, *Rank-normalization, folding, and localization: an improved R-hat*, via
+ArviZ), the number of divergent transitions and the mean acceptance rate, per pixel and
+parameter. Plots: trace, rank (ArviZ), corner (pairwise scatter + marginal histograms),
+and posterior predictive checks against the observations (:func:`plot_ppc`).
+"""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxrefl.fit import PixelData
+
+from ._batched import Samples
+
+__all__ = [
+    "diagnostics",
+    "plot_corner",
+    "plot_ppc",
+    "plot_rank",
+    "plot_trace",
+    "posterior_predictive",
+    "save_netcdf",
+    "split_rhat",
+    "to_inference_data",
+    "var_name",
+]
+
+
+def _az():
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", FutureWarning)  # ArviZ's notice of its refactor
+        import arviz
+
+    return arviz
+
+
+def var_name(label: str) -> str:
+    """The InferenceData variable of a parameter label (``albedo.R`` -> ``albedo_R``)."""
+    return label.replace(".", "_")
+
+
+def split_rhat(x: np.ndarray) -> np.ndarray:
+    """(D,) rank-normalised split R-hat of draws (chains, draws, D)."""
+    az = _az()
+    x = np.asarray(x, dtype=np.float64)
+    return np.array([float(az.rhat(x[..., j])) for j in range(x.shape[-1])])
+
+
+def posterior_predictive(
+    lp, samples: Samples, data: PixelData, *, n_draws: int = 100, seed: int = 0, normals=None
+) -> np.ndarray:
+    """(N, n_draws, K, C) replicated observations: predictions at thinned draws plus noise
+    of the noise model (times the sampled scale, if any)."""
+    n, c, m, d = samples.theta.shape
+    idx = np.linspace(0, c * m - 1, min(n_draws, c * m)).round().astype(int)
+    th = np.swapaxes(samples.theta, 1, 2).reshape(n, c * m, d)[:, idx]
+    th = np.nan_to_num(th)
+    rng = np.random.default_rng(seed)
+    if normals is None:
+        normals = jnp.zeros((n, 1, 3), data.obs.dtype)
+
+    def one(t, dd, nn):
+        return jax.vmap(lambda tt: lp.predict(tt, dd, nn if lp.light is not None else None))(t)
+
+    pred = np.asarray(jax.jit(jax.vmap(one))(jnp.asarray(th, data.obs.dtype), data, normals))
+    sd = np.asarray(jax.vmap(lp.residual.noise.std)(data.obs))[:, None]
+    if lp.noise_scale is not None:
+        sd = sd * np.exp(th[..., -1])[..., None, None]
+    return pred + sd * rng.normal(size=pred.shape)
+
+
+def to_inference_data(
+    samples: Samples,
+    data: PixelData | None = None,
+    *,
+    pixels: np.ndarray | None = None,
+    predictive: np.ndarray | None = None,
+    attrs: dict[str, Any] | None = None,
+):
+    """``arviz.InferenceData`` of ``samples`` (module docstring).
+
+    pixels:     the pixel indices (coordinate ``pixel``), default 0..N-1
+    data:       the observations (``observed_data``), same N
+    predictive: (N, draws, K, C) from :func:`posterior_predictive` (``posterior_predictive``)
+    """
+    az = _az()
+    n = samples.n_pixels
+    pix = np.arange(n) if pixels is None else np.asarray(pixels)
+    post = {
+        var_name(lab): np.moveaxis(samples.natural[..., j], 0, -1)
+        for j, lab in enumerate(samples.labels)
+    }
+    stats = {k: np.moveaxis(np.asarray(v), 0, -1) for k, v in samples.stats.items()}
+    dims: dict[str, list[str]] = {k: ["pixel"] for k in (*post, *stats)}
+    coords: dict[str, Any] = {"pixel": pix}
+    obs = None
+    if data is not None:
+        obs = {
+            "obs": np.asarray(data.obs),
+            "weight": np.asarray(data.weight),
+            "censored": np.asarray(data.censored).astype(np.int8),
+        }
+        for k in obs:
+            dims[k] = ["pixel", "k", "c"]
+    ppc = None
+    if predictive is not None:
+        ppc = {"obs": np.moveaxis(np.asarray(predictive), 0, 2)[None]}  # (1, draw, pixel, K, C)
+    idata = az.from_dict(
+        posterior=post,
+        sample_stats=stats,
+        observed_data=obs,
+        posterior_predictive=ppc,
+        coords=coords,
+        dims=dims,
+    )
+    meta = {
+        "labels": list(samples.labels),
+        "method": samples.method,
+        "compile_s": float(samples.compile_s),
+        "run_s": float(samples.run_s),
+        **(attrs or {}),
+    }
+    for group in ("posterior", "sample_stats"):
+        getattr(idata, group).attrs.update({k: _attr(v) for k, v in meta.items()})
+    return idata
+
+
+def _attr(v: Any) -> Any:
+    """NetCDF attributes are strings, numbers or flat lists of them."""
+    if isinstance(v, (str, int, float, np.integer, np.floating)):
+        return v
+    if isinstance(v, (list, tuple)) and all(isinstance(x, str) for x in v):
+        return list(v)
+    return str(v)
+
+
+def save_netcdf(idata, path: str | Path) -> Path:
+    """Write InferenceData to NetCDF (read back with ``arviz.from_netcdf``)."""
+    path = Path(path)
+    idata.to_netcdf(str(path))
+    return path
+
+
+def diagnostics(samples: Samples) -> dict[str, np.ndarray]:
+    """Per pixel and parameter (N, D): ``rhat``, ``ess_bulk``, ``ess_tail``; per pixel
+    (N,): ``divergences`` (count), ``acceptance`` (mean), and ``min_ess_bulk``,
+    ``max_rhat`` over parameters. Pixels without draws (NaN) get NaN."""
+    az = _az()
+    x = samples.natural  # (N, chains, draws, D)
+    n, _c, _m, d = x.shape
+    ds = az.convert_to_dataset({"x": np.moveaxis(x, 0, 2)})  # dims chain, draw, x_dim_0, x_dim_1
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        rhat = np.asarray(az.rhat(ds)["x"]).reshape(n, d)
+        bulk = np.asarray(az.ess(ds, method="bulk")["x"]).reshape(n, d)
+        tail = np.asarray(az.ess(ds, method="tail")["x"]).reshape(n, d)
+    div = np.sum(np.asarray(samples.stats["diverging"]), axis=(1, 2))
+    acc = np.mean(np.asarray(samples.stats["acceptance_rate"]), axis=(1, 2))
+    bad = ~np.all(np.isfinite(x), axis=(1, 2, 3))
+    for a in (rhat, bulk, tail):
+        a[bad] = np.nan
+    return {
+        "rhat": rhat,
+        "ess_bulk": bulk,
+        "ess_tail": tail,
+        "divergences": div,
+        "acceptance": acc,
+        "max_rhat": np.max(rhat, axis=-1),
+        "min_ess_bulk": np.min(bulk, axis=-1),
+        "min_ess_tail": np.min(tail, axis=-1),
+    }
+
+
+def _select(idata, pixel):
+    return idata.posterior.isel(pixel=pixel) if "pixel" in idata.posterior.dims else idata.posterior
+
+
+def plot_trace(idata, pixel: int = 0, var_names=None):
+    """ArviZ trace plot of one pixel's parameters."""
+    return _az().plot_trace(_select(idata, pixel), var_names=var_names, compact=False)
+
+
+def plot_rank(idata, pixel: int = 0, var_names=None):
+    """ArviZ rank plot (per-chain rank histograms: flat when the chains mix)."""
+    return _az().plot_rank(_select(idata, pixel), var_names=var_names)
+
+
+def plot_corner(samples: Samples, pixel: int = 0, truth: np.ndarray | None = None, max_points=2000):
+    """Corner plot: pairwise scatter of the draws and marginal histograms."""
+    import matplotlib.pyplot as plt
+
+    x = samples.flat(pixel)
+    x = x[np.all(np.isfinite(x), axis=-1)]
+    if len(x) > max_points:
+        x = x[np.linspace(0, len(x) - 1, max_points).round().astype(int)]
+    d = x.shape[-1]
+    fig, axes = plt.subplots(d, d, figsize=(1.8 * d, 1.8 * d), squeeze=False)
+    for i in range(d):
+        for j in range(d):
+            ax = axes[i, j]
+            if j > i:
+                ax.axis("off")
+                continue
+            if i == j:
+                ax.hist(x[:, i], bins=30, color="C0", alpha=0.8)
+                if truth is not None:
+                    ax.axvline(truth[i], color="C3")
+            else:
+                ax.plot(x[:, j], x[:, i], ".", ms=1.5, alpha=0.4)
+                if truth is not None:
+                    ax.plot(truth[j], truth[i], "+", color="C3", ms=10)
+            if i == d - 1:
+                ax.set_xlabel(samples.labels[j], fontsize=8)
+            if j == 0 and i > 0:
+                ax.set_ylabel(samples.labels[i], fontsize=8)
+            ax.tick_params(labelsize=6)
+    fig.tight_layout()
+    return fig
+
+
+def plot_ppc(predictive: np.ndarray, data: PixelData, pixel: int = 0, ax=None):
+    """Observed values of one pixel against the 5-95% band of replicated observations."""
+    import matplotlib.pyplot as plt
+
+    if ax is None:
+        _, ax = plt.subplots(figsize=(6, 3))
+    rep = np.asarray(predictive[pixel])  # (draws, K, C)
+    obs = np.asarray(data.obs[pixel])
+    w = np.asarray(data.weight[pixel]) > 0
+    k = np.arange(obs.shape[0])
+    for c in range(obs.shape[1]):
+        lo, hi = np.quantile(rep[..., c], [0.05, 0.95], axis=0)
+        ax.fill_between(k, lo, hi, alpha=0.3, color=f"C{c}", step="mid")
+        ax.plot(k[w[:, c]], obs[w[:, c], c], "o", color=f"C{c}", ms=3)
+    ax.set_xlabel("observation k")
+    ax.set_ylabel("radiance")
+    ax.set_title("posterior predictive 5-95% band vs observed", fontsize=9)
+    return ax
