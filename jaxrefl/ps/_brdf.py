@@ -125,14 +125,17 @@ def fit_normal_brdf(
     backend: str = "lean",
     max_iters: int = 40,
     shadow: float = 0.05,
-    init: str = "grid",
+    init: str = "diffuse",
+    batch: int = 2048,
 ) -> BRDFFit:
     """Fit normal + BRDF per pixel (module docstring). ``saturated`` (N, K, C) bool marks
     censored observations; ``space`` defaults to the model's with a grey ``specular``.
 
-    ``init``: ``"grid"`` (:func:`jaxrefl.fit.initial_theta` at n0) or ``"diffuse"`` (the
-    robust Lambertian albedo and the model's other defaults: no grid search, so it
-    compiles in about half the time; fine where the highlight is broad).
+    ``init``: ``"diffuse"`` (default: the robust Lambertian albedo and the model's other
+    defaults) or ``"grid"`` (:func:`jaxrefl.fit.initial_theta` at n0: closed-form colours
+    on a roughness grid; compiles for about twice as long; on the UW gray sphere it was
+    not better). Pixels are fitted ``batch`` at a time (the last batch padded with empty
+    pixels), so every capture size reuses one compiled solver.
     """
     obs = jnp.asarray(obs)
     if not jnp.issubdtype(obs.dtype, jnp.floating):
@@ -143,6 +146,31 @@ def fit_normal_brdf(
     e = jnp.ones((k, c), dt) if intensities is None else jnp.asarray(intensities, dt)
     w = jnp.ones((n, k, c), dt) if weight is None else jnp.asarray(weight, dt)
     sat = jnp.zeros((n, k, c), bool) if saturated is None else jnp.asarray(saturated, bool)
+    size = min(int(batch), max(256, 1 << max(n - 1, 0).bit_length()))
+    pad = -n % size
+    if pad:
+        obs, w, sat = (jnp.pad(a, [(0, pad), (0, 0), (0, 0)]) for a in (obs, w, sat))
+    kw = dict(model=model, space=space, loss=loss, backend=backend, max_iters=max_iters)
+    parts = [
+        _fit_batch(
+            obs[i : i + size],
+            lights,
+            e,
+            w[i : i + size],
+            sat[i : i + size],
+            shadow=shadow,
+            init=init,
+            **kw,
+        )
+        for i in range(0, n + pad, size)
+    ]
+    out = jax.tree.map(lambda *x: jnp.concatenate(x)[:n], *parts)
+    return out
+
+
+def _fit_batch(obs, lights, e, w, sat, *, model, space, loss, backend, max_iters, shadow, init):
+    dt = obs.dtype
+    n, k, c = obs.shape
     finite = jnp.isfinite(obs) & jnp.isfinite(w)
     w = jnp.where(finite, w, 0.0)
     obs = jnp.where(finite, obs, 0.0)

@@ -61,7 +61,7 @@ def solve_capture(cap: PSCapture, method: str = "ls", **options) -> dict[str, np
     elif method == "robust":
         r = robust(obs, cap.lights, cap.intensities, w, **options)
     else:
-        sat = (obs >= 1.0) & np.moveaxis(cap.mask[cap.mask][None, :, None], 1, 0)
+        sat = obs >= 1.0  # the top code: censored, not a measurement
         r = brdf_method(obs, cap.lights, cap.intensities, w, sat, **options)
     h, wd = cap.shape
     c = obs.shape[-1]
