@@ -50,6 +50,9 @@ from ._registry import get as get
 from ._rusinkiewicz import from_half_diff as from_half_diff
 from ._rusinkiewicz import to_half_diff as to_half_diff
 from ._sum import Sum as Sum
+from ._tilt import NormalTilt as NormalTilt
+from ._tilt import tilt_frame as tilt_frame
+from ._tilt import tilt_normal as tilt_normal
 from ._ward import Ward as Ward
 from ._zoo import ZooEntry as ZooEntry
 from ._zoo import model_zoo as model_zoo

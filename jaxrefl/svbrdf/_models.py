@@ -10,6 +10,11 @@ name            model (``jaxrefl.brdf``) and free parameters per pixel
                 ``roughness`` = sqrt(alpha)). The default.
 ``beckmann``    the same with the Beckmann distribution
 ``ggx_rgb``     ``ggx`` with a coloured specular F0 in [0, 1] (metals): 7 parameters
+``ggx_normal``  ``ggx`` with a per-pixel normal perturbation (:class:`jaxrefl.brdf.NormalTilt`:
+                slopes ``tilt_x``, ``tilt_y`` in [-1, 1] of the shading normal; the maps
+                add ``normal.X/Y/Z``): 7 parameters. Fitted in two stages: ``ggx`` from
+                the automatic start, then all 7 from that optimum with the tilt at 0
+                (:data:`TWO_STAGE`).
 ``lambert``     Lambertian ``albedo`` (RGB) only: the diffuse-only baseline
 =============  ============================================================================
 """
@@ -19,7 +24,7 @@ from __future__ import annotations
 from jaxrefl import brdf
 from jaxrefl.fit import ParamSpace
 
-__all__ = ["ALPHA_RANGE", "CAPTURE_MODELS", "DIELECTRIC_F0", "capture_model"]
+__all__ = ["ALPHA_RANGE", "CAPTURE_MODELS", "DIELECTRIC_F0", "TWO_STAGE", "capture_model"]
 
 # A grey specular is a dielectric's: F0 = ((eta - 1)/(eta + 1))^2 <= 0.25 for eta <= 3
 # (glass 0.04, diamond 0.17). Without the cap, pixels whose highlight was only seen
@@ -34,8 +39,13 @@ CAPTURE_MODELS: dict[str, str] = {
     "ggx": "Cook-Torrance GGX + Lambert, grey specular F0 (albedo RGB, specular, alpha)",
     "beckmann": "Cook-Torrance Beckmann + Lambert, grey specular F0",
     "ggx_rgb": "Cook-Torrance GGX + Lambert, coloured specular F0",
+    "ggx_normal": "ggx with a per-pixel normal perturbation (tilt_x, tilt_y slopes)",
     "lambert": "Lambertian albedo only (diffuse baseline)",
 }
+# Models fitted from another model's optimum (name -> the first stage's model). The
+# automatic start grids one nonlinear scalar (alpha); with two slopes as well it would fall
+# back to a weak multi-start, while the flat fit is a close start (tilts are small).
+TWO_STAGE: dict[str, str] = {"ggx_normal": "ggx"}
 
 
 def capture_model(
@@ -48,6 +58,11 @@ def capture_model(
     if name == "lambert":
         m = brdf.get("lambert")
         return m, ParamSpace(m, channels=channels)
+    if name == "ggx_normal":
+        base, _ = capture_model("ggx", channels, alpha_min)
+        m = brdf.NormalTilt(base)
+        bounds = {"specular": DIELECTRIC_F0, "alpha": alpha_range}
+        return m, ParamSpace(m, channels=channels, grey=("specular",), bounds=bounds)
     if name in ("ggx", "beckmann", "ggx_rgb"):
         m = brdf.get(
             "cook_torrance",

@@ -51,6 +51,8 @@ def write_maps(result: CaptureFit, path: Path) -> Path:
             "specular": "Schlick F0, 1",
             "alpha": "GGX/Beckmann width alpha (not perceptual)",
             "roughness": "perceptual roughness sqrt(alpha)",
+            "tilt_x, tilt_y": "slopes of the shading normal, 1 (ggx_normal)",
+            "normal": "unit shading normal in the sample frame (+z = the sample's normal)",
             "*.std": "Laplace standard deviation, same units",
             "noise_std": "estimated noise std, radiance units of the capture",
         },
