@@ -100,12 +100,14 @@ class NormalBRDFResidual(eqx.Module):
 class BRDFFit(eqx.Module):
     """Outcome of :func:`fit_normal_brdf`: ``ps`` (normals, albedo in PS units, status),
     ``params`` (natural BRDF parameters of the scaled data, (N, ...)), ``scale`` (N,) the
-    per-pixel factor the observations were divided by, ``cost`` (N,)."""
+    per-pixel factor the observations were divided by, ``cost`` (N,), ``lambert_cost`` (N,)
+    the cost of the Lambertian start in the same residual (no specular lobe)."""
 
     ps: PSResult
     params: dict
     scale: Float[Array, " N"]
     cost: Float[Array, " N"]
+    lambert_cost: Float[Array, " N"]
 
 
 def _batched_local(residual, theta, data):
@@ -127,6 +129,7 @@ def fit_normal_brdf(
     shadow: float = 0.05,
     init: str = "diffuse",
     batch: int = 2048,
+    select: float | None = None,
 ) -> BRDFFit:
     """Fit normal + BRDF per pixel (module docstring). ``saturated`` (N, K, C) bool marks
     censored observations; ``space`` defaults to the model's with a grey ``specular``.
@@ -135,7 +138,10 @@ def fit_normal_brdf(
     defaults) or ``"grid"`` (:func:`jaxrefl.fit.initial_theta` at n0: closed-form colours
     on a roughness grid; compiles for about twice as long; on the UW gray sphere it was
     not better). Pixels are fitted ``batch`` at a time (the last batch padded with empty
-    pixels), so every capture size reuses one compiled solver.
+    pixels), so every capture size reuses one compiled solver. ``select`` (e.g. 0.5): keep
+    the robust Lambertian normal where the fitted BRDF does not lower the cost below
+    ``select`` times that of the Lambertian start (a lobe explaining little is likelier to
+    be absorbing a model error than a highlight); None keeps every fitted normal.
     """
     obs = jnp.asarray(obs)
     if not jnp.issubdtype(obs.dtype, jnp.floating):
@@ -160,6 +166,7 @@ def fit_normal_brdf(
             sat[i : i + size],
             shadow=shadow,
             init=init,
+            select=select,
             **kw,
         )
         for i in range(0, n + pad, size)
@@ -168,7 +175,9 @@ def fit_normal_brdf(
     return out
 
 
-def _fit_batch(obs, lights, e, w, sat, *, model, space, loss, backend, max_iters, shadow, init):
+def _fit_batch(
+    obs, lights, e, w, sat, *, model, space, loss, backend, max_iters, shadow, init, select
+):
     dt = obs.dtype
     n, k, c = obs.shape
     finite = jnp.isfinite(obs) & jnp.isfinite(w)
@@ -199,9 +208,7 @@ def _fit_batch(obs, lights, e, w, sat, *, model, space, loss, backend, max_iters
         local0 = _batched_local(residual, jnp.zeros((n, 2 + space.size), dt), data)
         x0 = jf.initial_theta(residual.res, local0)
     elif init == "diffuse":
-        albedo0 = jnp.clip(jnp.pi * start.albedo / s[:, None], 0.02, 0.95)
-        albedo0 = jnp.where(has[:, None], albedo0, _ALBEDO_TARGET)
-        x0 = space.from_natural({"albedo": albedo0}, dtype=dt)
+        x0 = space.from_natural({"albedo": albedo_start(start, s, has)}, dtype=dt)
     else:
         raise ValueError(f"init must be 'grid' or 'diffuse', not {init!r}")
     theta0 = jnp.concatenate([jnp.zeros((n, 2), dt), x0], axis=-1)
@@ -209,6 +216,17 @@ def _fit_batch(obs, lights, e, w, sat, *, model, space, loss, backend, max_iters
     theta, info = jf.solve(residual, theta0, data, backend, max_iters=max_iters, n_usable=n_usable)
     normals = tilt_normal(theta[:, :2], n0)
     params = space.to_natural(theta[:, 2:])
+    # The Lambertian alternative in the same residual: the start with no specular lobe.
+    lam_nat = {"albedo": albedo_start(start, s, has)}
+    if "specular" in space.free_names:
+        lam_nat["specular"] = jnp.zeros((n, 1), dt)
+    theta_l = jnp.concatenate([jnp.zeros((n, 2), dt), space.from_natural(lam_nat, dtype=dt)], -1)
+    r_l = jax.vmap(residual)(theta_l, data)
+    cost_l = 0.5 * jnp.sum(r_l * r_l, axis=-1)
+    if select is not None:
+        # Keep the lobe only where it explains most of what the Lambertian model cannot.
+        keep = info.cost < select * cost_l
+        normals = jnp.where(keep[:, None], normals, n0)
     status = jnp.where(has, info.status, jnp.maximum(start.status, jf.Status.MASKED))
     status = jnp.where(jnp.all(jnp.isfinite(normals), axis=-1), status, jf.Status.NONFINITE_INPUT)
     none = status >= jf.Status.MASKED
@@ -219,7 +237,14 @@ def _fit_batch(obs, lights, e, w, sat, *, model, space, loss, backend, max_iters
         status.astype(jnp.int32),
         n_usable,
     )
-    return BRDFFit(ps, params, s, jnp.where(none, jnp.nan, info.cost))
+    return BRDFFit(ps, params, s, jnp.where(none, jnp.nan, info.cost), cost_l)
+
+
+def albedo_start(start: PSResult, s, has):
+    """The diffuse albedo of the robust Lambertian start in the scaled units of the fit."""
+    # Clip inside (0, 1): the sigmoid of the albedo has no slope at its bounds.
+    albedo0 = jnp.clip(jnp.pi * start.albedo / s[:, None], 0.02, 0.95)
+    return jnp.where(has[:, None], albedo0, _ALBEDO_TARGET)
 
 
 def brdf_method(obs, lights, intensities, weight=None, saturated=None, **kw) -> PSResult:
