@@ -1,9 +1,19 @@
-"""Stability table: finite values and gradients of every model at the edges of its domain.
+"""Stability tables: the forward models at the edges of their domain, and stiff fits.
 
     python benchmarks/stability.py [--full] [--csv out.csv]
+    python benchmarks/stability.py --fit [--fit-only] [--fit-csv paper_figures/fit_stability.csv]
 
-Prints, per model and dtype, how many (parameter set x direction pair) cases were run, how
-many gave a non-finite value or gradient (must be 0), and the largest finite magnitudes.
+Forward models: per model and dtype, how many (parameter set x direction pair) cases were
+run, how many gave a non-finite value or gradient (must be 0), and the largest finite
+magnitudes.
+
+Fits (``--fit``): the stiff cases of :mod:`jaxrefl.measured._stiff` (roughness 1e-3 with a
+sharp highlight, grazing-only observations, a Blinn-Phong exponent of 1e4, nearly collinear
+lights), ``--n`` problems each, fitted in float32, in float64, and in float32 with the
+automatic float64 retry (:func:`jaxrefl.measured._retry.fit_pixels_retry`): the fraction of
+fits that converge, are finite, and reach the optimum (cost within 1e-3 of the best known),
+the fraction the retry detected and sent to float64, the fraction where the float64 redo was
+kept, and the warm fit time.
 """
 
 from __future__ import annotations
@@ -24,13 +34,59 @@ from _common import machine, table  # noqa: E402
 
 from jaxrefl.brdf import model_zoo  # noqa: E402
 from jaxrefl.brdf._stability import run_stability  # noqa: E402
+from jaxrefl.measured._stiff import run_stiff  # noqa: E402
+
+
+def fit_stability(n: int, csv_path: Path | None) -> int:
+    """Print the stiff-fit table; 1 when the retried fits are not all finite."""
+    t0 = time.perf_counter()
+    rows = run_stiff(n=n)
+    dt = time.perf_counter() - t0
+    print(f"# Stiff fits ({n} problems per case)\nmachine: {machine()}\n")
+    pct = lambda x: "-" if x != x else f"{100 * x:.0f}%"  # noqa: E731 (NaN: not a retry row)
+    print(
+        table(
+            ["case", "mode", "converged", "finite", "at optimum", "retried", "kept f64", "fit ms"],
+            [
+                [
+                    r.case,
+                    r.mode,
+                    pct(r.converged),
+                    pct(r.finite),
+                    pct(r.at_optimum),
+                    pct(r.retried),
+                    pct(r.kept_float64),
+                    f"{1e3 * r.fit_time_s:.1f}",
+                ]
+                for r in rows
+            ],
+        )
+    )
+    detected = [r.case for r in rows if r.mode == "float32+retry" and r.retried > 0]
+    print(f"\nfloat32 fits detected and retried in float64: {', '.join(detected) or 'none'}")
+    print(f"stiff fits took {dt:.1f} s (compile included)")
+    if csv_path:
+        with open(csv_path, "w", newline="") as fh:
+            w = csv.DictWriter(fh, fieldnames=list(asdict(rows[0])))
+            w.writeheader()
+            w.writerows(asdict(r) for r in rows)
+    retry_rows = [r for r in rows if r.mode == "float32+retry"]
+    return 0 if all(r.finite == 1.0 for r in retry_rows) else 1
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--full", action="store_true", help="every Cook-Torrance combination")
     ap.add_argument("--csv", type=Path, help="also write the rows as CSV")
+    ap.add_argument("--fit", action="store_true", help="also the stiff-fit table")
+    ap.add_argument("--fit-only", action="store_true", help="only the stiff-fit table")
+    ap.add_argument("--fit-csv", type=Path, help="write the stiff-fit rows as CSV")
+    ap.add_argument("--n", type=int, default=32, help="problems per stiff case")
     args = ap.parse_args()
+    if args.fit or args.fit_only:
+        bad_fit = fit_stability(args.n, args.fit_csv)
+        if args.fit_only:
+            return bad_fit
     t0 = time.perf_counter()
     rows = run_stability(model_zoo(full=args.full))
     dt = time.perf_counter() - t0

@@ -51,6 +51,11 @@ from ._models import DEFAULT_MODELS as DEFAULT_MODELS
 from ._models import MODEL_DESCRIPTIONS as MODEL_DESCRIPTIONS
 from ._models import build_model as build_model
 from ._models import resolve_models as resolve_models
+from ._plan import Ranking as Ranking
+from ._plan import greedy_design as greedy_design
+from ._plan import information as information
+from ._plan import posterior_std as posterior_std
+from ._plan import rank_candidates as rank_candidates
 from ._plots import in_plane_samples as in_plane_samples
 from ._plots import incidence_angles as incidence_angles
 from ._plots import plot_fit_lobes as plot_fit_lobes

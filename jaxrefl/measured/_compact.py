@@ -139,8 +139,8 @@ def compact(
     for name, bad in checks:
         reason[(reason == "") & bad] = name
     index = np.flatnonzero(reason == "")
-    # Columns (lights) that some kept pixel can use; censored ones still count as usable.
-    used = np.any(valid[index] & (scale[index] > 0), axis=(0, 2)) if index.size else np.zeros(k)
+    # Columns (lights) that light some kept pixel; censored ones still count as usable.
+    used = np.any(lit[index], axis=(0, 2)) if index.size else np.zeros(k, bool)
     columns = np.flatnonzero(used)
     sub = jax.tree.map(lambda x: x[index][:, columns], data)
     return Compacted(

@@ -27,8 +27,9 @@ P free parameters):
 A *group* of pixels shares the decision: its criterion is the sum of its pixels' criteria
 (independent pixels, each with its own parameters). ``groups`` is ``"pixel"`` (every pixel
 alone), ``"all"`` (one material: the whole batch), an (N,) array of labels, or
-``"kmeans"``: :func:`kmeans` on the standardised theta of the rich fit into
-``n_clusters`` clusters (an SVBRDF's materials).
+``"kmeans"``: :func:`kmeans` on each pixel's colour and gloss read from its observations
+(log median of obs / scale, log ratio of the largest value to the median, per channel)
+into ``n_clusters`` clusters (an SVBRDF's materials).
 
 Before anything is fitted, pixels the scene does not need are removed
 (:func:`~jaxrefl.measured._compact.compact`, with ``min_obs`` = the rich model's parameter
@@ -146,18 +147,27 @@ def criteria(
     }
 
 
-def _cluster_features(result: FitResult) -> np.ndarray:
-    """The colour parameters (albedo, lobe strengths) of a fit, (N, D): well-determined
-    scales that tell materials apart; widths of absent lobes are arbitrary and left out."""
-    space = result.space
-    cols = [space.index(b.name) for b in space.blocks if b.kind == "color"]
-    x = np.asarray(space.natural_vector(jnp.asarray(result.theta)))
-    return np.concatenate([x[:, s] for s in cols], axis=1) if cols else x
+def _cluster_features(data: PixelData) -> np.ndarray:
+    """Colour and gloss of each pixel from its own observations, (N, 2 C): per channel the
+    log median of obs / scale (the colour) and the log ratio of the largest value to the
+    median (how much a highlight stands out). Taken from the data rather than from a fit:
+    a rich fit may explain a few noisy samples of a matte pixel with a needle-sharp lobe."""
+    obs, scale, w = (np.asarray(x, np.float64) for x in (data.obs, data.scale, data.weight))
+    ok = np.isfinite(obs) & (scale > 0) & (w > 0)
+    v = np.where(ok, obs / np.where(ok, scale, 1.0), np.nan)
+    # Observations at or below 0 (noise around black) would make the logs undefined; the
+    # 1e-6 floor is far below any reflectance a capture resolves.
+    med = np.maximum(np.nanmedian(v, axis=1), 1e-6)
+    hi = np.maximum(np.nanmax(v, axis=1), 1e-6)
+    return np.concatenate([np.log(med), np.log(hi / med)], axis=1)
 
 
-def kmeans(features: np.ndarray, k: int, *, seed: int = 0, iters: int = 50) -> np.ndarray:
+def kmeans(
+    features: np.ndarray, k: int, *, seed: int = 0, iters: int = 50, restarts: int = 10
+) -> np.ndarray:
     """(N,) labels of Lloyd's k-means with k-means++ seeding (Arthur & Vassilvitskii 2007)
-    on the columns of ``features`` (N, D), each standardised to unit variance first."""
+    on the columns of ``features`` (N, D), each standardised to unit variance first; the
+    best (lowest within-cluster sum of squares) of ``restarts`` seedings."""
     x = np.asarray(features, np.float64)
     x = np.where(np.isfinite(x), x, np.nanmean(np.where(np.isfinite(x), x, np.nan), axis=0))
     sd = np.std(x, axis=0)
@@ -166,22 +176,27 @@ def kmeans(features: np.ndarray, k: int, *, seed: int = 0, iters: int = 50) -> n
     n = x.shape[0]
     k = int(min(k, n))
     rng = np.random.default_rng(seed)
-    centres = [x[rng.integers(n)]]
-    for _ in range(1, k):
-        d2 = np.min(((x[:, None] - np.asarray(centres)[None]) ** 2).sum(-1), axis=1)
-        prob = d2 / d2.sum() if d2.sum() > 0 else np.full(n, 1.0 / n)
-        centres.append(x[rng.choice(n, p=prob)])
-    c = np.asarray(centres)
-    labels = np.zeros(n, int)
-    for _ in range(iters):
-        new = np.argmin(((x[:, None] - c[None]) ** 2).sum(-1), axis=1)
-        if np.array_equal(new, labels) and _ > 0:
-            break
-        labels = new
-        for j in range(k):
-            if np.any(labels == j):
-                c[j] = x[labels == j].mean(axis=0)
-    return labels
+    best, best_ss = np.zeros(n, int), np.inf
+    for _ in range(max(1, restarts)):
+        centres = [x[rng.integers(n)]]
+        for _ in range(1, k):
+            d2 = np.min(((x[:, None] - np.asarray(centres)[None]) ** 2).sum(-1), axis=1)
+            prob = d2 / d2.sum() if d2.sum() > 0 else np.full(n, 1.0 / n)
+            centres.append(x[rng.choice(n, p=prob)])
+        c = np.asarray(centres)
+        labels = np.full(n, -1)
+        for _ in range(iters):
+            new = np.argmin(((x[:, None] - c[None]) ** 2).sum(-1), axis=1)
+            if np.array_equal(new, labels):
+                break
+            labels = new
+            for j in range(k):
+                if np.any(labels == j):
+                    c[j] = x[labels == j].mean(axis=0)
+        ss = float(((x - c[labels]) ** 2).sum())
+        if ss < best_ss:
+            best, best_ss = labels, ss
+    return best
 
 
 @dataclass(frozen=True)
@@ -353,7 +368,7 @@ def prune(
         elif groups == "all":
             labels = np.zeros(n, int)
         elif groups == "kmeans":
-            labels = kmeans(_cluster_features(rich_fit), n_clusters, seed=seed)
+            labels = kmeans(_cluster_features(d), n_clusters, seed=seed)
         else:
             raise ValueError(f"groups must be 'pixel', 'all', 'kmeans' or labels, not {groups!r}")
     else:
