@@ -1,14 +1,47 @@
 """Pixels to posteriors: MCMC over reflectance parameters and light direction, diagnostics,
 calibration and uncertainty maps.
+
+Quick use::
+
+    from jaxrefl import fit, posterior as jp, svbrdf
+
+    model, space = svbrdf.capture_model("ggx")
+    lp = jp.log_posterior(model, space, fit.GaussianNoise(0.01))   # priors: jp.default_priors
+    s = jp.sample_pixels(lp, data, lp.init_theta(result.theta))    # vmapped HMC, (N, K, C)
+    jp.diagnostics(s)["max_rhat"], jp.to_inference_data(s, data).to_netcdf("post.nc")
+    umap = jp.adaptive_uncertainty(lp, data, result.theta, theta_std, lap.flag)
+    jp.write_uncertainty_exr("uncertainty.exr", umap, h, w)
+
+Parts: :mod:`._priors` (priors in natural units), :mod:`._sphere` (light direction on the
+sphere), :mod:`._logpost` (the log-posterior from the fit's model, bijections and noise),
+:mod:`._batched` (BlackJAX HMC/NUTS vmapped over pixels), :mod:`._emcee` (ensemble
+sampler), :mod:`._adaptive` (Laplace everywhere, MCMC where flagged), :mod:`._diagnostics`
+(ArviZ, R-hat/ESS, plots, predictive checks), :mod:`._sbc` (simulation-based
+calibration), :mod:`._maps` (EXR uncertainty channels).
 """
 
+from ._adaptive import METHODS as METHODS
+from ._adaptive import UncertaintyMap as UncertaintyMap
+from ._adaptive import adaptive_uncertainty as adaptive_uncertainty
+from ._adaptive import laplace_summary as laplace_summary
 from ._batched import HMCOptions as HMCOptions
 from ._batched import Samples as Samples
 from ._batched import sample_pixels as sample_pixels
+from ._diagnostics import diagnostics as diagnostics
+from ._diagnostics import plot_corner as plot_corner
+from ._diagnostics import plot_ppc as plot_ppc
+from ._diagnostics import plot_rank as plot_rank
+from ._diagnostics import plot_trace as plot_trace
+from ._diagnostics import posterior_predictive as posterior_predictive
+from ._diagnostics import save_netcdf as save_netcdf
+from ._diagnostics import split_rhat as split_rhat
+from ._diagnostics import to_inference_data as to_inference_data
 from ._emcee import sample_emcee as sample_emcee
 from ._logpost import LogPosterior as LogPosterior
 from ._logpost import SharedLight as SharedLight
 from ._logpost import log_posterior as log_posterior
+from ._maps import uncertainty_channels as uncertainty_channels
+from ._maps import write_uncertainty_exr as write_uncertainty_exr
 from ._priors import HalfCauchy as HalfCauchy
 from ._priors import Jeffreys as Jeffreys
 from ._priors import LogNormal as LogNormal

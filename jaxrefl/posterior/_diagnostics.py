@@ -122,7 +122,9 @@ def to_inference_data(
             dims[k] = ["pixel", "k", "c"]
     ppc = None
     if predictive is not None:
-        ppc = {"obs": np.moveaxis(np.asarray(predictive), 0, 2)[None]}  # (1, draw, pixel, K, C)
+        # (N, draws, K, C) -> (chain 1, draw, pixel, K, C)
+        ppc = {"obs": np.swapaxes(np.asarray(predictive), 0, 1)[None]}
+        dims["obs"] = ["pixel", "k", "c"]
     idata = az.from_dict(
         posterior=post,
         sample_stats=stats,
@@ -169,9 +171,9 @@ def diagnostics(samples: Samples) -> dict[str, np.ndarray]:
     ds = az.convert_to_dataset({"x": np.moveaxis(x, 0, 2)})  # dims chain, draw, x_dim_0, x_dim_1
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        rhat = np.asarray(az.rhat(ds)["x"]).reshape(n, d)
-        bulk = np.asarray(az.ess(ds, method="bulk")["x"]).reshape(n, d)
-        tail = np.asarray(az.ess(ds, method="tail")["x"]).reshape(n, d)
+        rhat = np.array(az.rhat(ds)["x"]).reshape(n, d)
+        bulk = np.array(az.ess(ds, method="bulk")["x"]).reshape(n, d)
+        tail = np.array(az.ess(ds, method="tail")["x"]).reshape(n, d)
     div = np.sum(np.asarray(samples.stats["diverging"]), axis=(1, 2))
     acc = np.mean(np.asarray(samples.stats["acceptance_rate"]), axis=(1, 2))
     bad = ~np.all(np.isfinite(x), axis=(1, 2, 3))

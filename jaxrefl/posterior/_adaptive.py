@@ -1,0 +1,229 @@
+"""Adaptive inference: Laplace everywhere, MCMC where Laplace is not to be trusted.
+
+The Laplace approximation (:func:`jaxrefl.fit.laplace`) costs about one LM iteration per
+pixel; its flags (:class:`jaxrefl.fit.LaplaceFlag`) say where the Gaussian is the wrong
+shape: a parameter at a bound, a parameter the data do not pin down, a singular
+curvature. :func:`adaptive_uncertainty` keeps the Laplace summary on the pixels flagged
+reliable (flag 0), runs the batched HMC sampler (:func:`~jaxrefl.posterior.sample_pixels`)
+on every pixel with a flag, and also on a random *audit* sample of the reliable ones
+(fraction ``audit``) so that the Laplace summaries are checked against MCMC on the same
+run (:attr:`UncertaintyMap.audit_std_ratio`). ``method`` records per pixel which method
+produced its numbers:
+
+====  ==============  ===============================================================
+code  name            summary from
+====  ==============  ===============================================================
+0     ``none``         nothing: the pixel had no estimate (masked / non-finite)
+1     ``laplace``      the Laplace Gaussian in theta, pushed through the bijections
+2     ``mcmc``         MCMC: Laplace was flagged unreliable there
+3     ``mcmc_audit``   MCMC on a random audit pixel that Laplace called reliable
+====  ==============  ===============================================================
+
+Laplace summaries in natural units: ``mean`` is the optimum x* = g(theta*), ``std`` the
+delta-method std theta_std |g'(theta*)|, and the quantiles g(theta* + z_q theta_std)
+(exact quantiles of the pushed-forward Gaussian, since g is monotone per entry).
+MCMC summaries are the draws' mean, std and empirical 5% / 95% quantiles.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxrefl.fit import LaplaceFlag, PixelData
+
+from ._batched import HMCOptions, Samples, sample_pixels
+from ._diagnostics import diagnostics
+from ._logpost import LogPosterior
+
+__all__ = ["METHODS", "UncertaintyMap", "adaptive_uncertainty", "laplace_summary"]
+
+METHODS = {0: "none", 1: "laplace", 2: "mcmc", 3: "mcmc_audit"}
+_Z95 = 1.6448536269514722  # standard normal 95% quantile
+
+
+@dataclass
+class UncertaintyMap:
+    """Per-pixel posterior summaries (N pixels, D = ``len(labels)``).
+
+    mean, std, q05, q95: (N, D) natural units; method: (N,) uint8 (:data:`METHODS`);
+    rhat, ess_bulk, ess_tail: (N,) max R-hat / min ESS over parameters (NaN off MCMC);
+    divergences: (N,) count (0 off MCMC); mcmc_pixels: indices of the sampled pixels;
+    samples: their draws; laplace_std: (N, D) the Laplace std everywhere (NaN where none)
+    """
+
+    labels: tuple[str, ...]
+    mean: np.ndarray
+    std: np.ndarray
+    q05: np.ndarray
+    q95: np.ndarray
+    method: np.ndarray
+    rhat: np.ndarray
+    ess_bulk: np.ndarray
+    ess_tail: np.ndarray
+    divergences: np.ndarray
+    mcmc_pixels: np.ndarray
+    samples: Samples | None
+    laplace_std: np.ndarray
+    timings: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def audit_std_ratio(self) -> np.ndarray:
+        """(A, D) Laplace std / MCMC std on the audit pixels (method 3)."""
+        a = self.method == 3
+        return self.laplace_std[a] / self.std[a]
+
+    def method_counts(self) -> dict[str, int]:
+        return {name: int(np.sum(self.method == code)) for code, name in METHODS.items()}
+
+    def report(self) -> dict[str, Any]:
+        """JSON-ready summary: counts by method, MCMC diagnostics, audit ratios, timings."""
+        on = np.isin(self.method, (2, 3))
+
+        def dist(v):
+            v = v[np.isfinite(v)]
+            if v.size == 0:
+                return None
+            q = np.quantile(v, [0.0, 0.05, 0.5, 0.95, 1.0])
+            return dict(zip(("min", "q05", "median", "q95", "max"), q.tolist(), strict=True))
+
+        ratio = self.audit_std_ratio
+        audit = {lab: dist(ratio[:, j]) for j, lab in enumerate(self.labels) if ratio.shape[0] > 0}
+        return {
+            "labels": list(self.labels),
+            "pixels": int(self.method.size),
+            "method_counts": self.method_counts(),
+            "method_codes": {str(k): v for k, v in METHODS.items()},
+            "mcmc": {
+                "pixels": int(np.sum(on)),
+                "max_rhat": dist(self.rhat[on]),
+                "min_ess_bulk": dist(self.ess_bulk[on]),
+                "min_ess_tail": dist(self.ess_tail[on]),
+                "pixels_rhat_above_1.01": int(np.sum(self.rhat[on] > 1.01)),
+                "pixels_with_divergences": int(np.sum(self.divergences[on] > 0)),
+                "divergences": int(np.sum(self.divergences[on])),
+            },
+            "audit_laplace_over_mcmc_std": audit,
+            "timings": self.timings,
+        }
+
+
+def laplace_summary(lp: LogPosterior, theta_hat: np.ndarray, theta_std: np.ndarray):
+    """(mean, std, q05, q95) in natural units of the Laplace Gaussian N(theta*, theta_std^2)
+    (module docstring); the BRDF entries only (P of them)."""
+    space = lp.space
+    t = jnp.asarray(np.nan_to_num(theta_hat))
+    s = jnp.asarray(np.nan_to_num(theta_std))
+    mean = np.array(space.natural_vector(t))
+    std = np.array(s * jnp.abs(space.dnatural(t)))
+    q05 = np.array(space.natural_vector(t - _Z95 * s))
+    q95 = np.array(space.natural_vector(t + _Z95 * s))
+    bad = ~(np.all(np.isfinite(theta_hat), -1) & np.all(np.isfinite(theta_std), -1))
+    for a in (mean, std, q05, q95):
+        a[bad] = np.nan
+    return mean, std, q05, q95
+
+
+def adaptive_uncertainty(
+    lp: LogPosterior,
+    data: PixelData,
+    theta_hat: np.ndarray,
+    theta_std: np.ndarray,
+    flag: np.ndarray,
+    *,
+    audit: float = 0.02,
+    mcmc: str = "flagged",
+    options: HMCOptions | None = None,
+    noise_scale: np.ndarray | None = None,
+    normals: np.ndarray | None = None,
+    seed: int = 0,
+) -> UncertaintyMap:
+    """Laplace on every pixel, MCMC on the flagged ones and an audit sample (module doc).
+
+    theta_hat: (N, P) the LM optimum (NaN: no estimate); theta_std: (N, P) Laplace
+    theta-space std; flag: (N,) Laplace flags. ``mcmc``: ``"flagged"`` (default),
+    ``"all"`` (every pixel with an estimate) or ``"none"`` (Laplace only).
+    noise_scale: (N,) starting noise scale when ``lp`` samples it (e.g. the Laplace
+    residual std); normals when ``lp`` samples a light.
+    """
+    theta_hat = np.asarray(theta_hat, dtype=np.float64)
+    theta_std = np.asarray(theta_std, dtype=np.float64)
+    flag = np.asarray(flag).astype(np.int64)
+    n, p = theta_hat.shape
+    has = np.all(np.isfinite(theta_hat), axis=-1) & ((flag & LaplaceFlag.NO_ESTIMATE) == 0)
+    t0 = time.perf_counter()
+    mean, std, q05, q95 = laplace_summary(lp, theta_hat, theta_std)
+    lap_std = std.copy()
+    method = np.where(has, 1, 0).astype(np.uint8)
+    rng = np.random.default_rng(seed)
+    if mcmc == "flagged":
+        chosen = has & (flag != 0)
+        reliable = np.flatnonzero(has & (flag == 0))
+        n_audit = int(np.ceil(audit * reliable.size)) if audit > 0 and reliable.size else 0
+        audit_idx = rng.choice(reliable, size=n_audit, replace=False) if n_audit else []
+        method[chosen] = 2
+        method[np.asarray(audit_idx, dtype=int)] = 3
+    elif mcmc == "all":
+        method[has] = np.where(flag[has] == 0, 3, 2)
+    elif mcmc != "none":
+        raise ValueError(f"mcmc must be 'flagged', 'all' or 'none', not {mcmc!r}")
+    t_lap = time.perf_counter() - t0
+    idx = np.flatnonzero(np.isin(method, (2, 3)))
+    d = lp.size
+    extra = d - p
+    big = np.full((n, extra), np.nan)
+    mean = np.concatenate([mean, big], -1)
+    std = np.concatenate([std, big], -1)
+    q05 = np.concatenate([q05, big], -1)
+    q95 = np.concatenate([q95, big], -1)
+    lap_std = np.concatenate([lap_std, big], -1)
+    rhat = np.full(n, np.nan)
+    ess_b = np.full(n, np.nan)
+    ess_t = np.full(n, np.nan)
+    div = np.zeros(n, np.int64)
+    samples = None
+    timings = {"laplace_summary_s": t_lap}
+    if idx.size:
+        sub = jax.tree.map(lambda a: a[idx], data)
+        s0 = None if noise_scale is None else np.asarray(noise_scale)[idx]
+        th0 = lp.init_theta(jnp.asarray(theta_hat[idx]), noise_scale=s0)
+        sd = np.concatenate([theta_std[idx], np.ones((idx.size, extra))], -1)
+        nrm = None if normals is None else jnp.asarray(np.asarray(normals)[idx])
+        samples = sample_pixels(
+            lp, sub, th0, theta_std=sd, normals=nrm, options=options, seed=seed, timing=False
+        )
+        x = samples.natural
+        c, m = x.shape[1:3]
+        flat = x.reshape(idx.size, c * m, d)
+        mean[idx] = flat.mean(1)
+        std[idx] = flat.std(1, ddof=1)
+        q05[idx] = np.quantile(flat, 0.05, axis=1)
+        q95[idx] = np.quantile(flat, 0.95, axis=1)
+        dg = diagnostics(samples)
+        rhat[idx] = dg["max_rhat"]
+        ess_b[idx] = dg["min_ess_bulk"]
+        ess_t[idx] = dg["min_ess_tail"]
+        div[idx] = dg["divergences"]
+        timings["mcmc_s"] = samples.run_s
+        timings["mcmc_pixels"] = int(idx.size)
+    return UncertaintyMap(
+        labels=lp.labels,
+        mean=mean,
+        std=std,
+        q05=q05,
+        q95=q95,
+        method=method,
+        rhat=rhat,
+        ess_bulk=ess_b,
+        ess_tail=ess_t,
+        divergences=div,
+        mcmc_pixels=idx,
+        samples=samples,
+        laplace_std=lap_std,
+        timings=timings,
+    )

@@ -1,0 +1,75 @@
+"""Uncertainty maps as EXR channels (through :func:`jaxrefl.io.write_exr`).
+
+For each parameter label and statistic ``mean``, ``std``, ``q05``, ``q95``: a colour label
+``albedo.R`` becomes the channel ``albedo.<stat>.R`` (layer ``albedo.mean`` with R, G, B,
+so viewers show it as a colour image), a scalar ``alpha`` becomes ``alpha.<stat>``. Then
+``method`` (UINT, :data:`~jaxrefl.posterior.METHODS`), ``rhat``, ``ess_bulk``, ``ess_tail``
+(FLOAT, NaN off the MCMC pixels) and ``divergences`` (UINT). For GGX-type models
+``roughness.<stat>`` (perceptual roughness sqrt(alpha): quantiles and mean mapped through
+the square root, std by the delta method std(alpha) / (2 sqrt(alpha))) is added. The
+method codes and labels go into the file's metadata.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ._adaptive import METHODS, UncertaintyMap
+
+__all__ = ["uncertainty_channels", "write_uncertainty_exr"]
+
+STATS = ("mean", "std", "q05", "q95")
+
+
+def _channel(label: str, stat: str) -> str:
+    if "." in label:
+        base, ch = label.rsplit(".", 1)
+        return f"{base}.{stat}.{ch}"
+    return f"{label}.{stat}"
+
+
+def uncertainty_channels(umap: UncertaintyMap, height: int, width: int) -> dict[str, np.ndarray]:
+    """name -> (height, width) array (module docstring); pixels in row-major order."""
+    if umap.method.size != height * width:
+        raise ValueError(f"{umap.method.size} pixels do not fill {height} x {width}")
+
+    def img(v):
+        return np.asarray(v).reshape(height, width)
+
+    out: dict[str, np.ndarray] = {}
+    for j, lab in enumerate(umap.labels):
+        for stat in STATS:
+            out[_channel(lab, stat)] = img(getattr(umap, stat)[:, j]).astype(np.float32)
+    if "alpha" in umap.labels:
+        j = umap.labels.index("alpha")
+        a = umap.mean[:, j]
+        root = np.sqrt(np.maximum(a, 0.0))
+        out["roughness.mean"] = img(root).astype(np.float32)
+        # d sqrt(alpha) / d alpha = 1 / (2 sqrt(alpha)) (delta method), quantiles exactly.
+        out["roughness.std"] = img(umap.std[:, j] / np.where(root > 0, 2 * root, np.nan))
+        out["roughness.std"] = out["roughness.std"].astype(np.float32)
+        out["roughness.q05"] = img(np.sqrt(np.maximum(umap.q05[:, j], 0.0))).astype(np.float32)
+        out["roughness.q95"] = img(np.sqrt(np.maximum(umap.q95[:, j], 0.0))).astype(np.float32)
+    out["method"] = img(umap.method).astype(np.uint32)
+    out["rhat"] = img(umap.rhat).astype(np.float32)
+    out["ess_bulk"] = img(umap.ess_bulk).astype(np.float32)
+    out["ess_tail"] = img(umap.ess_tail).astype(np.float32)
+    out["divergences"] = img(umap.divergences).astype(np.uint32)
+    return out
+
+
+def write_uncertainty_exr(
+    path: str | Path, umap: UncertaintyMap, height: int, width: int, metadata=None
+) -> Path:
+    """Write :func:`uncertainty_channels` to ``path`` (atomic, via jaxrefl.io)."""
+    from jaxrefl.io import write_exr
+
+    meta = {
+        "labels": list(umap.labels),
+        "method_codes": {str(k): v for k, v in METHODS.items()},
+        "stats": list(STATS),
+        **(metadata or {}),
+    }
+    return write_exr(path, uncertainty_channels(umap, height, width), metadata=meta)

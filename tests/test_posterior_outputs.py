@@ -1,0 +1,134 @@
+"""Posterior outputs: ArviZ InferenceData round-trip through NetCDF, uncertainty EXR maps,
+adaptive method selection, and `jaxrefl sample` end to end on tiny cases."""
+
+from __future__ import annotations
+
+import json
+import math
+import warnings
+
+import jax
+import numpy as np
+import pytest
+
+from jaxrefl import brdf, fit
+from jaxrefl import posterior as jp
+from jaxrefl.cli import main
+from jaxrefl.io import read_exr
+
+with warnings.catch_warnings():
+    warnings.simplefilter("ignore", FutureWarning)
+    import arviz as az
+
+SIGMA = 0.02
+
+
+@pytest.fixture(scope="module")
+def lambert():
+    """Lambertian RGB pixels seen from K = 6 directions (a cheap model to compile)."""
+    m = brdf.get("lambert")
+    space = fit.ParamSpace(m, channels=3)
+    lp = jp.log_posterior(m, space, fit.GaussianNoise(SIGMA))
+    rng = np.random.default_rng(0)
+    n, k = 6, 6
+    alb = rng.uniform(0.1, 0.9, size=(n, 3))
+    alb[0] = [0.999, 0.5, 0.5]  # albedo.R at the bound: Laplace flags AT_BOUND there
+    wi = np.tile(np.array([0.0, 0.0, 1.0]), (n, k, 1))
+    obs = alb[:, None, :] / math.pi + SIGMA * rng.normal(size=(n, k, 3))
+    data = fit.pixel_data(obs, wi)
+    r = fit.fit_pixels(m, data, space=space, noise=fit.GaussianNoise(SIGMA))
+    lap = fit.laplace(r, data, residual=fit.make_residual(m, space, fit.GaussianNoise(SIGMA)))
+    return lp, data, r, lap
+
+
+def test_inference_data_netcdf_round_trip(lambert, tmp_path):
+    lp, data, r, _ = lambert
+    d0 = jax.tree.map(lambda a: a[1], data)
+    s = jp.sample_emcee(
+        lp,
+        np.asarray(r.theta[1]),
+        (d0,),
+        natural=lp.natural,
+        labels=lp.labels,
+        n_walkers=8,
+        n_steps=1500,
+        seed=1,
+    )
+    one = jax.tree.map(lambda a: a[1:2], data)
+    ppc = jp.posterior_predictive(lp, s, one, n_draws=20)
+    assert ppc.shape == (1, 20, 6, 3)
+    idata = jp.to_inference_data(s, one, predictive=ppc, attrs={"note": "test"})
+    path = jp.save_netcdf(idata, tmp_path / "post.nc")
+    back = az.from_netcdf(str(path))
+    for group in ("posterior", "sample_stats", "observed_data", "posterior_predictive"):
+        assert group in back.groups(), back.groups()
+    np.testing.assert_array_equal(
+        back.posterior["albedo_R"].values, idata.posterior["albedo_R"].values
+    )
+    np.testing.assert_array_equal(back.observed_data["obs"].values, np.asarray(one.obs))
+    assert back.posterior.attrs["method"] == "emcee"
+    assert list(back.posterior.attrs["labels"]) == list(lp.labels)
+    assert set(back.sample_stats.data_vars) >= {"acceptance_rate", "diverging", "lp"}
+    dg = jp.diagnostics(s)
+    assert dg["rhat"].shape == (1, 3) and np.all(dg["ess_bulk"] > 10)
+    assert np.all(np.abs(dg["rhat"] - 1) < 0.1)
+    fig = jp.plot_corner(s, 0)
+    assert len(fig.axes) == 9
+    jp.plot_ppc(ppc, one, 0)
+
+
+def test_adaptive_method_map_and_exr(lambert, tmp_path):
+    """With MCMC off every estimated pixel is Laplace (method 1); the EXR carries mean,
+    std, q05, q95 per parameter and the method channel; q05 < mean < q95."""
+    lp, data, r, lap = lambert
+    theta_std = np.asarray(lap.theta_std)
+    flag = np.asarray(lap.flag)
+    assert flag[0] & fit.LaplaceFlag.AT_BOUND
+    u = jp.adaptive_uncertainty(lp, data, np.asarray(r.theta), theta_std, flag, mcmc="none")
+    assert np.all(u.method == 1)
+    assert np.all(u.q05 <= u.mean) and np.all(u.mean <= u.q95)
+    np.testing.assert_allclose(u.std, np.asarray(lap.std), rtol=1e-8)
+    path = jp.write_uncertainty_exr(tmp_path / "u.exr", u, 2, 3)
+    im = read_exr(path)
+    for name in ("albedo.mean.R", "albedo.std.G", "albedo.q05.B", "albedo.q95.R", "method"):
+        assert name in im.channels, sorted(im.channels)
+    assert im.pixel_types["method"] == "UINT"
+    np.testing.assert_allclose(im.channels["albedo.mean.G"].reshape(-1), u.mean[:, 1], rtol=1e-6)
+    assert im.metadata["method_codes"]["1"] == "laplace"
+
+
+def test_cli_sample_capture_end_to_end(tmp_path):
+    """`jaxrefl demo` (8 x 8) then `jaxrefl sample` on a 4 x 4 crop, Lambert model, MCMC on
+    every pixel: the EXR, the NetCDF and report.json with diagnostics."""
+    cap = tmp_path / "cap"
+    assert main(["demo", "--out", str(cap), "--size", "8", "--no-fit"]) == 0
+    out = tmp_path / "out"
+    argv = ["sample", str(cap), "--out", str(out), "--model", "lambert", "--pixels", "2:6,2:6"]
+    argv += ["--mcmc", "all", "--warmup", "60", "--samples", "60", "--chains", "2", "--quiet"]
+    assert main(argv) == 0
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["height"] == 4 and rep["width"] == 4
+    u = rep["uncertainty"]
+    assert u["method_counts"]["mcmc"] + u["method_counts"]["mcmc_audit"] == 16
+    assert u["mcmc"]["max_rhat"]["median"] < 1.2
+    im = read_exr(out / "uncertainty.exr")
+    assert {"albedo.mean.R", "noise_scale.mean", "rhat", "ess_bulk", "method"} <= set(im.channels)
+    assert np.all(np.isfinite(im.channels["rhat"]))
+    post = az.from_netcdf(str(out / "posterior.nc"))
+    assert post.posterior["albedo_R"].shape[-1] == 16
+    assert main(["sample", str(tmp_path / "missing"), "--out", str(out)]) == 1
+
+
+def test_cli_sample_brdf_file(shared_data, tmp_path):
+    """A Cornell BRDF, Lambert model (cheap), emcee: posterior.nc, corner.png, report."""
+    src = shared_data / "brdf" / "cornell" / "acryl_blue.astm"
+    out = tmp_path / "brdf"
+    argv = ["sample", str(src), "--out", str(out), "--brdf-model", "lambert"]
+    argv += ["--steps", "400", "--walkers", "10", "--quiet"]
+    assert main(argv) == 0
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["kind"] == "brdf" and set(rep["posterior"]) >= {"albedo.R", "noise_scale"}
+    assert rep["diagnostics"]["min_ess_bulk"] > 20
+    assert (out / "corner.png").stat().st_size > 1000
+    post = az.from_netcdf(str(out / "posterior.nc"))
+    assert post.posterior.attrs["method"] == "emcee"
