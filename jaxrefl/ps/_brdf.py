@@ -35,7 +35,6 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from jaxrefl import fit as jf
@@ -250,7 +249,3 @@ def albedo_start(start: PSResult, s, has):
 def brdf_method(obs, lights, intensities, weight=None, saturated=None, **kw) -> PSResult:
     """:func:`fit_normal_brdf` returning only the :class:`PSResult`."""
     return fit_normal_brdf(obs, lights, intensities, weight, saturated, **kw).ps
-
-
-def as_numpy(r: PSResult) -> PSResult:
-    return PSResult(*(np.asarray(x) for x in (r.normals, r.albedo, r.status, r.n_used)))

@@ -188,7 +188,9 @@ def load_diligent(root: str | Path, require_16bit: bool = True) -> PSCapture:
         raise PSInputError(listing, "lists no images")
     dirs = _read_table(root / "light_directions.txt", 3)
     ints = _read_table(root / "light_intensities.txt", 3)
-    imgs, first, depth = [], None, None
+    imgs: list[np.ndarray] = []
+    first: tuple[Path, tuple[int, ...]] | None = None
+    depth = 16
     for f in files:
         if not f.is_file():
             raise FileNotFoundError(f"{f}: image listed in filenames.txt not found")
@@ -200,7 +202,7 @@ def load_diligent(root: str | Path, require_16bit: bool = True) -> PSCapture:
                 f"{bits}-bit PNG where DiLiGenT images are 16-bit; the low bits are lost "
                 "(re-export at 16 bits, or pass require_16bit=False)",
             )
-        if depth is not None and bits != depth:
+        if first is not None and bits != depth:
             raise PSInputError(f, f"{bits}-bit image but {first[0].name} is {depth}-bit")
         _check_size(f, a, first)
         first, depth = first or (f, a.shape), bits

@@ -155,7 +155,7 @@ def lights_from_shading(
     dirs, covs, ints = [], [], []
     for j in range(k):
         lit = g[j] > shadow * g[j].max()
-        sol = None
+        sol = np.zeros(3)
         for _ in range(refine + 1):
             if lit.sum() < 4:
                 raise PSInputError(None, f"image {j}: {int(lit.sum())} lit points; need >= 4")

@@ -61,12 +61,12 @@ def _matrix(body: bytes, endian: str, path) -> tuple[str, np.ndarray]:
     flags = struct.unpack(endian + "I", parts[0][1][:4])[0]
     if flags & 0x0800:
         raise PSInputError(path, "complex MAT arrays are not supported")
-    dims = np.frombuffer(parts[1][1], dtype=np.dtype(np.int32).newbyteorder(endian))
+    dims = np.frombuffer(parts[1][1], dtype=np.dtype(endian + "i4"))
     name = parts[2][1].decode("ascii", "replace")
     kind, data = parts[3]
     if kind not in _NUMERIC:
         raise PSInputError(path, f"MAT variable {name!r} is not a numeric array (type {kind})")
-    arr = np.frombuffer(data, dtype=np.dtype(_NUMERIC[kind]).newbyteorder(endian))
+    arr = np.frombuffer(data, dtype=np.dtype(endian + np.dtype(_NUMERIC[kind]).str[1:]))
     if arr.size != int(np.prod(dims)):
         raise PSInputError(path, f"MAT variable {name!r}: {arr.size} values for dims {dims}")
     return name, arr.reshape(tuple(int(d) for d in dims), order="F").astype(np.float64)
