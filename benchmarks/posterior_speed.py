@@ -1,0 +1,226 @@
+"""Posterior sampling speed and Laplace calibration, GGX + Lambert, K = 32, float64.
+
+    python benchmarks/posterior_speed.py [--pixels 200] [--emcee-pixels 4] [--map-size 256]
+
+1. Batched HMC (vmapped over pixels, per-chain adaptation, 16 leapfrog steps) on N
+   simulated flash pixels against emcee (32 walkers, vectorised jitted log-prob) on a
+   subset of the same pixels, in the same run: effective samples per second per pixel,
+   the minimum over parameters of ArviZ's bulk ESS divided by the pixel's share of the wall
+   time (compilation excluded and printed apart). Target: batched >= 5x emcee.
+2. Laplace vs NUTS: ratio of marginal standard deviations on the pixels Laplace flags
+   reliable (identifiable), median and 5-95% range per parameter.
+3. Wall time of an adaptive uncertainty map (Laplace everywhere, HMC on the flagged pixels
+   and a 2% audit) of the bath_tile capture downsampled to ``--map-size`` squared (needs
+   $JAXREFL_SHARED_DATA); ``--map-size 0`` skips it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import machine, table  # noqa: E402
+
+from jaxrefl import fit, svbrdf  # noqa: E402
+from jaxrefl import posterior as jp  # noqa: E402
+
+K = 32
+SIGMA = 0.01
+
+
+def simulate(n: int, seed: int = 0):
+    """n pixels: albedo U(0.05, 0.8), specular U(0.02, 0.12), alpha = r^2 with r U(0.2, 0.7);
+    co-located flash within 45 degrees of the normal; Gaussian noise SIGMA."""
+    model, space = svbrdf.capture_model("ggx", channels=3, alpha_min=0.01)
+    rng = np.random.default_rng(seed)
+    params = {
+        "albedo": rng.uniform(0.05, 0.8, (n, 3)),
+        "specular": rng.uniform(0.02, 0.12, (n, 1)),
+        "alpha": rng.uniform(0.2, 0.7, n) ** 2,
+    }
+    theta = np.asarray(space.from_natural(params, dtype=jnp.float64))
+    th = np.arccos(rng.uniform(np.cos(np.radians(45)), 1.0, (n, K)))
+    ph = rng.uniform(0, 2 * np.pi, (n, K))
+    wi = np.stack([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)], -1)
+    scale = np.repeat(wi[..., 2:3], 3, -1) * 1.5
+    lp = jp.log_posterior(model, space, fit.GaussianNoise(SIGMA))
+    d0 = fit.pixel_data(np.zeros((n, K, 3)), wi, None, scale=scale)
+    pred = np.asarray(jax.jit(jax.vmap(lp.predict))(jnp.asarray(theta), d0))
+    data = fit.pixel_data(pred + SIGMA * rng.normal(size=pred.shape), wi, None, scale=scale)
+    return model, space, lp, theta, data
+
+
+def ess_per_s(samples: jp.Samples, n_pixels: int) -> np.ndarray:
+    """(N,) min-over-parameters bulk ESS per second of the pixel's share of the run."""
+    dg = jp.diagnostics(samples)
+    return dg["min_ess_bulk"] / (samples.run_s / n_pixels)
+
+
+def part_speed(args, model, space, lp, theta, data):
+    n = data.obs.shape[0]
+    r = fit.fit_pixels(model, data, space=space, noise=fit.GaussianNoise(SIGMA))
+    res = fit.make_residual(model, space, fit.GaussianNoise(SIGMA))
+    lap = fit.laplace(r, data, residual=res, noise="known")
+    th0 = np.asarray(r.theta)
+    tsd = np.asarray(lap.theta_std)
+    opts = jp.HMCOptions(num_warmup=300, num_samples=500, num_chains=2, batch_size=100)
+    s = jp.sample_pixels(lp, data, th0, theta_std=tsd, options=opts, timing=True)
+    hmc = ess_per_s(s, n)
+    rows = [
+        [
+            "batched HMC (16 leapfrog, dense metric)",
+            n,
+            f"{s.compile_s:.1f}",
+            f"{s.run_s:.2f}",
+            f"{np.median(hmc):,.0f}",
+            f"{np.quantile(hmc, 0.05):,.0f}",
+        ]
+    ]
+    em = []
+    t_em, c_em = 0.0, 0.0
+    for i in range(args.emcee_pixels):
+        d = jax.tree.map(lambda a, i=i: a[i], data)
+        e = jp.sample_emcee(lp, th0[i], (d,), theta_std=tsd[i], n_walkers=32, n_steps=2000)
+        em.append(ess_per_s(e, 1)[0])
+        t_em += e.run_s
+        c_em = max(c_em, e.compile_s)
+    em = np.asarray(em)
+    rows.append(
+        [
+            "emcee (32 walkers x 2000 steps)",
+            args.emcee_pixels,
+            f"{c_em:.1f}",
+            f"{t_em:.2f}",
+            f"{np.median(em):,.0f}",
+            f"{np.quantile(em, 0.05):,.0f}",
+        ]
+    )
+    same = hmc[: args.emcee_pixels]
+    print(
+        table(
+            [
+                "sampler",
+                "pixels",
+                "compile s",
+                "run s",
+                "ESS/s/pixel median",
+                "ESS/s/pixel 5%",
+            ],
+            rows,
+        )
+    )
+    print(
+        f"\nratio batched / emcee (median ESS/s per pixel): {np.median(hmc) / np.median(em):.1f}x; "
+        f"on the same {args.emcee_pixels} pixels: {np.median(same) / np.median(em):.1f}x "
+        f"(target >= 5x)"
+    )
+    return r, lap, s
+
+
+def part_laplace(args, lp, data, r, lap):
+    ok = np.flatnonzero(np.asarray(lap.reliable))[: args.nuts_pixels]
+    sub = jax.tree.map(lambda a: a[ok], data)
+    opts = jp.HMCOptions(num_warmup=300, num_samples=400, num_chains=2, kernel="nuts")
+    th0 = np.asarray(r.theta)[ok]
+    s = jp.sample_pixels(lp, sub, th0, theta_std=np.asarray(lap.theta_std)[ok], options=opts)
+    dg = jp.diagnostics(s)
+    good = dg["min_ess_bulk"] > 100
+    nuts_std = s.natural.reshape(len(ok), -1, lp.size).std(axis=1, ddof=1)
+    ratio = np.asarray(lap.std)[ok] / nuts_std
+    rows = []
+    for j, lab in enumerate(lp.labels):
+        v = ratio[good, j]
+        q = np.quantile(v, [0.05, 0.5, 0.95])
+        inside = np.mean((v > 0.8) & (v < 1.25))
+        rows.append([lab, f"{q[1]:.3f}", f"{q[0]:.3f} - {q[2]:.3f}", f"{100 * inside:.0f}%"])
+    print(f"\nLaplace std / NUTS std on {good.sum()} reliable pixels with NUTS ESS > 100:")
+    print(table(["parameter", "median", "5-95% range", "within [0.8, 1.25]"], rows))
+
+
+def part_map(args):
+    from jaxrefl.io import load_capture
+
+    root = Path(os.environ.get("JAXREFL_SHARED_DATA", "../shared/data"))
+    src = root / "svbrdf_flash" / "bath_tile"
+    if not src.exists():
+        print(f"\n(no {src}: skipping the uncertainty map timing)")
+        return
+    cap = load_capture(src)
+    factor = max(1, cap.shape[1] // args.map_size)
+    cap = cap.downsample(factor)
+    _k, h, w, c = cap.shape
+    t0 = time.perf_counter()
+    cf = svbrdf.fit_capture(cap, svbrdf.FitJob(model="ggx", dtype="float64"))
+    t_fit = time.perf_counter() - t0
+    model, space = svbrdf.capture_model("ggx", channels=c, alpha_min=cf.extra["alpha_min"])
+    lp = jp.log_posterior(model, space, fit.GaussianNoise(None))
+    data = svbrdf.pixel_block(cap, 0, h * w, dtype=np.float64)
+    theta = np.asarray(cf.theta, np.float64)
+    ok = np.all(np.isfinite(theta), -1)
+    dn = np.asarray(space.dnatural(jnp.asarray(np.where(ok[:, None], theta, 0.0))))
+    std = np.stack([_std_map(cf, lab).reshape(-1) for lab in space.labels], -1)
+    noise0 = np.nan_to_num(cf.maps["noise_std"].reshape(-1), nan=1e-2)
+    opts = jp.HMCOptions(num_warmup=200, num_samples=200, num_chains=2, batch_size=100)
+    t1 = time.perf_counter()
+    u = jp.adaptive_uncertainty(
+        lp,
+        data,
+        theta,
+        std / np.abs(dn),
+        cf.maps["laplace_flag"].reshape(-1),
+        options=opts,
+        noise_scale=np.where(noise0 > 0, noise0, 1e-2),
+    )
+    t_post = time.perf_counter() - t1
+    m = u.report()
+    print(f"\nadaptive uncertainty map, bath_tile {h} x {w} (K = {cap.shape[0]}), float64:")
+    print(
+        table(
+            ["step", "wall s"],
+            [
+                ["fit_capture (LM + Laplace, compile incl.)", f"{t_fit:.1f}"],
+                [f"adaptive posterior ({m['mcmc']['pixels']} MCMC pixels)", f"{t_post:.1f}"],
+                ["  of which HMC (compile incl.)", f"{u.timings.get('mcmc_s', 0.0):.1f}"],
+                ["total", f"{t_fit + t_post:.1f}"],
+            ],
+        )
+    )
+    print("methods:", m["method_counts"])
+    print("MCMC max R-hat median:", m["mcmc"]["max_rhat"] and m["mcmc"]["max_rhat"]["median"])
+
+
+def _std_map(cf, label):
+    if "." in label:
+        base, ch = label.rsplit(".", 1)
+        return cf.maps[f"{base}_std.{ch}"]
+    return cf.maps[f"{label}.std"]
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--pixels", type=int, default=200)
+    p.add_argument("--emcee-pixels", type=int, default=4)
+    p.add_argument("--nuts-pixels", type=int, default=200)
+    p.add_argument("--map-size", type=int, default=256)
+    args = p.parse_args()
+    print(machine())
+    model, space, lp, theta, data = simulate(args.pixels)
+    r, lap, _ = part_speed(args, model, space, lp, theta, data)
+    part_laplace(args, lp, data, r, lap)
+    if args.map_size > 0:
+        part_map(args)
+
+
+if __name__ == "__main__":
+    main()
