@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -110,3 +111,25 @@ def test_light_direction_not_identified_with_few_or_coplanar_points(runs):
     x = s.natural[i_good]
     good = jp.direction_summary(x, PRIOR, rhat=float(np.max(split_rhat(x))))
     assert good["identified"], good
+
+
+def test_shared_light_counts_the_light_prior_once(sphere):
+    """N pixels sharing one light: the joint log density is the sum of the pixels' log
+    densities with the light's prior counted once."""
+    m = brdf.get("lambert")
+    space = fit.ParamSpace(m, channels=1)
+    pix = jp.log_posterior(m, space, fit.GaussianNoise(SIGMA), light=jp.SphereDirection(PRIOR))
+    shared = jp.SharedLight(pix, 3)
+    rng = np.random.default_rng(3)
+    normals = _normals(rng, 3)
+    light = np.array([[0.3, 0.2, 0.93]] * 3) / np.linalg.norm([0.3, 0.2, 0.93])
+    data = _data(sphere, normals, light, rng)
+    u = np.sqrt(2) * light[0]
+    alb = np.asarray(space.from_natural({"albedo": np.array([[0.3], [0.5], [0.7]])}))
+    theta = jnp.asarray(np.concatenate([u, alb.reshape(-1)]))
+    nrm = jnp.asarray(normals)
+    joint = float(jax.jit(lambda t: shared(t, data, nrm))(theta))
+    full = shared.expand(theta)
+    each = jax.jit(jax.vmap(lambda t, d, n: pix(t, d, n)))(full, data, nrm)
+    prior_u = float(pix.light.log_density(jnp.asarray(u)))
+    assert joint == pytest.approx(float(np.sum(each)) - 2 * prior_u, rel=1e-12)
