@@ -184,8 +184,10 @@ class Components:
         if name not in self.active:
             raise ValueError(f"{name!r} is not switched on in {self.label}")
         if name == "lobe":
-            return dataclasses.replace(self, lobe=None, **{s: False for s in _NEEDS_LOBE})
-        return dataclasses.replace(self, **{name: False})
+            return dataclasses.replace(
+                self, lobe=None, fresnel=False, anisotropic=False, second_lobe=False
+            )
+        return dataclasses.replace(self, **{name: False})  # type: ignore[arg-type]
 
     def removals(self) -> dict[str, Components]:
         """Every assembly with one active component removed (empty ones left out)."""

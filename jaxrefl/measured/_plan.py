@@ -142,6 +142,8 @@ def rank_candidates(
     already measured (``measured_*``; none = the prior alone) at estimate ``theta``."""
     a = _prior(space, prior_precision)
     if measured_wi is not None:
+        if measured_wo is None:
+            raise ValueError("give measured_wo together with measured_wi")
         info = information(model, space, theta, measured_wi, measured_wo, scale=scale, sigma=sigma)
         a = a + info.sum(axis=0)
     ic = information(model, space, theta, cand_wi, cand_wo, scale=cand_scale, sigma=sigma)

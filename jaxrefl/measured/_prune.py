@@ -390,7 +390,7 @@ def prune(
             }
             if not cands:
                 break
-            pick = min(cands, key=cands.get) if criterion == "bic" else max(cands, key=cands.get)
+            pick = (min if criterion == "bic" else max)(cands, key=lambda c: cands[c])
             if not _better(cands[pick], value, criterion):
                 kept = {k: (value, v) for k, v in cands.items()}
                 break
