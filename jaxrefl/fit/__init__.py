@@ -43,12 +43,14 @@ from ._problem import fit_samples as fit_samples
 from ._residual import L2 as L2
 from ._residual import Cauchy as Cauchy
 from ._residual import GaussianNoise as GaussianNoise
+from ._residual import GaussianPrior as GaussianPrior
 from ._residual import Huber as Huber
 from ._residual import Loss as Loss
 from ._residual import NoiseModel as NoiseModel
 from ._residual import PixelData as PixelData
 from ._residual import Residual as Residual
 from ._residual import ShotNoise as ShotNoise
+from ._residual import gaussian_prior as gaussian_prior
 from ._residual import make_residual as make_residual
 from ._residual import pixel_data as pixel_data
 from ._status import STATUS_MEANINGS as STATUS_MEANINGS

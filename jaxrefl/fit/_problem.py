@@ -33,7 +33,16 @@ from jaxrefl.brdf import BRDF
 from ._backends import Backend, solve
 from ._init import initial_theta
 from ._lm import LMOptions
-from ._residual import L2, GaussianNoise, Loss, NoiseModel, PixelData, make_residual, pixel_data
+from ._residual import (
+    L2,
+    GaussianNoise,
+    GaussianPrior,
+    Loss,
+    NoiseModel,
+    PixelData,
+    make_residual,
+    pixel_data,
+)
 from ._shard import device_count, map_sharded
 from ._status import Status, describe
 from ._transform import ParamSpace
@@ -107,8 +116,8 @@ def _finalise(theta, status, cost, n_used, nonfinite, p):
     return jnp.where(none[:, None], jnp.nan, theta), status, jnp.where(none, jnp.nan, cost)
 
 
-def _run(model, data, space, noise, loss, backend, init, max_iters, options, devices):
-    res = make_residual(model, space, noise, loss)
+def _run(model, data, space, noise, loss, backend, init, max_iters, options, devices, prior):
+    res = make_residual(model, space, noise, loss, prior)
     dtype = data.obs.dtype
     n_used, nonfinite = _data_checks(res, data)
     ndev = device_count(devices)
@@ -150,6 +159,7 @@ def fit_pixels(
     bounds: Mapping[str, tuple[float, float]] | None = None,
     fixed: Mapping[str, ArrayLike] | None = None,
     devices: int | None = None,
+    prior: GaussianPrior | None = None,
 ) -> FitResult:
     """Fit ``model`` to every pixel of ``data`` (:class:`PixelData` with a leading N axis).
 
@@ -161,6 +171,7 @@ def fit_pixels(
               model's defaults), a theta array ((P,) or (N, P)) or a dict of natural values
     max_iters: iteration budget (lean default 40, libraries 256)
     dtype:    computation dtype (default: that of ``data.obs``); float32 is the fast one
+    prior:    a :class:`GaussianPrior` on natural parameters (MAP fit; see ``_residual``)
     devices:  how many of JAX's devices share the pixels (default all; see ``_shard``);
               results do not depend on it
     """
@@ -186,6 +197,7 @@ def fit_pixels(
         max_iters,
         options,
         devices,
+        prior,
     )
     return FitResult(
         space.to_natural(theta), theta, status, cost, iters, n_used, space, model, backend

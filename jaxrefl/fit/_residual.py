@@ -15,6 +15,10 @@ wrong side: z is set to 0 where pred >= obs (saturated) or pred <= obs (dark). T
 one-sided (hinge) residual of a Tobit-style likelihood's mode, keeping the problem a least
 squares problem. Censored observations count as usable in :meth:`Residual.n_usable`.
 
+A :class:`GaussianPrior` on some natural parameters appends (x_j - mean_j) / std_j to r
+(in the whitened units of the data, so give the noise scale when using one): the least
+squares optimum is then the MAP estimate, and J^T J the Laplace precision of the posterior.
+
 Defensive masking: an observation is usable only where obs, scale, weight and both
 directions are finite and weight > 0; everything else is swapped for harmless values
 *before* any arithmetic (gradient-safe), so one NaN never poisons a pixel's residual or its
@@ -37,12 +41,14 @@ __all__ = [
     "L2",
     "Cauchy",
     "GaussianNoise",
+    "GaussianPrior",
     "Huber",
     "Loss",
     "NoiseModel",
     "PixelData",
     "Residual",
     "ShotNoise",
+    "gaussian_prior",
     "make_residual",
     "pixel_data",
 ]
@@ -252,18 +258,51 @@ class Cauchy(Loss):
         return z * jnp.sqrt(ratio)
 
 
+# ---------------------------------------------------------------------------- priors
+class GaussianPrior(eqx.Module):
+    """Independent Gaussian priors x_j ~ N(mean_j, std_j^2) on natural-vector entries
+    ``index`` of a :class:`ParamSpace` (:func:`gaussian_prior` builds one by label)."""
+
+    index: tuple[int, ...] = eqx.field(static=True)
+    mean: Float[Array, " J"]
+    std: Float[Array, " J"]
+
+    def residual(self, natural: Float[Array, " P"]) -> Float[Array, " J"]:
+        idx = jnp.asarray(self.index)
+        return (natural[idx] - self.mean.astype(natural.dtype)) / self.std.astype(natural.dtype)
+
+
+def gaussian_prior(space: ParamSpace, priors: dict[str, tuple[float, float]]) -> GaussianPrior:
+    """A :class:`GaussianPrior` from ``{label: (mean, std)}`` (labels of ``space.labels``,
+    natural units; std > 0)."""
+    labels = space.labels
+    bad = [k for k in priors if k not in labels]
+    if bad:
+        raise KeyError(f"no free parameters {bad} in the space; it has {labels}")
+    for k, (_, sd) in priors.items():
+        if not sd > 0:
+            raise ValueError(f"prior std of {k!r} must be > 0, got {sd}")
+    keys = list(priors)
+    return GaussianPrior(
+        tuple(labels.index(k) for k in keys),
+        jnp.asarray([float(priors[k][0]) for k in keys]),
+        jnp.asarray([float(priors[k][1]) for k in keys]),
+    )
+
+
 # ---------------------------------------------------------------------------- residual
 class Residual(eqx.Module):
     """r(theta, data): the whitened, weighted, censored, robust residual of one pixel.
 
     Call with theta (P,) and unbatched :class:`PixelData` ((K, C) fields); returns (K*C,),
-    ordered k-major (entry k*C + c).
+    ordered k-major (entry k*C + c), followed by the J entries of ``prior`` if there is one.
     """
 
     model: BRDF
     space: ParamSpace
     noise: NoiseModel
     loss: Loss
+    prior: GaussianPrior | None = None
 
     def usable(self, data: PixelData) -> Bool[Array, "*n K C"]:
         """Observations that take part: finite inputs and weight > 0."""
@@ -308,8 +347,10 @@ class Residual(eqx.Module):
         dark = data.censored < 0
         # One-sided residuals of censored observations (see the module docstring).
         z = jnp.where((sat & (pred >= obs)) | (dark & (pred <= obs)), 0.0, z)
-        r = jnp.sqrt(w) * self.loss.residual(z)
-        return r.reshape(-1)
+        r = (jnp.sqrt(w) * self.loss.residual(z)).reshape(-1)
+        if self.prior is None:
+            return r
+        return jnp.concatenate([r, self.prior.residual(self.space.natural_vector(theta))])
 
 
 def make_residual(
@@ -317,14 +358,17 @@ def make_residual(
     space: ParamSpace | None = None,
     noise: NoiseModel | None = None,
     loss: Loss | None = None,
+    prior: GaussianPrior | None = None,
 ) -> Residual:
-    """The residual function ``r(theta (P,), data: PixelData (unbatched)) -> (K*C,)``.
+    """The residual function ``r(theta (P,), data: PixelData (unbatched)) -> (K*C [+ J],)``.
 
-    Defaults: ``ParamSpace(model)`` (3 channels), ``GaussianNoise()`` (sigma 1), ``L2()``.
+    Defaults: ``ParamSpace(model)`` (3 channels), ``GaussianNoise()`` (sigma 1), ``L2()``,
+    no prior.
     """
     return Residual(
         model,
         ParamSpace(model) if space is None else space,
         GaussianNoise() if noise is None else noise,
         L2() if loss is None else loss,
+        prior,
     )
