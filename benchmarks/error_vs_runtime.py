@@ -164,8 +164,13 @@ def run(models=MODELS, backends=BACKENDS, dtypes=DTYPES, quick=False, log=print)
     return rows
 
 
-def mark_pareto(rows: list[dict], metric: str = "cosine_weighted_l2") -> None:
-    """Set ``pareto`` (bool) and ``error_ratio`` (error / best error of the material)."""
+def mark_pareto(rows: list[dict], metric: str = "cosine_weighted_l2", rtol: float = 1e-3) -> None:
+    """Set ``pareto`` (bool) and ``error_ratio`` (error / best error of the material).
+
+    Configuration a dominates b when a is no slower and its error is at most b's times
+    (1 + ``rtol``), and a is faster or clearly (beyond rtol) more accurate: errors within
+    0.1% are the same optimum reached, not a better fit.
+    """
     by_mat: dict[str, list[dict]] = {}
     for r in rows:
         by_mat.setdefault(r["material"], []).append(r)
@@ -174,9 +179,9 @@ def mark_pareto(rows: list[dict], metric: str = "cosine_weighted_l2") -> None:
         times = np.array([r["fit_time_s"] for r in rs])
         best = np.min(errs)
         for i, r in enumerate(rs):
-            dominated = np.any(
-                (times <= times[i]) & (errs <= errs[i]) & ((times < times[i]) | (errs < errs[i]))
-            )
+            no_worse = errs <= errs[i] * (1.0 + rtol)
+            better = (times < times[i]) | (errs * (1.0 + rtol) < errs[i])
+            dominated = np.any((times <= times[i]) & no_worse & better)
             r["pareto"] = bool(np.isfinite(errs[i]) and not dominated)
             r["error_ratio"] = float(errs[i] / best) if best > 0 else float("nan")
 
