@@ -90,14 +90,20 @@ def test_too_few_lights_is_masked_not_an_error(sphere):
 
 
 @pytest.fixture(scope="module")
-def glossy():
-    """A 20 x 20 glossy sphere (GGX + Lambert) under 12 lights: one compiled BRDF fit."""
+def glossy(tmp_path_factory):
+    """A 20 x 20 glossy sphere (GGX + Lambert) under 12 lights, written in the DiLiGenT
+    layout (16-bit PNGs) and read back: one compiled BRDF fit for the method and the
+    layout together."""
     _, n, m = ps.sphere_surface(20, 20)
     lights = ps.spiral_lights(12, 55.0)
     e = np.ones((12, 3))
     params = {"albedo": np.array([0.5, 0.6, 0.7]), "specular": np.full(3, 0.3), "alpha": 0.25}
     img = ps.render(ps.default_model(), params, n, m, lights, e)
-    fit = ps.fit_normal_brdf(_pixels(img, m), lights, e, init="diffuse")
+    root = ps.save_diligent(tmp_path_factory.mktemp("glossy") / "ball", img, lights, e, m, n)
+    cap = ps.load_diligent(root)
+    obs, ok = cap.pixels()
+    obs = obs.astype(np.float64)
+    fit = ps.fit_normal_brdf(obs, cap.lights, cap.intensities, ok, obs >= 1.0)
     return n, m, lights, e, img, fit
 
 
@@ -106,9 +112,10 @@ def test_brdf_fit_recovers_normals_and_lobe(glossy):
     err = ps.angular_error(np.asarray(fit.ps.normals), n[m])
     assert np.mean(err) < 0.05 and np.max(err) < 0.5
     alpha = np.asarray(fit.params["alpha"])
-    np.testing.assert_allclose(np.median(alpha), 0.25, rtol=1e-3)
+    np.testing.assert_allclose(np.median(alpha), 0.25, rtol=5e-3)
     expected = np.broadcast_to([0.5, 0.6, 0.7], (m.sum(), 3))
-    np.testing.assert_allclose(np.asarray(fit.ps.albedo) * np.pi, expected, rtol=1e-3)
+    # 16-bit quantisation of the PNGs limits the agreement to ~1e-3.
+    np.testing.assert_allclose(np.asarray(fit.ps.albedo) * np.pi, expected, rtol=5e-3)
     # The Lambertian methods are biased by the highlights on the same data.
     ls = ps.woodham(_pixels(img, m), lights, e)
     assert np.nanmean(ps.angular_error(np.asarray(ls.normals), n[m])) > 2.0
