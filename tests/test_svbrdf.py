@@ -300,6 +300,11 @@ def test_holdout_and_bad_job_arguments():
     assert r.report["holdout"] == [2]
     assert r.report["heldout_rmse"] < 5e-3
     assert set(r.report["heldout_rmse_per_photo"]) == {"2"}
+    med, p99 = r.report["heldout_pixel_rmse_median"], r.report["heldout_pixel_rmse_p99"]
+    # Noise 1e-3 per observation: a pixel's RMSE over 3 channels is about that.
+    assert 3e-4 < med <= p99 < 5e-3
+    with pytest.raises(ValueError, match="tilt_std"):
+        svbrdf.FitJob(model="ggx_normal", tilt_std=0.0)
     with pytest.raises(ValueError, match="out of range"):
         svbrdf.fit_capture(cap, svbrdf.FitJob(holdout=(9,)))
     with pytest.raises(ValueError, match="unknown capture model"):

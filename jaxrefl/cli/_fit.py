@@ -49,6 +49,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=None,
         help="lower bound of alpha (default: the narrowest lobe the capture resolves)",
     )
+    p.add_argument(
+        "--tilt-std",
+        type=float,
+        default=0.1,
+        help="ggx_normal: std of the zero-mean prior on the normal's slopes (default 0.1)",
+    )
     p.add_argument("--restart", action="store_true", help="ignore tiles of an earlier run")
     p.add_argument("--no-previews", action="store_true", help="skip the PNG previews")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -74,6 +80,7 @@ def run(args: argparse.Namespace) -> int:
         noise=args.noise,
         loss=args.loss,
         alpha_min=args.alpha_min,
+        tilt_std=args.tilt_std,
     )
     print(f"{capture}")
     result = fit_capture(capture, job, args.out, restart=args.restart, progress=not args.quiet)
@@ -102,3 +109,6 @@ def print_summary(report: dict) -> None:
     if "heldout_rmse" in report and report["heldout_rmse"] is not None:
         per = ", ".join(f"{k}: {v:.5f}" for k, v in report["heldout_rmse_per_photo"].items())
         print(f"held-out RMSE: {report['heldout_rmse']:.5f} ({per})")
+        med, p99 = report.get("heldout_pixel_rmse_median"), report.get("heldout_pixel_rmse_p99")
+        if med is not None:
+            print(f"held-out RMSE per pixel: median {med:.5f}, 99th percentile {p99:.5f}")

@@ -549,6 +549,12 @@ def _report(fitter, cat, capture, job, maps, compile_s, times, n_tiles, loaded) 
         report["heldout_rmse"] = _rmse(sse[:, holdout], cnt[:, holdout])
         report["heldout_rmse_per_photo"] = {str(i): _rmse(sse[:, i], cnt[:, i]) for i in holdout}
         report["heldout_observations"] = int(np.sum(cnt[:, holdout]))
+        # A robust companion of the RMSE: a few pixels with wild predictions (e.g. a lobe
+        # aimed where the training photos were clipped) dominate the RMSE, not the median.
+        n_h = np.sum(cnt[:, holdout], axis=1)
+        per_px = np.sqrt(np.sum(sse[:, holdout], axis=1)[n_h > 0] / n_h[n_h > 0])
+        report["heldout_pixel_rmse_median"] = float(np.median(per_px)) if per_px.size else None
+        report["heldout_pixel_rmse_p99"] = float(np.quantile(per_px, 0.99)) if per_px.size else None
     return report
 
 
