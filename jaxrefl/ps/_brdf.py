@@ -44,7 +44,7 @@ from jaxrefl.brdf._frame import safe_normalize
 from jaxrefl.scene import orthonormal_basis
 
 from ._robust import robust
-from ._woodham import PSResult
+from ._woodham import PSResult, prepare_inputs
 
 __all__ = ["BRDFFit", "NormalBRDFResidual", "default_model", "fit_normal_brdf"]
 
@@ -142,14 +142,8 @@ def fit_normal_brdf(
     ``select`` times that of the Lambertian start (a lobe explaining little is likelier to
     be absorbing a model error than a highlight); None keeps every fitted normal.
     """
-    obs = jnp.asarray(obs)
-    if not jnp.issubdtype(obs.dtype, jnp.floating):
-        obs = obs.astype(jnp.float32)
-    dt = obs.dtype
+    obs, lights, e, w = prepare_inputs(obs, lights, intensities, weight)
     n, k, c = obs.shape
-    lights = jnp.asarray(lights, dt)
-    e = jnp.ones((k, c), dt) if intensities is None else jnp.asarray(intensities, dt)
-    w = jnp.ones((n, k, c), dt) if weight is None else jnp.asarray(weight, dt)
     sat = jnp.zeros((n, k, c), bool) if saturated is None else jnp.asarray(saturated, bool)
     size = min(int(batch), max(256, 1 << max(n - 1, 0).bit_length()))
     pad = -n % size

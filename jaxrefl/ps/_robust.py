@@ -33,7 +33,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import ArrayLike, Float
 
-from ._woodham import PSResult, _woodham, cut, pad_pixels, scaled_normals
+from ._woodham import PSResult, _woodham, cut, pad_pixels, prepare_inputs, scaled_normals
 
 __all__ = ["robust", "robust_weights"]
 
@@ -105,17 +105,8 @@ def robust(
     :func:`jaxrefl.ps.woodham`, plus ``shadow`` (dark threshold relative to the pixel's
     reference level), ``scale_floor``, ``iters`` (reweighting rounds) and ``trim`` (the
     brightest fraction left out of the starting fit)."""
-    obs = jnp.asarray(obs)
-    if not jnp.issubdtype(obs.dtype, jnp.floating):
-        obs = obs.astype(jnp.float32)
-    dt = obs.dtype
-    n, k, c = obs.shape
-    lights = jnp.asarray(lights, dt)
-    e = jnp.ones((k, c), dt) if intensities is None else jnp.asarray(intensities, dt)
-    w = jnp.ones((n, k, c), dt) if weight is None else jnp.asarray(weight, dt)
-    finite = jnp.isfinite(obs) & jnp.isfinite(w)
-    w = jnp.where(finite, w, 0.0)
-    obs = jnp.where(finite, obs, 0.0)
+    obs, lights, e, w = prepare_inputs(obs, lights, intensities, weight)
+    n = obs.shape[0]
     obs, w = pad_pixels(obs, w)
     wt = robust_weights(obs, lights, e, w, shadow, scale_floor, iters, trim)
     return cut(_woodham(obs, lights, e, wt), n)

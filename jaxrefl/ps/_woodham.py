@@ -130,6 +130,16 @@ def woodham(
     (default 1); weight: >= 0 per observation (default 1; 0 drops it). Non-finite
     observations are dropped (weight 0) before any arithmetic.
     """
+    obs, lights, e, w = prepare_inputs(obs, lights, intensities, weight)
+    n = obs.shape[0]
+    obs, w = pad_pixels(obs, w)
+    return cut(_woodham(obs, lights, e, w), n)
+
+
+def prepare_inputs(obs, lights, intensities, weight):
+    """Arrays of one floating dtype (float32 unless obs is floating): obs (N, K, C), lights
+    (K, 3), intensities E (K, C) (default 1), weights (N, K, C) (default 1), with non-finite
+    observations or weights dropped (weight 0, value 0) before any arithmetic."""
     obs = jnp.asarray(obs)
     if not jnp.issubdtype(obs.dtype, jnp.floating):
         obs = obs.astype(jnp.float32)
@@ -139,7 +149,4 @@ def woodham(
     e = jnp.ones((k, c), dt) if intensities is None else jnp.asarray(intensities, dt)
     w = jnp.ones((n, k, c), dt) if weight is None else jnp.asarray(weight, dt)
     finite = jnp.isfinite(obs) & jnp.isfinite(w)
-    w = jnp.where(finite, w, 0.0)
-    obs = jnp.where(finite, obs, 0.0)
-    obs, w = pad_pixels(obs, w)
-    return cut(_woodham(obs, lights, e, w), n)
+    return jnp.where(finite, obs, 0.0), lights, e, jnp.where(finite, w, 0.0)
