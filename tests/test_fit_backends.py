@@ -111,3 +111,19 @@ def test_jaxopt_missing_gives_an_actionable_error(monkeypatch):
     data = fit.pixel_data(jnp.ones((2, 3, 1)), jnp.tile(jnp.asarray([0.0, 0.0, 1.0]), (2, 3, 1)))
     with pytest.raises(ImportError, match="pip install jaxopt"):
         fit.solve(res, jnp.zeros((2, 1)), data, "jaxopt")
+
+
+def test_optimistix_on_float32_data_under_x64():
+    """The suite runs with jax_enable_x64: optimistix's float64 damping term used to make
+    lineax refuse a float32 system. float32 in gives float32 out and the lean optimum."""
+    m = jaxrefl.brdf.get("lambert")
+    rng = np.random.default_rng(0)
+    wi = rng.normal(size=(3, 8, 3)) * [1, 1, 0] + [0, 0, 2.0]
+    wi /= np.linalg.norm(wi, axis=-1, keepdims=True)
+    obs = rng.uniform(0.05, 0.2, (3, 8, 3))
+    d = fit.pixel_data(jnp.asarray(obs, jnp.float32), jnp.asarray(wi, jnp.float32))
+    r = fit.fit_pixels(m, d, backend="optimistix")
+    lean = fit.fit_pixels(m, d)
+    assert r.theta.dtype == jnp.float32 and r.cost.dtype == jnp.float32
+    assert (np.asarray(r.status) <= fit.Status.AT_BOUND).all()
+    np.testing.assert_allclose(r.params["albedo"], lean.params["albedo"], rtol=1e-3)

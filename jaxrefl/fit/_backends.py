@@ -199,6 +199,21 @@ def solve(
     atol = (1e-6 if single else 1e-8) if atol is None else float(atol)
     steps = 256 if max_iters is None else int(max_iters)
     if backend == "optimistix":
+        if single and jax.config.jax_enable_x64:
+            # optimistix's LM builds its damping term in the default float (float64 under
+            # jax_enable_x64), and lineax then refuses the float32 system ("Vector and operator
+            # structures do not match"). Solve in float64 with float32's tolerances and hand
+            # back float32, the dtype asked for.
+            d64 = jax.tree.map(
+                lambda x: x.astype(jnp.float64) if jnp.issubdtype(x.dtype, jnp.floating) else x,
+                data,
+            )
+            theta, info = _solve_optimistix(
+                residual_fn, theta0.astype(jnp.float64), d64, nu, space, steps, rtol, atol, opts
+            )
+            return theta.astype(theta0.dtype), eqx.tree_at(
+                lambda i: i.cost, info, info.cost.astype(theta0.dtype)
+            )
         return _solve_optimistix(residual_fn, theta0, data, nu, space, steps, rtol, atol, opts)
     if backend == "jaxopt":
         return _solve_jaxopt(residual_fn, theta0, data, nu, space, steps, rtol, atol, opts)
