@@ -144,16 +144,13 @@ def _check_model(model: BRDF, dtype) -> tuple[int, int, int, float, float]:
     wi = jnp.asarray(wi_np, dtype=dtype)
     wo = jnp.asarray(wo_np, dtype=dtype)
 
-    def value(p, a, b):
-        return model.eval(p, a, b)
+    def value_and_grads(p, a, b):
+        # One trace and one compilation give f and the gradient of sum(f) (via the VJP).
+        f, vjp = jax.vjp(lambda q: model.eval(q, a, b), p)
+        return f, vjp(jnp.ones_like(f))[0]
 
-    def grads(p, a, b):
-        return jax.grad(lambda q: jnp.sum(model.eval(q, a, b)))(p)
-
-    over_dirs_v = jax.vmap(value, in_axes=(None, 0, 0))
-    over_dirs_g = jax.vmap(grads, in_axes=(None, 0, 0))
-    f = jax.jit(jax.vmap(over_dirs_v, in_axes=(0, None, None)))(params, wi, wo)  # (P, D, C)
-    g = jax.jit(jax.vmap(over_dirs_g, in_axes=(0, None, None)))(params, wi, wo)
+    over_dirs = jax.vmap(value_and_grads, in_axes=(None, 0, 0))
+    f, g = jax.jit(jax.vmap(over_dirs, in_axes=(0, None, None)))(params, wi, wo)  # (P, D, C)
     f = np.asarray(f).reshape(P, D, -1)
     bad_v = ~np.all(np.isfinite(f), axis=-1)
     bad_g = np.zeros((P, D), dtype=bool)
