@@ -14,6 +14,8 @@ from fit_zoo import make_problem, problem_zoo
 import jaxrefl
 from jaxrefl import fit
 
+_GGX = jaxrefl.brdf.get("cook_torrance", distribution="ggx", diffuse="lambert")
+
 
 @pytest.mark.parametrize("p", [1, 2, 3, 5, 7, 8])
 def test_unrolled_cholesky_matches_lapack(p):
@@ -159,3 +161,27 @@ def test_pure_state_functions_and_status_codes():
         "UNKNOWN": 1,
     }
     assert set(fit.STATUS_MEANINGS) == set(fit.Status)
+
+
+def test_compaction_stages_give_each_pixel_its_own_lm_solve():
+    """batched_lm's staged compaction (gather the unconverged pixels into ever smaller
+    sub-batches) must not change any pixel's result: the same steps in the same order as
+    lm_solve on that pixel alone, here against vmap(lm_solve) in float64."""
+    # A small problem (P = 3) keeps the five compiled copies of the step cheap.
+    pr = make_problem("ggx_noisy_256", _GGX, n=256, noise=0.02, seed=7)
+    space = fit.ParamSpace(pr.model, channels=3, grey=("albedo", "specular"))
+    res = fit.make_residual(pr.model, space)
+    theta0 = jnp.broadcast_to(space.from_natural({}, dtype=jnp.float64), (256, space.size))
+    staged = fit.LMOptions(
+        max_iters=25, compact_after=6, compact_stages=((9, 0.5), (13, 0.25)), chunk=256
+    )
+    theta, r = fit.batched_lm(res, theta0, pr.data, staged, space=space)
+    plain = jax.vmap(lambda t, d: fit.lm_solve(res, t, d, staged, space=space))
+    theta_ref, r_ref = plain(theta0, pr.data)
+    it = np.asarray(r.iterations)
+    # The stages were exercised: pixels stopped in each of them.
+    assert np.any(it <= 6) and np.any((it > 9) & (it <= 13)) and np.any(it > 13), np.bincount(it)
+    np.testing.assert_array_equal(it, np.asarray(r_ref.iterations))
+    np.testing.assert_array_equal(np.asarray(r.status), np.asarray(r_ref.status))
+    np.testing.assert_allclose(np.asarray(theta), np.asarray(theta_ref), rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(r.cost), np.asarray(r_ref.cost), rtol=1e-9)
