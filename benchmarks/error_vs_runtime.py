@@ -49,7 +49,7 @@ DATA = (
     )
     / "brdf"
 )
-MODELS = ("lambert", "blinn_phong", "ward", "cook_torrance_ggx", "lafortune_2")
+MODELS = jm.DEFAULT_MODELS  # Lambert + {Blinn-Phong, Ward, CT Beckmann/GGX, Lafortune 1-3}
 BACKENDS = ("lean", "optimistix", "jaxopt")
 DTYPES = ("float32", "float64")
 CURET_SAMPLES = (2, 12)
@@ -123,7 +123,12 @@ def _fit(model, m: MeasuredBRDF, backend: str, dtype: str):
         return r
 
 
-def run(models=MODELS, backends=BACKENDS, dtypes=DTYPES, quick=False, log=print) -> list[dict]:
+def run(
+    models=MODELS, backends=BACKENDS, dtypes=DTYPES, quick=False, log=print, csv_path=None
+) -> list[dict]:
+    """Every configuration on every material; with ``csv_path`` the rows so far (Pareto
+    marked among them) are written after each model, so a long run that is stopped keeps
+    what it measured."""
     rows = []
     mats = materials(quick)
     for name in models:
@@ -160,6 +165,9 @@ def run(models=MODELS, backends=BACKENDS, dtypes=DTYPES, quick=False, log=print)
                         f"err {err['cosine_weighted_l2']:.4g}  fit {1e3 * warm:8.1f} ms  "
                         f"compile {rows[-1]['compile_time_s']:.1f} s  {Status(st).name}"
                     )
+        if csv_path is not None:
+            mark_pareto(rows)
+            write_csv(csv_path, rows)
     mark_pareto(rows)
     return rows
 
@@ -233,17 +241,24 @@ def main() -> int:
     ap.add_argument("--csv", type=Path, help="write every row as CSV")
     args = ap.parse_args()
     t0 = time.perf_counter()
-    rows = run(args.models, args.backends, args.dtypes, args.quick)
+    rows = run(args.models, args.backends, args.dtypes, args.quick, csv_path=args.csv)
     dt = time.perf_counter() - t0
     print(f"\n# Fit error against run time\nmachine: {machine()}\n")
     print(table(SUMMARY_HEADERS, summary(rows)))
     print(f"\n{len(rows)} fits in {dt:.0f} s (compilation included)")
     if args.csv:
-        with open(args.csv, "w", newline="") as fh:
-            w = csv.DictWriter(fh, fieldnames=list(rows[0]))
-            w.writeheader()
-            w.writerows(rows)
+        write_csv(args.csv, rows)
     return 0
+
+
+def write_csv(path: Path, rows: list[dict]) -> None:
+    """Every row as CSV (atomically: a partial run never leaves a half-written file)."""
+    tmp = Path(f"{path}.tmp")
+    with open(tmp, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    os.replace(tmp, path)
 
 
 if __name__ == "__main__":
