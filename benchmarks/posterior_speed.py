@@ -153,51 +153,96 @@ def part_map(args):
 
     root = Path(os.environ.get("JAXREFL_SHARED_DATA", "../shared/data"))
     src = root / "svbrdf_flash" / "bath_tile"
-    if not src.exists():
-        print(f"\n(no {src}: skipping the uncertainty map timing)")
-        return
-    cap = load_capture(src)
-    factor = max(1, cap.shape[1] // args.map_size)
-    cap = cap.downsample(factor)
+    if "bath_tile" in args.map_captures:
+        if not src.exists():
+            print(f"\n(no {src}: skipping the bath_tile uncertainty map timing)")
+        else:
+            cap = load_capture(src)
+            factor = max(1, cap.shape[1] // args.map_size)
+            map_run(args, cap.downsample(factor), f"bath_tile / {factor}")
+    if "synthetic" in args.map_captures:
+        import tempfile
+
+        from jaxrefl.cli import main as cli
+
+        with tempfile.TemporaryDirectory() as tmp:
+            d = Path(tmp) / "demo"
+            cli(["demo", "--out", str(d), "--size", str(args.map_size), "--no-fit"])
+            map_run(args, load_capture(d), "synthetic (jaxrefl demo)")
+
+
+def map_run(args, cap, name):
+    """Adaptive uncertainty map (MAP_OPTIONS, fixed-size chunks) of a capture; with
+    ``--map-rows R`` only the first R rows get a posterior and the HMC time is
+    extrapolated to the whole map by the ratio of MCMC pixel counts (printed as such)."""
     _k, h, w, c = cap.shape
     t0 = time.perf_counter()
     cf = svbrdf.fit_capture(cap, svbrdf.FitJob(model="ggx", dtype="float64"))
     t_fit = time.perf_counter() - t0
     model, space = svbrdf.capture_model("ggx", channels=c, alpha_min=cf.extra["alpha_min"])
     lp = jp.log_posterior(model, space, fit.GaussianNoise(None))
-    data = svbrdf.pixel_block(cap, 0, h * w, dtype=np.float64)
     theta = np.asarray(cf.theta, np.float64)
     ok = np.all(np.isfinite(theta), -1)
     dn = np.asarray(space.dnatural(jnp.asarray(np.where(ok[:, None], theta, 0.0))))
     std = np.stack([_std_map(cf, lab).reshape(-1) for lab in space.labels], -1)
     noise0 = np.nan_to_num(cf.maps["noise_std"].reshape(-1), nan=1e-2)
-    opts = jp.HMCOptions(num_warmup=200, num_samples=200, num_chains=2, batch_size=100)
+    flag = cf.maps["laplace_flag"].reshape(-1)
+    rows = h if args.map_rows <= 0 else min(h, args.map_rows)
+    n = rows * w
+    # the MCMC pixel count of the whole map, for the extrapolation: flagged + 2% audit
+    has = ok & ((flag & fit.LaplaceFlag.NO_ESTIMATE) == 0)
+    n_rel = int(np.sum(has & (flag == 0)))
+    full_mcmc = int(np.sum(has & (flag != 0))) + int(np.ceil(0.02 * n_rel))
+    data = svbrdf.pixel_block(cap, 0, n, dtype=np.float64)
     t1 = time.perf_counter()
     u = jp.adaptive_uncertainty(
         lp,
         data,
-        theta,
-        std / np.abs(dn),
-        cf.maps["laplace_flag"].reshape(-1),
-        options=opts,
-        noise_scale=np.where(noise0 > 0, noise0, 1e-2),
+        theta[:n],
+        (std / np.abs(dn))[:n],
+        flag[:n],
+        options=jp.MAP_OPTIONS,
+        noise_scale=np.where(noise0 > 0, noise0, 1e-2)[:n],
+        chunk=args.map_chunk,
+        progress=True,
+        keep_samples=False,
     )
     t_post = time.perf_counter() - t1
     m = u.report()
-    print(f"\nadaptive uncertainty map, bath_tile {h} x {w} (K = {cap.shape[0]}), float64:")
+    tm = u.timings
+    n_mc = m["mcmc"]["pixels"]
+    o = jp.MAP_OPTIONS
     print(
-        table(
-            ["step", "wall s"],
-            [
-                ["fit_capture (LM + Laplace, compile incl.)", f"{t_fit:.1f}"],
-                [f"adaptive posterior ({m['mcmc']['pixels']} MCMC pixels)", f"{t_post:.1f}"],
-                ["  of which HMC (compile incl.)", f"{u.timings.get('mcmc_s', 0.0):.1f}"],
-                ["total", f"{t_fit + t_post:.1f}"],
-            ],
-        )
+        f"\nadaptive uncertainty map, {name} {h} x {w} (K = {cap.shape[0]}), float64, HMC "
+        f"{o.num_chains} chains x ({o.num_warmup} warm-up + {o.num_samples}) x "
+        f"{o.num_integration_steps} leapfrog, chunks of {tm.get('mcmc_chunk_size', 0)} pixels:"
     )
-    print("methods:", m["method_counts"])
-    print("MCMC max R-hat median:", m["mcmc"]["max_rhat"] and m["mcmc"]["max_rhat"]["median"])
+    body = [
+        ["fit_capture (LM + Laplace, compile incl.)", f"{t_fit:.1f}"],
+        [f"adaptive posterior, rows 0-{rows - 1} ({n_mc} MCMC pixels)", f"{t_post:.1f}"],
+        ["  HMC compile (first chunk - median chunk)", f"{tm.get('mcmc_compile_s', 0.0):.1f}"],
+        ["  HMC median chunk", f"{tm.get('mcmc_chunk_s_median', float('nan')):.1f}"],
+        ["  HMC total (compile incl.)", f"{tm.get('mcmc_s', 0.0):.1f}"],
+    ]
+    total = t_fit + t_post
+    if rows < h and n_mc:
+        per = (tm["mcmc_s"] - tm.get("mcmc_compile_s", 0.0)) / n_mc
+        est = tm.get("mcmc_compile_s", 0.0) + per * full_mcmc
+        body.append([f"EXTRAPOLATED HMC, whole map ({full_mcmc} MCMC pixels)", f"{est:.0f}"])
+        total = t_fit + (t_post - tm["mcmc_s"]) + est
+        body.append(["EXTRAPOLATED total", f"{total:.0f}"])
+    else:
+        body.append(["total", f"{total:.1f}"])
+    print(table(["step", "wall s"], body))
+    print("methods:", m["method_counts"], f"(whole map would send {full_mcmc} to MCMC)")
+    mc = m["mcmc"]
+    if mc["max_rhat"]:
+        print(
+            f"MCMC: max R-hat median {mc['max_rhat']['median']:.3f}, q95 "
+            f"{mc['max_rhat']['q95']:.3f}; min bulk ESS median {mc['min_ess_bulk']['median']:.0f}"
+            f", q05 {mc['min_ess_bulk']['q05']:.0f}; pixels with divergences "
+            f"{mc['pixels_with_divergences']}"
+        )
 
 
 def _std_map(cf, label):
@@ -213,11 +258,16 @@ def main() -> None:
     p.add_argument("--emcee-pixels", type=int, default=4)
     p.add_argument("--nuts-pixels", type=int, default=200)
     p.add_argument("--map-size", type=int, default=256)
+    p.add_argument("--map-rows", type=int, default=0, help="rows with a posterior (0: all)")
+    p.add_argument("--map-chunk", type=int, default=2048, help="MCMC pixels per call")
+    p.add_argument("--map-captures", default="bath_tile,synthetic")
+    p.add_argument("--only-map", action="store_true", help="skip parts 1 and 2")
     args = p.parse_args()
     print(machine())
-    model, space, lp, theta, data = simulate(args.pixels)
-    r, lap, _ = part_speed(args, model, space, lp, theta, data)
-    part_laplace(args, lp, data, r, lap)
+    if not args.only_map:
+        model, space, lp, theta, data = simulate(args.pixels)
+        r, lap, _ = part_speed(args, model, space, lp, theta, data)
+        part_laplace(args, lp, data, r, lap)
     if args.map_size > 0:
         part_map(args)
 

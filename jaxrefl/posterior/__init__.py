@@ -20,6 +20,7 @@ sampler), :mod:`._adaptive` (Laplace everywhere, MCMC where flagged), :mod:`._di
 calibration), :mod:`._maps` (EXR uncertainty channels).
 """
 
+from ._adaptive import MAP_OPTIONS as MAP_OPTIONS
 from ._adaptive import METHODS as METHODS
 from ._adaptive import UncertaintyMap as UncertaintyMap
 from ._adaptive import adaptive_uncertainty as adaptive_uncertainty
