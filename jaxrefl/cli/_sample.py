@@ -131,7 +131,8 @@ def _run_capture(args, path: Path, opts) -> dict:
             raise ValueError(f"--pixels {r0}:{r1},{c0}:{c1} exceeds the {h} x {w} capture")
         cap = cap.crop(r0, r1, c0, c1)
     _k, h, w, c = cap.shape
-    job = FitJob(model=args.model, dtype="float64")
+    # one tile of the crop's size (a 4096-pixel default tile would fit mostly padding)
+    job = FitJob(model=args.model, dtype="float64", tile_pixels=min(4096, h * w))
     t0 = time.perf_counter()
     cf = fit_capture(cap, job, progress=not args.quiet)
     t_fit = time.perf_counter() - t0

@@ -66,7 +66,13 @@ class HMCOptions:
     def __post_init__(self):
         if self.kernel not in ("hmc", "nuts"):
             raise ValueError(f"kernel must be 'hmc' or 'nuts', not {self.kernel!r}")
-        for k in ("num_warmup", "num_samples", "num_chains", "num_integration_steps"):
+        for k in (
+            "num_warmup",
+            "num_samples",
+            "num_chains",
+            "num_integration_steps",
+            "batch_size",
+        ):
             if getattr(self, k) < 1:
                 raise ValueError(f"{k} must be >= 1, got {getattr(self, k)}")
 
@@ -241,8 +247,18 @@ def sample_pixels(
 
     imm0 = jax.vmap(jnp.diag)(sd * sd)  # the initial metric: the Laplace scales
 
+    # Pad N up to a multiple of the batch (repeating pixels; dropped below): lax.map would
+    # otherwise compile the vmapped sampler a second time for the remainder.
+    bs = opts.batch_size
+    n_run = n if n <= bs else -(-n // bs) * bs
+    rows = np.resize(np.arange(n), n_run)
+    args = (keys, x0, imm0, data, nrm)
+    if n_run != n:
+        args = jax.tree.map(lambda a: a[rows], args)
+
     def call():
-        return jax.block_until_ready(_run(lp, opts, keys, x0, imm0, data, nrm))
+        out = jax.block_until_ready(_run(lp, opts, *args))
+        return jax.tree.map(lambda a: a[:n], out)
 
     t0 = time.perf_counter()
     out = call()
