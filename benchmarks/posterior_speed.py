@@ -9,9 +9,16 @@
    time (compilation excluded and printed apart). Target: batched >= 5x emcee.
 2. Laplace vs NUTS: ratio of marginal standard deviations on the pixels Laplace flags
    reliable (identifiable), median and 5-95% range per parameter.
-3. Wall time of an adaptive uncertainty map (Laplace everywhere, HMC on the flagged pixels
-   and a 2% audit) of the bath_tile capture downsampled to ``--map-size`` squared (needs
-   $JAXREFL_SHARED_DATA); ``--map-size 0`` skips it.
+3. Wall time of an adaptive uncertainty map (Laplace everywhere, HMC with ``MAP_OPTIONS``
+   on the flagged pixels and a 2% audit, fixed-size chunks of ``--map-chunk`` pixels) of
+   the bath_tile capture downsampled to ``--map-size`` squared (needs
+   $JAXREFL_SHARED_DATA) and of a synthetic ``jaxrefl demo`` capture of that size;
+   ``--map-rows R`` crops the first R rows and extrapolates (labelled EXTRAPOLATED);
+   ``--map-size 0`` skips it.
+4. emcee SBC with ``--emcee-sbc`` simulations (the test runs 24).
+
+    python benchmarks/posterior_speed.py --only-map --map-size 256 --map-rows 4
+    python benchmarks/posterior_speed.py --only-emcee-sbc --emcee-sbc 200
 """
 
 from __future__ import annotations
@@ -259,6 +266,52 @@ def _std_map(cf, label):
     return cf.maps[f"{label}.std"]
 
 
+def part_emcee_sbc(args):
+    """SBC of emcee as in tests/test_posterior_sbc.py (1-channel GGX + Lambert, K = 16,
+    truth from the truncated prior, 12 walkers x 400 steps, draws thinned to 19), with
+    ``--emcee-sbc`` simulations instead of the test's 24."""
+    n, k, sigma = args.emcee_sbc, 16, 0.01
+    model, space = svbrdf.capture_model("ggx", channels=1, alpha_min=0.05)
+    lp = jp.log_posterior(model, space, fit.GaussianNoise(sigma))
+    rng = np.random.default_rng(11)
+    lo, hi = space.lower, space.upper
+    cols = []
+    for blk, prior in zip(space.blocks, lp.priors, strict=True):
+        for j in range(blk.start, blk.stop):
+            cols.append(jp.sample_truncated(prior, rng, (n,), lo[j], hi[j]))
+    nat = np.stack(cols, -1)
+    params = {b.name: nat[:, b.start : b.stop] for b in space.blocks}
+    params["alpha"] = params["alpha"][:, 0]
+    theta = np.asarray(space.from_natural(params, dtype=jnp.float64))
+    th = np.arccos(rng.uniform(np.cos(np.radians(45)), 1.0, (n, k)))
+    ph = rng.uniform(0, 2 * np.pi, (n, k))
+    wi = np.stack([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)], -1)
+    scale = wi[..., 2:3] * 1.5
+    d0 = fit.pixel_data(np.zeros((n, k, 1)), wi, None, scale=scale)
+    pred = np.asarray(jax.jit(jax.vmap(lp.predict))(jnp.asarray(theta), d0))
+    data = fit.pixel_data(pred + sigma * rng.normal(size=pred.shape), wi, None, scale=scale)
+    t0 = time.perf_counter()
+    draws = []
+    for i in range(n):
+        d = jax.tree.map(lambda a, i=i: a[i], data)
+        e = jp.sample_emcee(lp, theta[i], (d,), n_walkers=12, n_steps=400, seed=i)
+        draws.append(jp.thin(e.theta, 19)[0])
+    wall = time.perf_counter() - t0
+    res = jp.sbc_summary(theta, np.stack(draws), labels=lp.labels, bins=10)
+    rows = []
+    for j, lab in enumerate(lp.labels):
+        rows.append(
+            [
+                lab,
+                f"{res.tests['chi2_p'][j]:.3f}",
+                f"{res.coverage_z(0.5)[j]:+.2f}",
+                f"{res.coverage_z(0.9)[j]:+.2f}",
+            ]
+        )
+    print(f"\nemcee SBC, {n} simulations (12 walkers x 400 steps), {wall:.0f} s, 10 rank bins:")
+    print(table(["parameter", "rank chi2 p", "50% coverage z", "90% coverage z"], rows))
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--pixels", type=int, default=200)
@@ -269,12 +322,19 @@ def main() -> None:
     p.add_argument("--map-chunk", type=int, default=2048, help="MCMC pixels per call")
     p.add_argument("--map-captures", default="bath_tile,synthetic")
     p.add_argument("--only-map", action="store_true", help="skip parts 1 and 2")
+    p.add_argument("--emcee-sbc", type=int, default=200, help="emcee SBC simulations (0: skip)")
+    p.add_argument("--only-emcee-sbc", action="store_true")
     args = p.parse_args()
     print(machine())
+    if args.only_emcee_sbc:
+        part_emcee_sbc(args)
+        return
     if not args.only_map:
         model, space, lp, theta, data = simulate(args.pixels)
         r, lap, _ = part_speed(args, model, space, lp, theta, data)
         part_laplace(args, lp, data, r, lap)
+        if args.emcee_sbc > 0:
+            part_emcee_sbc(args)
     if args.map_size > 0:
         part_map(args)
 
