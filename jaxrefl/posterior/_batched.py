@@ -62,8 +62,12 @@ class HMCOptions:
     batch_size: int = 100
     init_jitter: float = 0.5
     step_jitter: float = 0.2
+    metric_window_end: float = 0.9
 
     def __post_init__(self):
+        if not 0.15 < self.metric_window_end <= 1.0:
+            w = self.metric_window_end
+            raise ValueError(f"metric_window_end must be in (0.15, 1], got {w}")
         if self.kernel not in ("hmc", "nuts"):
             raise ValueError(f"kernel must be 'hmc' or 'nuts', not {self.kernel!r}")
         for k in (
@@ -125,8 +129,9 @@ def _one_chain(lp: LogPosterior, opts: HMCOptions, key, x0, imm0, data, normals)
 
     Warm-up schedule (Stan's, with one slow window): steps [0, 15%) adapt the step size
     by dual averaging (Hoffman & Gelman 2014, sec. 3.2) on the initial metric ``imm0``
-    (the Laplace covariance's diagonal where given); steps [15%, 90%) also accumulate the
-    covariance of the draws, which at 90% becomes the inverse mass matrix, regularised as
+    (the Laplace covariance's diagonal where given); steps [15%, 90%) (the end is
+    ``metric_window_end``) also accumulate the covariance of the draws, which at 90%
+    becomes the inverse mass matrix, regularised as
     Stan does: n/(n+5) Cov + 1e-3 * 5/(n+5) I; dual averaging restarts then and runs to the
     end of the warm-up, whose averaged step size is kept. One kernel serves warm-up and
     sampling, so the model's gradient is compiled once.
@@ -138,7 +143,7 @@ def _one_chain(lp: LogPosterior, opts: HMCOptions, key, x0, imm0, data, normals)
     algo = blackjax.hmc if opts.kernel == "hmc" else blackjax.nuts
     extra = {"num_integration_steps": opts.num_integration_steps} if opts.kernel == "hmc" else {}
     n_warm = opts.num_warmup
-    w1, w2 = max(1, int(0.15 * n_warm)), max(2, int(0.9 * n_warm))
+    w1, w2 = max(1, int(0.15 * n_warm)), max(2, int(opts.metric_window_end * n_warm))
     da_init, da_update, _ = dual_averaging_adaptation(opts.target_accept)
     d = x0.shape[-1]
     dtype = x0.dtype
