@@ -20,10 +20,14 @@ Design decisions, from measurements (``MEASUREMENTS.md``):
 
 * Damping is plain lam * I (isotropic), *not* Marquardt's diag(J^T J) scaling: with the
   latter and a small start 8-22% of GGX pixels fell into the "alpha -> 0, highlight missed"
-  local minimum; lam * I with a large enough start reached the optimum on 99.6%. The start
-  is relative, lam0 * mean(diag(J^T J(theta0))) (default lam0 = 1), so the same option works
-  whatever the units of the data (radiance, f_r, whitened residuals); Madsen & Nielsen use
-  tau * max(diag).
+  local minimum; lam * I reached the optimum on 99.6%. The start is relative,
+  lam0 * mean(diag(J^T J(theta0))), so the same option works whatever the units of the data
+  (radiance, f_r, whitened residuals); Madsen & Nielsen use tau * max(diag). Default
+  lam0 = 0.01, measured on 20k-50k GGX + Lambert pixels (``benchmarks/fit_throughput.py``
+  data): from the automatic start the mean number of steps falls from 5.7 (lam0 = 1) to
+  2.8 with every pixel's final cost within 0.1% of lam0 = 1's; from the model defaults
+  (a poor start) 0.2-0.3% of pixels end > 1% worse and as many > 1% better, a wash, while
+  lam0 = 1e-3 ends worse twice as often as better.
 * The number of iterations is fixed (``lax.scan``, no ``while_loop`` under ``vmap``, which
   would run every pixel until the slowest stops). Converged pixels are frozen (their state
   stops changing), so results do not depend on the batch they are in. ``batched_lm`` then
@@ -104,13 +108,16 @@ class LMOptions(eqx.Module):
     compact_after, compact_stages, chunk: how :func:`batched_lm` organises the work
                 (results per pixel do not depend on them). The default stages follow the
                 measured convergence of GGX + Lambert pixels from the automatic start
-                (``benchmarks/fit_throughput.py``: 56% still iterating after 5 steps, 37%
-                after 6, 6% after 10, 0.8% after 15): 1.2-1.35x the throughput of one
-                stage (10 steps for all, then 1/8 of the block).
+                (``benchmarks/fit_throughput.py`` data, lam0 = 0.01: 43% still iterating
+                after 2 steps, 13% after 4, 1.5% after 8, 0.1% after 15), with caps
+                well above those shares: a stage whose unconverged pixels overflow its
+                cap by one runs a second, almost empty round (measured: caps at the
+                expected share cost 2x). CPU time per pixel: 0.58x that of lam0 = 1
+                with one stage (10 steps for all, then 1/8 of a block).
     """
 
     max_iters: int = eqx.field(default=40, static=True)
-    lam0: float = eqx.field(default=1.0, static=True)
+    lam0: float = eqx.field(default=0.01, static=True)
     lam_min: float = eqx.field(default=1e-12, static=True)
     lam_max: float = eqx.field(default=1e12, static=True)
     xtol: float | None = eqx.field(default=None, static=True)
@@ -419,16 +426,18 @@ def _solve_block(residual_fn, theta0, data, n_usable, options, space):
     b = theta0.shape[0]
     states = jax.vmap(lambda t, d: lm_init(residual_fn, t, d, options))(theta0, data)
     done = min(options.compact_after, options.max_iters)
-    states = _steps(residual_fn, states, data, options, done)
     stages = [
         (min(u, options.max_iters), max(1, math.ceil(b * f))) for u, f in options.compact_stages
     ]
     stages = [(u, c) for u, c in stages if u > done] or [(options.max_iters, 0)]
     stages[-1] = (options.max_iters, stages[-1][1])
-    # Small blocks are not worth more compiled copies of the step (compile time).
     if done < options.max_iters and min(c for _, c in stages) < _MIN_COMPACT:
+        # A small block is not worth more compiled copies of the step (compile time):
+        # one scan of max_iters steps for all pixels.
+        states = _steps(residual_fn, states, data, options, options.max_iters)
         stages = []
-        states = _steps(residual_fn, states, data, options, options.max_iters - done)
+    else:
+        states = _steps(residual_fn, states, data, options, done)
     for until, cap in stages:
         if until <= done:
             continue
