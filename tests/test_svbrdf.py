@@ -119,11 +119,16 @@ def test_gaussian_prior_residual_is_the_map_estimate():
     data = fit.pixel_data(obs, wi)
     prior = fit.gaussian_prior(space, {"albedo.c0": (m0, s0)})
     noise = fit.GaussianNoise(sigma=sigma)
-    r = fit.fit_pixels(model, data, space=space, noise=noise, prior=prior, init="defaults")
+    # Tolerances far below the defaults: this checks the MAP identity, not the stopping rule
+    # (which stops a damped first step short by up to ~1e-4 posterior std).
+    tight = fit.LMOptions(xtol=1e-13, ftol=1e-15)
+    r = fit.fit_pixels(
+        model, data, space=space, noise=noise, prior=prior, init="defaults", options=tight
+    )
     # obs = a/pi + e: precision k/(pi sigma)^2 + 1/s0^2, mean weighted by the precisions.
     prec_d, prec_0 = k / (np.pi * sigma) ** 2, 1 / s0**2
     mode = (prec_d * np.pi * obs.mean() + prec_0 * m0) / (prec_d + prec_0)
-    assert abs(float(r.params["albedo"][0, 0]) - mode) < 1e-5 * mode  # LM stopping tolerance
+    assert abs(float(r.params["albedo"][0, 0]) - mode) < 1e-10 * mode
     res = fit.make_residual(model, space, noise, prior=prior)
     lap = fit.laplace(r, data, residual=res, noise="known")
     assert abs(float(lap.std[0, 0]) - (prec_d + prec_0) ** -0.5) < 1e-9
@@ -383,11 +388,13 @@ space = fit.ParamSpace(model, channels=1)
 a = fit.fit_pixels(model, data, space=space)
 b = fit.fit_pixels(model, data, space=space, devices=1)
 np.testing.assert_array_equal(np.asarray(a.status), np.asarray(b.status))
-np.testing.assert_allclose(np.asarray(a.theta), np.asarray(b.theta), rtol=1e-6, atol=1e-8)
+# Rounding of a differently laid-out batch moves a flat valley's point a little even in
+# float64 (seen: one value of 195, 3e-6 relative, with tight tolerances too); costs agree.
+np.testing.assert_allclose(np.asarray(a.theta), np.asarray(b.theta), rtol=1e-5, atol=1e-8)
 np.testing.assert_allclose(np.asarray(a.cost), np.asarray(b.cost), rtol=1e-10)
 la, lb = fit.laplace(a, data), fit.laplace(b, data, devices=1)
 np.testing.assert_array_equal(np.asarray(la.flag), np.asarray(lb.flag))
-np.testing.assert_allclose(np.asarray(la.std), np.asarray(lb.std), rtol=1e-6)
+np.testing.assert_allclose(np.asarray(la.std), np.asarray(lb.std), rtol=1e-5)
 print("ok")
 """
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
