@@ -150,6 +150,16 @@ def _gains(res: Residual, theta, data):
     return jax.vmap(lambda th, d: _gain_one(res, th, d))(theta, data)
 
 
+def _float64_inputs(result: FitResult, data: PixelData):
+    """(residual, theta with non-finite rows set to 0, finite-row mask, data), all float64;
+    call inside :func:`x64`. A NaN theta would poison any evaluation: it is evaluated at 0
+    and the caller masks the result with the mask."""
+    res = make_residual(result.model, result.space)
+    theta = jnp.asarray(np.asarray(result.theta), jnp.float64)
+    ok = jnp.all(jnp.isfinite(theta), axis=-1)
+    return res, jnp.where(ok[:, None], theta, 0.0), ok, data.astype(jnp.float64)
+
+
 def step_gain(result: FitResult, data: PixelData) -> np.ndarray:
     """(N,) relative decrease (c0 - c1) / c0 of the float64 cost 1/2 |r|^2 (L2 loss, unit
     sigma, as :func:`cost64`) by one Gauss-Newton step from each problem's theta.
@@ -160,13 +170,7 @@ def step_gain(result: FitResult, data: PixelData) -> np.ndarray:
     step does not lower the cost, theta or the cost is not finite, or the cost is 0.
     """
     with x64():
-        res = make_residual(result.model, result.space)
-        d64 = data.astype(jnp.float64)
-        theta = jnp.asarray(np.asarray(result.theta), jnp.float64)
-        ok = jnp.all(jnp.isfinite(theta), axis=-1)
-        # A NaN theta would poison the step; evaluate at 0 and mask the result.
-        t_safe = jnp.where(ok[:, None], theta, 0.0)
-
+        res, t_safe, ok, d64 = _float64_inputs(result, data)
         g = _gains(res, t_safe, d64)
         return np.asarray(jnp.where(ok, g, 0.0), dtype=np.float64)
 
@@ -175,12 +179,7 @@ def cost64(result: FitResult, data: PixelData) -> np.ndarray:
     """(N,) cost 1/2 |r|^2 of every problem of ``result`` re-evaluated in float64 on ``data``
     (L2 loss, unit sigma: the default residual); inf where theta is not finite."""
     with x64():
-        res = make_residual(result.model, result.space)
-        d64 = data.astype(jnp.float64)
-        theta = jnp.asarray(np.asarray(result.theta), jnp.float64)
-        ok = jnp.all(jnp.isfinite(theta), axis=-1)
-        # Gradient-free, but a NaN theta would still give NaN: evaluate it at 0 and mask.
-        t_safe = jnp.where(ok[:, None], theta, 0.0)
+        res, t_safe, ok, d64 = _float64_inputs(result, data)
         r = jax.vmap(res)(t_safe, d64)
         c = 0.5 * jnp.sum(r * r, axis=-1)
         c = jnp.where(ok & jnp.isfinite(c), c, jnp.inf)
