@@ -124,12 +124,20 @@ def _fit(model, m: MeasuredBRDF, backend: str, dtype: str):
 
 
 def run(
-    models=MODELS, backends=BACKENDS, dtypes=DTYPES, quick=False, log=print, csv_path=None
+    models=MODELS,
+    backends=BACKENDS,
+    dtypes=DTYPES,
+    quick=False,
+    log=print,
+    csv_path=None,
+    keep: list[dict] | None = None,
 ) -> list[dict]:
     """Every configuration on every material; with ``csv_path`` the rows so far (Pareto
     marked among them) are written after each model, so a long run that is stopped keeps
-    what it measured."""
-    rows = []
+    what it measured. ``keep``: rows of an earlier run (their ``measured`` column says
+    when) that join this run's for the Pareto marks and the table."""
+    rows = list(keep or [])
+    today = time.strftime("%Y-%m-%d")
     mats = materials(quick)
     for name in models:
         model = jm.build_model(name)
@@ -158,6 +166,7 @@ def run(
                             "compile_time_s": max(t1 - t0 - warm, 0.0),
                             "status": Status(st).name,
                             "iterations": int(np.asarray(r.iterations)),
+                            "measured": today,
                         }
                     )
                     log(
@@ -239,9 +248,20 @@ def main() -> int:
     ap.add_argument("--dtypes", nargs="+", default=list(DTYPES))
     ap.add_argument("--quick", action="store_true", help="one material of each kind")
     ap.add_argument("--csv", type=Path, help="write every row as CSV")
+    ap.add_argument(
+        "--merge",
+        action="store_true",
+        help="keep the rows of --csv for models not in --models (an earlier run's: the "
+        "'measured' column says when) and re-mark the Pareto front over all of them",
+    )
     args = ap.parse_args()
+    keep = None
+    if args.merge:
+        if args.csv is None or not args.csv.exists():
+            ap.error("--merge needs an existing --csv to merge into")
+        keep = [r for r in read_csv(args.csv) if r["model"] not in set(args.models)]
     t0 = time.perf_counter()
-    rows = run(args.models, args.backends, args.dtypes, args.quick, csv_path=args.csv)
+    rows = run(args.models, args.backends, args.dtypes, args.quick, csv_path=args.csv, keep=keep)
     dt = time.perf_counter() - t0
     print(f"\n# Fit error against run time\nmachine: {machine()}\n")
     print(table(SUMMARY_HEADERS, summary(rows)))
@@ -249,6 +269,25 @@ def main() -> int:
     if args.csv:
         write_csv(args.csv, rows)
     return 0
+
+
+_FLOATS = ("cosine_weighted_l2", "log_l2", "relative_l2", "fit_time_s", "compile_time_s")
+
+
+def read_csv(path: Path) -> list[dict]:
+    """Rows written by :func:`write_csv`, with their types back (``measured`` defaults to
+    'earlier run' for files written before that column existed)."""
+    with open(path, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    for r in rows:
+        for k in _FLOATS:
+            r[k] = float(r[k])
+        for k in ("n_samples", "n_params", "iterations"):
+            r[k] = int(r[k])
+        r.setdefault("measured", "earlier run")
+        r.pop("pareto", None)
+        r.pop("error_ratio", None)
+    return rows
 
 
 def write_csv(path: Path, rows: list[dict]) -> None:
