@@ -58,6 +58,7 @@ from ._status import Status as Status
 from ._status import classify as classify
 from ._status import describe as describe
 from ._status import equilibrated_condition as equilibrated_condition
+from ._status import ill_conditioned as ill_conditioned
 from ._transform import Bijection as Bijection
 from ._transform import Exp as Exp
 from ._transform import Identity as Identity
