@@ -47,19 +47,39 @@ def _demo_capture(size=16, seed=0, noise=0.0):
 
 
 # ----------------------------------------------------------------------------- recovery
+# The synthetic-pixel fits: one configuration (1500 pixels of 32 observations, known noise
+# scale 0.01, 80 iterations), shared by the noise-free recovery test and the Laplace
+# calibration tests, so that they run one compiled solver. On noise-free pixels the noise
+# scale only rescales the residuals (the LM's tolerances and damping are relative).
+_SIGMA = 0.01
+_N_PIXELS = 1500
+
+
+def _fit_synthetic(model, space, data):
+    return fit.fit_pixels(model, data, space=space, noise=fit.GaussianNoise(_SIGMA), max_iters=80)
+
+
 def test_noise_free_pixels_recover_parameters_to_1e4():
-    model, space, data, truth = _synthetic_pixels(400, 32, 0.0, seed=2, dtype=jnp.float64)
-    r = fit.fit_pixels(model, data, space=space, max_iters=80)
+    model, space, data, truth = _synthetic_pixels(_N_PIXELS, 32, 0.0, seed=2, dtype=jnp.float64)
+    r = _fit_synthetic(model, space, data)
     assert (np.asarray(r.status) < fit.Status.MASKED).all()
     for name, v in truth.items():
         e = np.abs(np.asarray(r.params[name]).reshape(v.shape) / v - 1)
         assert np.quantile(e, 0.99) < 1e-4, (name, np.quantile(e, [0.5, 0.99]))
 
 
+# The float64 capture jobs (noise-free demo pixels): one flat GGX configuration, shared by
+# test_noise_free_capture_recovers_the_maps and both fits of the tilted-normals test (the
+# first stage of ggx_normal and the flat comparison), so they run one compiled tile program.
+# A known noise scale of 1e-6 only rescales the residuals of a noise-free fit (the LM's
+# tolerances and damping are relative); the tilted test needs it for its prior.
+_F64_JOB = dict(dtype="float64", tile_pixels=64, alpha_min=1e-3, max_iters=60, sigma=1e-6)
+
+
 def test_noise_free_capture_recovers_the_maps():
     """Through the capture path (images stored as float32, so 1e-3 rather than 1e-4)."""
     cap, scene = _demo_capture(size=12)
-    job = svbrdf.FitJob(dtype="float64", tile_pixels=64, alpha_min=1e-3, max_iters=60)
+    job = svbrdf.FitJob(**_F64_JOB)
     r = svbrdf.fit_capture(cap, job)
     p = r.params()
     assert (r.maps["status"] < fit.Status.MASKED).all()
@@ -153,9 +173,7 @@ def test_capture_with_tilted_normals_is_recovered_by_ggx_normal():
     )
     cap, _ = _demo_capture(size=size)
     cap = replace(cap, images=lin)
-    job = svbrdf.FitJob(
-        model="ggx_normal", dtype="float64", tile_pixels=64, alpha_min=1e-3, sigma=1e-6
-    )
+    job = svbrdf.FitJob(model="ggx_normal", **_F64_JOB)
     r = svbrdf.fit_capture(cap, job)
     p = r.params()
     err = np.abs(np.stack([p["tilt_x"], p["tilt_y"]]) - tilt)
@@ -196,12 +214,17 @@ def _synthetic_pixels(n, k, sigma, seed, dtype):
     return model, space, data, truth
 
 
+@pytest.fixture(scope="module")
+def noisy_fit():
+    """One fit of 1500 noisy pixels, shared by both noise settings of the Laplace step."""
+    model, space, data, truth = _synthetic_pixels(_N_PIXELS, 32, _SIGMA, seed=3, dtype=jnp.float64)
+    return model, space, data, truth, _fit_synthetic(model, space, data)
+
+
 @pytest.mark.parametrize("noise", ["known", "estimate"])
-def test_laplace_std_is_calibrated_on_noisy_pixels(noise):
-    sigma = 0.01
-    model, space, data, truth = _synthetic_pixels(1500, 32, sigma, seed=3, dtype=jnp.float64)
-    r = fit.fit_pixels(model, data, space=space, noise=fit.GaussianNoise(sigma))
-    res = fit.make_residual(model, space, fit.GaussianNoise(sigma))
+def test_laplace_std_is_calibrated_on_noisy_pixels(noisy_fit, noise):
+    model, space, data, truth, r = noisy_fit
+    res = fit.make_residual(model, space, fit.GaussianNoise(_SIGMA))
     lap = fit.laplace(r, data, residual=res, noise=noise)
     true_theta = np.asarray(space.from_natural({k: v for k, v in truth.items()}))
     z = (np.asarray(r.theta) - true_theta) / np.asarray(lap.theta_std)
@@ -247,7 +270,9 @@ def test_laplace_flags_unidentified_roughness():
 
 
 def test_laplace_of_masked_pixels_is_nan_and_flagged():
-    model, space, data, _ = _synthetic_pixels(4, 8, 0.01, seed=1, dtype=jnp.float64)
+    # Two pixels of 16 observations, the shapes of test_laplace_flags_unidentified_roughness
+    # (same model, space and defaults): its compiled fit and Laplace step are reused.
+    model, space, data, _ = _synthetic_pixels(2, 16, 0.01, seed=1, dtype=jnp.float64)
     w = np.asarray(data.weight).copy()
     w[0] = 0.0
     data = replace_weight(data, w)
@@ -278,6 +303,10 @@ def test_grey_parameter_space_shares_one_value():
 
 
 # ----------------------------------------------------------------------------- the job
+# Every float32 job test on the 8 x 8 demo uses this tile size: one compiled tile program.
+_TILE = 16
+
+
 def test_capture_job_status_censoring_and_bad_pixels():
     cap, _ = _demo_capture(size=8, noise=1e-3)
     st = cap.status.copy()
@@ -287,7 +316,7 @@ def test_capture_job_status_censoring_and_bad_pixels():
     st[:4, 0, 1] = ObsStatus.NEGATIVE  # some bad observations: fitted from the rest
     st[:, 0, 2] = ObsStatus.SATURATED  # all saturated: censored only
     cap = replace(cap, images=img, status=st, saturation_level=0.5)
-    r = svbrdf.fit_capture(cap, svbrdf.FitJob(tile_pixels=16))
+    r = svbrdf.fit_capture(cap, svbrdf.FitJob(tile_pixels=_TILE))
     s = r.maps["status"]
     assert s[0, 0] == fit.Status.MASKED
     assert np.isnan(r.maps["alpha"][0, 0]) and r.maps["laplace_flag"][0, 0] & 1
@@ -301,7 +330,7 @@ def test_capture_job_status_censoring_and_bad_pixels():
 
 def test_holdout_and_bad_job_arguments():
     cap, _ = _demo_capture(size=8, noise=1e-3)
-    r = svbrdf.fit_capture(cap, svbrdf.FitJob(holdout=(2,), tile_pixels=64))
+    r = svbrdf.fit_capture(cap, svbrdf.FitJob(holdout=(2,), tile_pixels=_TILE))
     assert r.report["holdout"] == [2]
     assert r.report["heldout_rmse"] < 5e-3
     assert set(r.report["heldout_rmse_per_photo"]) == {"2"}
@@ -324,7 +353,7 @@ class _Interrupt(Exception):
 
 def test_interrupted_run_resumes_without_recomputing(tmp_path):
     cap, _ = _demo_capture(size=8, noise=1e-3)
-    job = svbrdf.FitJob(tile_pixels=16)  # 4 tiles
+    job = svbrdf.FitJob(tile_pixels=_TILE)  # 4 tiles
     full = svbrdf.fit_capture(cap, job)
 
     def stop_after_two(i, n):
@@ -344,13 +373,13 @@ def test_interrupted_run_resumes_without_recomputing(tmp_path):
     again = svbrdf.fit_capture(cap, job, tmp_path)
     assert again.tiles_computed == 1
     with pytest.raises(ValueError, match="different fit"):
-        svbrdf.fit_capture(cap, svbrdf.FitJob(tile_pixels=16, model="lambert"), tmp_path)
+        svbrdf.fit_capture(cap, svbrdf.FitJob(tile_pixels=_TILE, model="lambert"), tmp_path)
     assert svbrdf.fit_capture(cap, replace(job, model="lambert"), tmp_path, restart=True)
 
 
 def test_outputs_exr_report_previews(tmp_path):
     cap, _ = _demo_capture(size=8, noise=1e-3)
-    r = svbrdf.fit_capture(cap, svbrdf.FitJob(holdout=(0,), tile_pixels=64))
+    r = svbrdf.fit_capture(cap, svbrdf.FitJob(holdout=(0,), tile_pixels=_TILE))
     files = svbrdf.write_outputs(r, cap, tmp_path)
     exr = read_exr(tmp_path / "maps.exr")
     for name in ("albedo.R", "specular", "roughness", "roughness.std", "status", "laplace_flag"):
