@@ -16,6 +16,9 @@ from jaxrefl.brdf import directional_albedo, model_zoo, random_directions, rando
 
 ZOO = model_zoo()
 IDS = [e.label for e in ZOO]
+# One batch size for every eager (op-by-op) evaluation of a batch of random pairs: JAX
+# compiles each primitive once per shape, so tests sharing the shape reuse those programs.
+N = 2048
 
 
 @pytest.fixture(scope="module", params=ZOO, ids=IDS)
@@ -27,11 +30,11 @@ def test_contract_shapes_and_names(entry):
     m = entry.build()
     assert isinstance(m, jaxrefl.brdf.BRDF)
     assert len(set(m.param_names)) == len(m.param_names)
-    p = random_params(m, jax.random.PRNGKey(0), (5,), channels=3)
-    wi = random_directions(jax.random.PRNGKey(1), (5,))
-    wo = random_directions(jax.random.PRNGKey(2), (5,))
+    p = random_params(m, jax.random.PRNGKey(0), (N,), channels=3)
+    wi = random_directions(jax.random.PRNGKey(1), (N,))
+    wo = random_directions(jax.random.PRNGKey(2), (N,))
     f = m.eval(p, wi, wo)
-    assert f.shape == (5, 3) and f.dtype == jnp.float64
+    assert f.shape == (N, 3) and f.dtype == jnp.float64
     # Unbatched parameters broadcast over a (4, 5) batch of directions.
     p0 = jax.tree_util.tree_map(lambda a: a[0], p)
     wi2 = random_directions(jax.random.PRNGKey(3), (4, 5))
@@ -58,9 +61,9 @@ def test_below_horizon_is_zero(entry):
 def test_reciprocity(entry):
     m = entry.build()
     key = jax.random.PRNGKey(11)
-    p = random_params(m, key, (256,))
-    wi = random_directions(jax.random.PRNGKey(12), (256,))
-    wo = random_directions(jax.random.PRNGKey(13), (256,))
+    p = random_params(m, key, (N,))
+    wi = random_directions(jax.random.PRNGKey(12), (N,))
+    wo = random_directions(jax.random.PRNGKey(13), (N,))
     a, b = m.eval(p, wi, wo), m.eval(p, wo, wi)
     if m.reciprocal:
         np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12)
@@ -71,18 +74,18 @@ def test_reciprocity(entry):
 
 def test_non_negative(entry):
     m = entry.build()
-    p = random_params(m, jax.random.PRNGKey(21), (2048,))
-    wi = random_directions(jax.random.PRNGKey(22), (2048,))
-    wo = random_directions(jax.random.PRNGKey(23), (2048,))
+    p = random_params(m, jax.random.PRNGKey(21), (N,))
+    wi = random_directions(jax.random.PRNGKey(22), (N,))
+    wo = random_directions(jax.random.PRNGKey(23), (N,))
     f = np.asarray(m.eval(p, wi, wo))
     assert np.all(np.isfinite(f)) and np.all(f >= 0.0)
 
 
 def test_jit_vmap_agree(entry):
     m = entry.build()
-    p = random_params(m, jax.random.PRNGKey(31), (8,))
-    wi = random_directions(jax.random.PRNGKey(32), (8,))
-    wo = random_directions(jax.random.PRNGKey(33), (8,))
+    p = random_params(m, jax.random.PRNGKey(31), (N,))
+    wi = random_directions(jax.random.PRNGKey(32), (N,))
+    wo = random_directions(jax.random.PRNGKey(33), (N,))
     direct = m.eval(p, wi, wo)
     jitted = jax.jit(m.eval)(p, wi, wo)
     vmapped = jax.vmap(m.eval)(p, wi, wo)
@@ -133,8 +136,9 @@ def test_gradients_match_finite_differences(entry):
             p[q.name] = jnp.asarray(12.0)
         if q.kind == "lobes":
             p[q.name] = p[q.name].at[..., 3].set(5.0)
-    wi = jnp.array([[0.3, 0.2, 0.9327379], [0.5, -0.4, 0.7681146]])
-    wo = jnp.array([[-0.25, -0.1, 0.9630680], [0.1, 0.6, 0.7937254]])
+    # Three pairs, as in test_below_horizon_is_zero: the same shapes reuse its primitives.
+    wi = jnp.array([[0.3, 0.2, 0.9327379], [0.5, -0.4, 0.7681146], [-0.2, 0.4, 0.8944272]])
+    wo = jnp.array([[-0.25, -0.1, 0.9630680], [0.1, 0.6, 0.7937254], [0.3, -0.3, 0.9055385]])
     wi = wi / jnp.linalg.norm(wi, axis=-1, keepdims=True)
     wo = wo / jnp.linalg.norm(wo, axis=-1, keepdims=True)
 
@@ -179,8 +183,7 @@ def test_property_finite_values_and_gradients(dtype, data):
 
     wi = direction("wi")
     wo = wi if data.draw(st.booleans(), label="wi == wo") else direction("wo")
-    f = _eval_jit(m, p, wi, wo)
-    g = _grad_jit(m, p, wi, wo)
+    f, g = _value_and_grad_jit(m, p, wi, wo)
     assert f.dtype == dtype
     assert np.all(np.isfinite(np.asarray(f))), (entry.label, p, wi, wo, f)
     for name, leaf in g.items():
@@ -190,15 +193,14 @@ def test_property_finite_values_and_gradients(dtype, data):
 _JIT_CACHE: dict = {}
 
 
-def _eval_jit(m, p, wi, wo):
-    key = ("f", m)
-    if key not in _JIT_CACHE:
-        _JIT_CACHE[key] = jax.jit(m.eval)
-    return _JIT_CACHE[key](p, wi, wo)
+def _value_and_grad_jit(m, p, wi, wo):
+    """f and the gradient of sum(f) with respect to every parameter, from one compilation
+    per model (and dtype): the VJP of f with a cotangent of ones is that gradient."""
+    if m not in _JIT_CACHE:
 
+        def value_and_grad(q, a, b):
+            f, vjp = jax.vjp(lambda r: m.eval(r, a, b), q)
+            return f, vjp(jnp.ones_like(f))[0]
 
-def _grad_jit(m, p, wi, wo):
-    key = ("g", m)
-    if key not in _JIT_CACHE:
-        _JIT_CACHE[key] = jax.jit(jax.grad(lambda q, a, b: jnp.sum(m.eval(q, a, b))))
-    return _JIT_CACHE[key](p, wi, wo)
+        _JIT_CACHE[m] = jax.jit(value_and_grad)
+    return _JIT_CACHE[m](p, wi, wo)
