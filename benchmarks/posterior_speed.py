@@ -135,6 +135,39 @@ def part_speed(args, model, space, lp, theta, data):
     return r, lap, s
 
 
+def part_window(args) -> None:
+    """The warm-up's metric window: end at 90% of warm-up (Stan) against 75% (the default).
+
+    Same pixels, keys, starts and gradients; per pixel the mean acceptance during sampling
+    (target 0.8) and the min-over-parameters bulk and tail ESS."""
+    model, space, lp, _, data = simulate(args.window_pixels, seed=1)
+    r = fit.fit_pixels(model, data, space=space, noise=fit.GaussianNoise(SIGMA))
+    res = fit.make_residual(model, space, fit.GaussianNoise(SIGMA))
+    lap = fit.laplace(r, data, residual=res, noise="known")
+    rows = []
+    for end in (0.9, 0.75):
+        opts = jp.HMCOptions(num_chains=2, batch_size=100, metric_window_end=end)
+        s = jp.sample_pixels(
+            lp, data, np.asarray(r.theta), theta_std=np.asarray(lap.theta_std), options=opts
+        )
+        dg = jp.diagnostics(s)
+        acc = np.asarray(dg["acceptance"])
+        bulk, tail = np.asarray(dg["min_ess_bulk"]), np.asarray(dg["min_ess_tail"])
+        rows.append(
+            [
+                f"{end:.2f}",
+                f"{np.median(acc):.3f}",
+                f"{np.quantile(bulk, 0.05):.0f}",
+                f"{np.median(bulk):.0f}",
+                f"{np.quantile(tail, 0.05):.0f}",
+                f"{np.median(tail):.0f}",
+            ]
+        )
+    print(f"\n## Metric window end, {args.window_pixels} pixels, 2 chains x (300 + 500) steps")
+    heads = ["window end", "acceptance (median)", "ESS bulk 5%", "bulk median", "ESS tail 5%"]
+    print(table([*heads, "tail median"], rows))
+
+
 def part_laplace(args, lp, data, r, lap):
     ok = np.flatnonzero(np.asarray(lap.reliable))[: args.nuts_pixels]
     sub = jax.tree.map(lambda a: a[ok], data)
@@ -324,8 +357,13 @@ def main() -> None:
     p.add_argument("--only-map", action="store_true", help="skip parts 1 and 2")
     p.add_argument("--emcee-sbc", type=int, default=200, help="emcee SBC simulations (0: skip)")
     p.add_argument("--only-emcee-sbc", action="store_true")
+    p.add_argument("--window-pixels", type=int, default=100)
+    p.add_argument("--only-window", action="store_true", help="only the metric-window part")
     args = p.parse_args()
     print(machine())
+    if args.only_window:
+        part_window(args)
+        return
     if args.only_emcee_sbc:
         part_emcee_sbc(args)
         return
