@@ -436,19 +436,12 @@ print("ok")
 
 # ----------------------------------------------------------------------------- the CLI
 def test_bath_tile_beats_lambert_on_a_held_out_photo(shared_data, tmp_path):
-    """The real capture end to end through the CLI (downsampled 8x: 128 x 128).
-
-    Tiles of 256 pixels: below 512 a block takes the solver's one-scan path, which compiles
-    about half the code of the default tile's compacting stages, with the same steps per
-    pixel (``LMOptions``; measured: held-out RMSE 0.0768121 against 0.0768119 with 4096,
-    float32 rounding of another batch layout). test_demo_fits_and_reports_against_the_truth
-    runs the default tiles."""
+    """The real capture end to end through the CLI (downsampled 8x: 128 x 128)."""
     rmse = {}
     for model in ("ggx", "lambert"):
         out = tmp_path / model
         args = ["fit", str(shared_data / BATH), "--out", str(out), "--model", model]
         args += ["--holdout", "4", "--downsample", "8", "--quiet", "--no-previews"]
-        args += ["--tile-pixels", "256"]
         assert main(args) == 0
         report = json.loads((out / "report.json").read_text())
         rmse[model] = report["heldout_rmse"]
