@@ -401,6 +401,18 @@ def main() -> int:
     thetas["lean LM (batched)"] = np.asarray(r_lean.theta)[:n_sp]
     lean_s = best
 
+    # 2b. The same LM with one compaction stage (10 steps for all, then 1/8 of a block):
+    # the organisation before the staged default, as a baseline for it.
+    one_stage = fit.LMOptions(compact_after=10, compact_stages=((40, 0.125),))
+    r_one, first, best, cores = timed(
+        lambda: fit.fit_pixels(
+            model, data, space=space, backend="lean", init=theta0, options=one_stage
+        ),
+        args.repeats,
+    )
+    row("lean LM, one stage (10 + 1/8)", n, first - best, best, cores, "baseline of row 2")
+    thetas["lean LM, one stage (10 + 1/8)"] = np.asarray(r_one.theta)[:n_sp]
+
     # 3. fit_pixels end to end (the same jitted pieces, already compiled above).
     r_auto, _, best, cores = timed(
         lambda: fit.fit_pixels(model, data, space=space), args.repeats, warm=True

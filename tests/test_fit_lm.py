@@ -163,10 +163,12 @@ def test_pure_state_functions_and_status_codes():
     assert set(fit.STATUS_MEANINGS) == set(fit.Status)
 
 
-def test_compaction_stages_give_each_pixel_its_own_lm_solve():
+def test_compaction_stages_give_each_pixel_its_own_lm_solve(monkeypatch):
     """batched_lm's staged compaction (gather the unconverged pixels into ever smaller
     sub-batches) must not change any pixel's result: the same steps in the same order as
     lm_solve on that pixel alone, here against vmap(lm_solve) in float64."""
+    # Blocks below _MIN_BLOCK pixels take one plain scan; this block of 256 must compact.
+    monkeypatch.setattr(fit._lm, "_MIN_BLOCK", 0)
     # A small problem (P = 3) keeps the five compiled copies of the step cheap.
     pr = make_problem("ggx_noisy_256", _GGX, n=256, noise=0.02, seed=7)
     space = fit.ParamSpace(pr.model, channels=3, grey=("albedo", "specular"))

@@ -90,6 +90,7 @@ ResidualFn = Callable[[Array, Any], Array]
 
 # Compaction needs at least this many pixels per round (else one plain scan is used).
 _MIN_COMPACT = 64
+_MIN_BLOCK = 512
 
 
 class LMOptions(eqx.Module):
@@ -112,8 +113,11 @@ class LMOptions(eqx.Module):
                 after 2 steps, 13% after 4, 1.5% after 8, 0.1% after 15), with caps
                 well above those shares: a stage whose unconverged pixels overflow its
                 cap by one runs a second, almost empty round (measured: caps at the
-                expected share cost 2x). CPU time per pixel: 0.58x that of lam0 = 1
-                with one stage (10 steps for all, then 1/8 of a block).
+                expected share cost 2x). Against one stage (10 steps for all, then
+                1/8 of a block), 3.8 slot-steps per pixel instead of 13.75 and about 2x
+                the pixels/s (``benchmarks/fit_throughput.py``, row "one stage"). Stages
+                narrower than 64 slots merge into the one before, and blocks under 512
+                pixels take one plain scan (fewer compiled copies of the step).
     """
 
     max_iters: int = eqx.field(default=40, static=True)
@@ -126,8 +130,10 @@ class LMOptions(eqx.Module):
     bound_rtol: float = eqx.field(default=1e-3, static=True)
     unroll_max: int = eqx.field(default=8, static=True)
     max_step: float = eqx.field(default=4.0, static=True)
-    compact_after: int = eqx.field(default=10, static=True)
-    compact_stages: tuple[tuple[int, float], ...] = eqx.field(default=((40, 0.125),), static=True)
+    compact_after: int = eqx.field(default=3, static=True)
+    compact_stages: tuple[tuple[int, float], ...] = eqx.field(
+        default=((8, 5 / 16), (40, 1 / 32)), static=True
+    )
     chunk: int = eqx.field(default=2048, static=True)
 
     def tolerances(self, dtype) -> tuple[float, float, float]:
@@ -413,6 +419,19 @@ def _steps(residual_fn, states, data, options, n):
     return lax.scan(lambda s, _: (step(s, data), None), states, None, length=n)[0]
 
 
+def _steps_until_converged(residual_fn, states, data, options, n):
+    """Up to n steps of vmap(lm_step), stopping once every pixel has converged (they are
+    frozen then, so the steps skipped would change nothing): a round of stragglers costs
+    its slowest pixel's steps, not the stage's."""
+    step = jax.vmap(lambda s, d: lm_step(residual_fn, s, d, options)[0])
+
+    def cond(carry):
+        k, s = carry
+        return (k < n) & ~jnp.all(s.converged)
+
+    return lax.while_loop(cond, lambda c: (c[0] + 1, step(c[1], data)), (0, states))[1]
+
+
 def _solve_block(residual_fn, theta0, data, n_usable, options, space):
     """lm_solve for a block of B pixels, organised to skip the work of converged pixels.
 
@@ -429,9 +448,12 @@ def _solve_block(residual_fn, theta0, data, n_usable, options, space):
     stages = [
         (min(u, options.max_iters), max(1, math.ceil(b * f))) for u, f in options.compact_stages
     ]
-    stages = [(u, c) for u, c in stages if u > done] or [(options.max_iters, 0)]
-    stages[-1] = (options.max_iters, stages[-1][1])
-    if done < options.max_iters and min(c for _, c in stages) < _MIN_COMPACT:
+    # Stages narrower than _MIN_COMPACT slots are not worth a compiled copy of the step:
+    # the stage before them runs on to their end instead.
+    stages = [(u, c) for u, c in stages if u > done and c >= _MIN_COMPACT]
+    if stages:
+        stages[-1] = (options.max_iters, stages[-1][1])
+    if done < options.max_iters and (b < _MIN_BLOCK or not stages):
         # A small block is not worth more compiled copies of the step (compile time):
         # one scan of max_iters steps for all pixels.
         states = _steps(residual_fn, states, data, options, options.max_iters)
@@ -456,7 +478,7 @@ def _solve_block(residual_fn, theta0, data, n_usable, options, space):
             # converged), so n_steps brings each exactly to ``until``.
             sub = eqx.tree_at(lambda s: s.converged, sub, sub.converged | ~live)
             sub_data = jax.tree.map(lambda x: x[get], data)
-            sub = _steps(residual_fn, sub, sub_data, options, n_steps)
+            sub = _steps_until_converged(residual_fn, sub, sub_data, options, n_steps)
             return jax.tree.map(lambda x, y: x.at[idx].set(y, mode="drop"), states, sub)
 
         states = lax.while_loop(lambda s, todo=todo: jnp.any(todo(s)), round_, states)
