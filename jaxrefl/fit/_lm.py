@@ -110,11 +110,12 @@ class LMOptions(eqx.Module):
                 (results per pixel do not depend on them). The default stages follow the
                 measured convergence of GGX + Lambert pixels from the automatic start
                 (``benchmarks/fit_throughput.py`` data, lam0 = 0.01: 43% still iterating
-                after 2 steps, 13% after 4, 1.5% after 8, 0.1% after 15), with caps
+                after 2 steps, 25% (at most 28% of a block) after 3, 1.5% (3.5%) after
+                8, 0.1% after 15), with caps
                 well above those shares: a stage whose unconverged pixels overflow its
                 cap by one runs a second, almost empty round (measured: caps at the
                 expected share cost 2x). Against one stage (10 steps for all, then
-                1/8 of a block), 3.8 slot-steps per pixel instead of 13.75 and about 2x
+                1/8 of a block), about 5 slot-steps per pixel instead of 13.75 and 1.6-2x
                 the pixels/s (``benchmarks/fit_throughput.py``, row "one stage"). Stages
                 narrower than 64 slots merge into the one before, and blocks under 512
                 pixels take one plain scan (fewer compiled copies of the step).
