@@ -175,15 +175,21 @@ def step_gain(result: FitResult, data: PixelData) -> np.ndarray:
         return np.asarray(jnp.where(ok, g, 0.0), dtype=np.float64)
 
 
+@eqx.filter_jit
+def _costs(res: Residual, theta, data, ok):
+    r = jax.vmap(res)(theta, data)
+    c = 0.5 * jnp.sum(r * r, axis=-1)
+    return jnp.where(ok & jnp.isfinite(c), c, jnp.inf)
+
+
 def cost64(result: FitResult, data: PixelData) -> np.ndarray:
     """(N,) cost 1/2 |r|^2 of every problem of ``result`` re-evaluated in float64 on ``data``
     (L2 loss, unit sigma: the default residual); inf where theta is not finite."""
     with x64():
         res, t_safe, ok, d64 = _float64_inputs(result, data)
-        r = jax.vmap(res)(t_safe, d64)
-        c = 0.5 * jnp.sum(r * r, axis=-1)
-        c = jnp.where(ok & jnp.isfinite(c), c, jnp.inf)
-        return np.asarray(c, dtype=np.float64)
+        # Jitted (one compilation per residual structure and shape): eager, the vmapped
+        # residual compiled each of its primitives anew for every call.
+        return np.asarray(_costs(res, t_safe, d64, ok), dtype=np.float64)
 
 
 @dataclass(frozen=True, eq=False)
