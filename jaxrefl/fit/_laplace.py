@@ -55,7 +55,7 @@ from jaxtyping import Array, Float, Int
 from ._lm import cho_solve_unrolled, cholesky_unrolled
 from ._residual import PixelData, Residual
 from ._shard import device_count, map_sharded
-from ._status import Status, equilibrated_condition
+from ._status import Status, ill_conditioned
 
 __all__ = ["LaplaceFlag", "LaplaceResult", "laplace"]
 
@@ -109,7 +109,7 @@ class LaplaceResult:
         return self.std[:, self.labels.index(label)]
 
 
-def _pixel(res: Residual, theta, data: PixelData, cost, estimate: bool, unroll_max: int):
+def _pixel(res: Residual, theta, data: PixelData, cost, estimate: bool, unroll_max: int, cond_max):
     p = theta.shape[-1]
     ok = jnp.all(jnp.isfinite(theta))
     # Gradient-safe: a pixel without an estimate is linearised at 0 and flagged.
@@ -151,14 +151,15 @@ def _pixel(res: Residual, theta, data: PixelData, cost, estimate: bool, unroll_m
     denom = std_x[:, None] * std_x[None, :]
     corr = jnp.where(denom > 0, cov_x / jnp.where(denom > 0, denom, 1.0), 0.0)
     corr = jnp.where(pd, corr, jnp.nan)
-    cond = equilibrated_condition(jtj)
-    return std_x, corr, cov_x, std_t, s2, pd, cond, dof, ok
+    # Only the flag needs the condition number: the eigensolver-free test (_status).
+    ill = ill_conditioned(jtj, cond_max)
+    return std_x, corr, cov_x, std_t, s2, pd, ill, dof, ok
 
 
 @eqx.filter_jit
 def _laplace_jit(res, theta, data, cost, status, estimate, max_theta_std, cond_max, unroll):
-    fn = jax.vmap(lambda t, d, c: _pixel(res, t, d, c, estimate, unroll))
-    std, corr, cov, std_t, s2, pd, cond, dof, ok = fn(theta, data, cost)
+    fn = jax.vmap(lambda t, d, c: _pixel(res, t, d, c, estimate, unroll, cond_max))
+    std, corr, cov, std_t, s2, pd, ill, dof, ok = fn(theta, data, cost)
     at_bound = jnp.any(res.space.at_bound(jnp.where(ok[:, None], theta, 0.0)), axis=-1)
     identified = std_t <= max_theta_std
     none = (status >= Status.MASKED) | ~ok
@@ -166,7 +167,7 @@ def _laplace_jit(res, theta, data, cost, status, estimate, max_theta_std, cond_m
     flag = flag | jnp.where(none, LaplaceFlag.NO_ESTIMATE, 0)
     flag = flag | jnp.where(~pd & ~none, LaplaceFlag.NOT_POSITIVE_DEFINITE, 0)
     flag = flag | jnp.where(at_bound & ~none, LaplaceFlag.AT_BOUND, 0)
-    not_id = (~jnp.all(identified, axis=-1) | (cond > cond_max) | (dof <= 0)) & pd & ~none
+    not_id = (~jnp.all(identified, axis=-1) | ill | (dof <= 0)) & pd & ~none
     flag = flag | jnp.where(not_id, LaplaceFlag.NOT_IDENTIFIED, 0)
     finite = jnp.all(jnp.isfinite(std), axis=-1) & jnp.all(jnp.isfinite(corr), axis=(-2, -1))
     flag = flag | jnp.where(~finite & pd & ~none, LaplaceFlag.NONFINITE, 0)
