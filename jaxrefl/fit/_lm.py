@@ -456,8 +456,8 @@ def _solve_block(residual_fn, theta0, data, n_usable, options, space):
         stages[-1] = (options.max_iters, stages[-1][1])
     if done < options.max_iters and (b < _MIN_BLOCK or not stages):
         # A small block is not worth more compiled copies of the step (compile time):
-        # one scan of max_iters steps for all pixels.
-        states = _steps(residual_fn, states, data, options, options.max_iters)
+        # one loop of up to max_iters steps for all pixels, stopping when all converged.
+        states = _steps_until_converged(residual_fn, states, data, options, options.max_iters)
         stages = []
     else:
         states = _steps(residual_fn, states, data, options, done)
