@@ -88,7 +88,8 @@ __all__ = [
 
 ResidualFn = Callable[[Array, Any], Array]
 
-# Compaction needs at least this many pixels per round (else one plain scan is used).
+# Compaction needs at least this many pixels per round, and a block at least _MIN_BLOCK
+# (else one plain loop of steps is used).
 _MIN_COMPACT = 64
 _MIN_BLOCK = 512
 
@@ -118,7 +119,8 @@ class LMOptions(eqx.Module):
                 1/8 of a block), about 5 slot-steps per pixel instead of 13.75 and 1.6-2x
                 the pixels/s (``benchmarks/fit_throughput.py``, row "one stage"). Stages
                 narrower than 64 slots merge into the one before, and blocks under 512
-                pixels take one plain scan (fewer compiled copies of the step).
+                pixels take one plain loop of steps that stops once all have converged
+                (fewer compiled copies of the step).
     """
 
     max_iters: int = eqx.field(default=40, static=True)
