@@ -3,7 +3,8 @@ r"""Is an equilibrated J^T J worse conditioned than a bound? Without an eigensol
 The per-pixel status (``_status.classify``) asks, for millions of small P x P matrices,
 whether kappa(C) = lambda_max / lambda_min > kappa_max for C = D^-1/2 J^T J D^-1/2 (unit
 diagonal). ``jnp.linalg.eigvalsh`` answers by handing each matrix to LAPACK in turn, a few
-microseconds each on the CPU and about 15% of a whole batch fit. The answer needs no
+microseconds each on the CPU (3-5 us per 5 x 5 matrix against about 0.4 us here, measured
+by a timing script, not a benchmark). The answer needs no
 eigenvalues, only definiteness tests, which are a fixed chain of elementwise operations that
 vectorises over the batch:
 
