@@ -283,6 +283,41 @@ def test_laplace_of_masked_pixels_is_nan_and_flagged():
     assert np.all(np.isfinite(np.asarray(lap.std)[1:]))
 
 
+def test_laplace_reuses_the_fits_curvature_with_censored_and_masked_pixels():
+    """The Laplace step takes J^T J and the active row count from the fit's last
+    linearisation; it equals a fresh linearisation at theta, including a pixel with
+    satisfied censored observations (not counted in n) and a masked one. (The shapes of
+    test_laplace_of_masked_pixels_is_nan_and_flagged: one compiled fit.)"""
+    model, space, data, _ = _synthetic_pixels(2, 16, 0.01, seed=2, dtype=jnp.float64)
+    obs = np.asarray(data.obs).copy()
+    cens = np.zeros(obs.shape, np.int8)
+    top = np.argsort(obs[0, :, 0])[-3:]  # pixel 0: its three brightest saturate at 90%
+    sat = 0.9 * obs[0, top, 0].min()
+    obs[0, top, 0], cens[0, top, 0] = sat, 1
+    data = fit.pixel_data(obs, data.wi, data.wo, scale=data.scale, censored=cens)
+    w = np.asarray(data.weight).copy()
+    w[1] = 0.0  # pixel 1: masked
+    data = replace_weight(data, w)
+    r = fit.fit_pixels(model, data, space=space)
+    assert r.linearisation is not None
+    act = np.asarray(r.linearisation.active)
+    # The saturated observations end satisfied (the fit predicts above 90% of them).
+    assert act[1] == 0 and act[0] == 13, act
+    reused = fit.laplace(r, data)
+    fresh = fit.laplace(replace(r, linearisation=None), data)  # linearised here
+    for name in ("std", "corr", "theta_std", "noise_var"):
+        a, b = np.asarray(getattr(reused, name)), np.asarray(getattr(fresh, name))
+        np.testing.assert_allclose(a, b, rtol=1e-7, atol=0, equal_nan=True, err_msg=name)
+    np.testing.assert_array_equal(np.asarray(reused.flag), np.asarray(fresh.flag))
+    assert int(reused.flag[1]) & fit.LaplaceFlag.NO_ESTIMATE
+    # Another residual is not the fit's: it is linearised afresh (noise scale 0.5 halves
+    # the whitened residual, so J^T J is 4x larger and the known-noise std half).
+    half = fit.make_residual(model, space, fit.GaussianNoise(0.5))
+    a = np.asarray(fit.laplace(r, data, residual=half, noise="known").std)
+    b = np.asarray(fit.laplace(r, data, noise="known").std)
+    np.testing.assert_allclose(a[0], 0.5 * b[0], rtol=1e-6)
+
+
 def replace_weight(data, w):
     import equinox as eqx
 

@@ -38,6 +38,7 @@ from ._lm import lm_init as lm_init
 from ._lm import lm_solve as lm_solve
 from ._lm import lm_step as lm_step
 from ._problem import FitResult as FitResult
+from ._problem import Linearisation as Linearisation
 from ._problem import fit_pixels as fit_pixels
 from ._problem import fit_samples as fit_samples
 from ._residual import L2 as L2

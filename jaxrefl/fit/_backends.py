@@ -49,6 +49,8 @@ class FitInfo(eqx.Module):
     iterations: Int[Array, " N"]
     cost: Float[Array, " N"]
     converged: Bool[Array, " N"]
+    jtj: Float[Array, "N P P"]  # J^T J at the returned theta
+    active: Int[Array, " N"]  # active residual rows there (``_lm._linearise``)
 
 
 def _import_jaxopt():
@@ -67,7 +69,7 @@ def _import_jaxopt():
 
 
 def _status(residual_fn, theta, theta0, data, converged, valid, space, n_usable, cond_max, rtol):
-    cost, jtj, _ = _linearise(residual_fn, theta, data)
+    cost, jtj, _, active = _linearise(residual_fn, theta, data)
     status = classify(
         theta,
         cost,
@@ -79,7 +81,7 @@ def _status(residual_fn, theta, theta0, data, converged, valid, space, n_usable,
         n_usable=n_usable,
         bound_rtol=rtol,
     )
-    return status, cost
+    return status, cost, jtj, active
 
 
 @eqx.filter_jit
@@ -101,7 +103,7 @@ def _solve_optimistix(residual_fn, theta0, data, n_usable, space, max_iters, rto
         hit_max = res == optx.RESULTS.nonlinear_max_steps_reached
         nonfinite = res == optx.RESULTS.nonfinite
         theta = sol.value
-        status, cost = _status(
+        status, cost, jtj, active = _status(
             residual_fn,
             theta,
             t0,
@@ -116,7 +118,8 @@ def _solve_optimistix(residual_fn, theta0, data, n_usable, space, max_iters, rto
         other = ~(converged | hit_max | nonfinite) & (status <= Status.MAX_ITERATIONS)
         status = jnp.where(other, Status.ILL_CONDITIONED, status).astype(jnp.int32)
         theta = jnp.where(ok0, theta, t0)
-        return theta, FitInfo(status, sol.stats["num_steps"].astype(jnp.int32), cost, converged)
+        iters = sol.stats["num_steps"].astype(jnp.int32)
+        return theta, FitInfo(status, iters, cost, converged, jtj, active)
 
     return jax.vmap(one)(theta0, data, n_usable)
 
@@ -144,11 +147,11 @@ def _solve_jaxopt_jit(residual_fn, theta0, data, n_usable, space, max_iters, rto
         iters = state.iter_num.astype(jnp.int32)
         converged = iters < max_iters
         valid = ok0 & jnp.all(jnp.isfinite(theta))
-        status, cost = _status(
+        status, cost, jtj, active = _status(
             residual_fn, theta, t0, d, converged, valid, space, n, cond_max, opts.bound_rtol
         )
         theta = jnp.where(ok0, theta, t0)
-        return theta, FitInfo(status, iters, cost, converged)
+        return theta, FitInfo(status, iters, cost, converged, jtj, active)
 
     return jax.vmap(one)(theta0, data, n_usable)
 
@@ -193,7 +196,8 @@ def solve(
         if max_iters is not None:
             opts = dataclasses.replace(opts, max_iters=int(max_iters))
         theta, res = batched_lm(residual_fn, theta0, data, opts, space=space, n_usable=nu)
-        return theta, FitInfo(res.status, res.iterations, res.cost, res.converged)
+        info = FitInfo(res.status, res.iterations, res.cost, res.converged, res.jtj, res.active)
+        return theta, info
     single = jnp.finfo(theta0.dtype).bits <= 32
     rtol = (1e-4 if single else 1e-6) if rtol is None else float(rtol)
     atol = (1e-6 if single else 1e-8) if atol is None else float(atol)
@@ -212,7 +216,9 @@ def solve(
                 residual_fn, theta0.astype(jnp.float64), d64, nu, space, steps, rtol, atol, opts
             )
             return theta.astype(theta0.dtype), eqx.tree_at(
-                lambda i: i.cost, info, info.cost.astype(theta0.dtype)
+                lambda i: (i.cost, i.jtj),
+                info,
+                (info.cost.astype(theta0.dtype), info.jtj.astype(theta0.dtype)),
             )
         return _solve_optimistix(residual_fn, theta0, data, nu, space, steps, rtol, atol, opts)
     if backend == "jaxopt":

@@ -36,8 +36,11 @@ Reliability flags (bits of ``flag``; 0 = the Gaussian approximation is trusted):
 ``NONFINITE``               16    a std or correlation is not finite
 =========================  ====  =====================================================
 
-Cost: one forward-mode Jacobian (P tangents) and a P x P Cholesky per pixel, about the cost
-of one LM iteration; the fit takes tens of them.
+Cost: the solver's last linearisation (J^T J and the active row count at theta,
+:class:`~jaxrefl.fit.Linearisation`) is reused, so a pixel costs P x P algebra only: an
+equilibrated Cholesky, its inverse, the delta-method product and the condition test. A
+result without one (or another residual) costs one forward-mode Jacobian per pixel, about
+one LM iteration.
 """
 
 from __future__ import annotations
@@ -109,20 +112,25 @@ class LaplaceResult:
         return self.std[:, self.labels.index(label)]
 
 
-def _pixel(res: Residual, theta, data: PixelData, cost, estimate: bool, unroll_max: int, cond_max):
+def _linearise(res: Residual, theta, data: PixelData):
+    """J^T J and the active row count at theta (a pixel without an estimate at 0)."""
+    # Gradient-safe: a pixel without an estimate is linearised at 0 and flagged.
+    t = jnp.where(jnp.all(jnp.isfinite(theta)), theta, 0.0)
+    jac = jax.jacfwd(res)(t, data)  # (K*C, P)
+    r = res(t, data)
+    # A non-finite Jacobian entry makes the pixel NOT_POSITIVE_DEFINITE (through jtj).
+    active = jnp.sum(jnp.any(jac != 0.0, axis=-1) | (r != 0.0)).astype(jnp.int32)
+    return jac.T @ jac, active, 0.5 * jnp.sum(r * r)
+
+
+def _pixel(space, theta, jtj, active, cost, estimate: bool, unroll_max: int, cond_max):
+    """The Laplace covariance of one pixel from J^T J, the active rows and the cost there."""
     p = theta.shape[-1]
     ok = jnp.all(jnp.isfinite(theta))
-    # Gradient-safe: a pixel without an estimate is linearised at 0 and flagged.
     t = jnp.where(ok, theta, 0.0)
-    jac = jax.jacfwd(res)(t, data)  # (K*C, P)
-    # A non-finite Jacobian entry makes the pixel NOT_POSITIVE_DEFINITE (through jtj).
-    jtj = jac.T @ jac
-    r = res(t, data)
-    active = jnp.sum(jnp.any(jac != 0.0, axis=-1) | (r != 0.0))
     dof = active - p
-    c = 0.5 * jnp.sum(r * r) if cost is None else cost
     if estimate:
-        s2 = jnp.where(dof > 0, 2.0 * c / jnp.where(dof > 0, dof, 1), 1.0)
+        s2 = jnp.where(dof > 0, 2.0 * cost / jnp.where(dof > 0, dof, 1), 1.0)
     else:
         s2 = jnp.ones((), theta.dtype)
     # Column scaling (equilibration) before the factorisation keeps float32 pivots sane when
@@ -143,7 +151,7 @@ def _pixel(res: Residual, theta, data: PixelData, cost, estimate: bool, unroll_m
     pd = pd & jnp.all(jnp.isfinite(jtj)) & jnp.all(d > 0) & jnp.all(jnp.isfinite(inv_a))
     cov_t = s2 * inv_a * scale[:, None] * scale[None, :]
     cov_t = jnp.where(pd, cov_t, jnp.nan)
-    amat = res.space.jacobian_natural(t)  # (P, P): dx/dtheta
+    amat = space.jacobian_natural(t)  # (P, P): dx/dtheta
     cov_x = amat @ cov_t @ amat.T
     std_t = jnp.sqrt(jnp.maximum(jnp.diagonal(cov_t), 0.0))
     std_x = jnp.sqrt(jnp.maximum(jnp.diagonal(cov_x), 0.0))
@@ -152,15 +160,25 @@ def _pixel(res: Residual, theta, data: PixelData, cost, estimate: bool, unroll_m
     corr = jnp.where(denom > 0, cov_x / jnp.where(denom > 0, denom, 1.0), 0.0)
     corr = jnp.where(pd, corr, jnp.nan)
     # Only the flag needs the condition number: the eigensolver-free test (_status).
-    ill = ill_conditioned(jtj, cond_max)
+    ill = ill_conditioned(jnp.where(jnp.isfinite(jtj), jtj, 0.0), cond_max)
     return std_x, corr, cov_x, std_t, s2, pd, ill, dof, ok
 
 
 @eqx.filter_jit
-def _laplace_jit(res, theta, data, cost, status, estimate, max_theta_std, cond_max, unroll):
-    fn = jax.vmap(lambda t, d, c: _pixel(res, t, d, c, estimate, unroll, cond_max))
-    std, corr, cov, std_t, s2, pd, ill, dof, ok = fn(theta, data, cost)
-    at_bound = jnp.any(res.space.at_bound(jnp.where(ok[:, None], theta, 0.0)), axis=-1)
+def _laplace_jit(space, res, theta, lin, cost, status, estimate, max_theta_std, cond_max, unroll):
+    """``res`` None: ``lin`` = (jtj, active) from the fit, ``cost`` its cost; otherwise
+    ``lin`` = (data,) and J^T J, the active rows and the cost come from ``res`` here."""
+    if res is None:
+        jtj, active = lin
+    else:
+        (data,) = lin
+        jtj, active, cost = jax.vmap(lambda t, d: _linearise(res, t, d))(theta, data)
+
+    def one(t, j, a, c):
+        return _pixel(space, t, j, a, c, estimate, unroll, cond_max)
+
+    std, corr, cov, std_t, s2, pd, ill, dof, ok = jax.vmap(one)(theta, jtj, active, cost)
+    at_bound = jnp.any(space.at_bound(jnp.where(ok[:, None], theta, 0.0)), axis=-1)
     identified = std_t <= max_theta_std
     none = (status >= Status.MASKED) | ~ok
     flag = jnp.zeros(theta.shape[:1], jnp.int32)
@@ -194,8 +212,10 @@ def laplace(
 
     fit:       the result (its ``theta``, ``status``, ``space``, ``model``)
     data:      the :class:`PixelData` it was fitted to (leading N axis)
-    residual:  the residual used in the fit (default: Gaussian sigma 1, L2, as
-               :func:`fit_pixels` defaults); pass it when the fit used another noise or loss
+    residual:  the residual whose curvature is wanted (default: the fit's own, recorded in
+               ``fit.linearisation``; Gaussian sigma 1, L2 for a result without one). When
+               it is the fit's, the fit's J^T J at theta is reused and ``data`` is not
+               read; another residual is linearised here (one Jacobian per pixel)
     noise:     ``"estimate"`` the noise scale from the residuals, or ``"known"``
     max_theta_std, cond_max: thresholds of ``NOT_IDENTIFIED`` (cond_max default 1e7 in
                float32, 1e10 in float64, as the fit's ILL_CONDITIONED)
@@ -203,22 +223,32 @@ def laplace(
     """
     from ._residual import make_residual
 
-    res = make_residual(fit.model, fit.space) if residual is None else residual
     theta = jnp.asarray(fit.theta)
     if theta.ndim != 2:
         raise ValueError(f"laplace expects a batch fit with theta (N, P); got {theta.shape}")
-    data = data.astype(theta.dtype)
     if cond_max is None:
         cond_max = 1e7 if jnp.finfo(theta.dtype).bits <= 32 else 1e10
     if noise not in ("estimate", "known"):
         raise ValueError(f"noise must be 'estimate' or 'known', not {noise!r}")
-    cost = jnp.where(jnp.isfinite(fit.cost), fit.cost, 0.0).astype(theta.dtype)
+    lin = getattr(fit, "linearisation", None)
+    if lin is not None and (residual is None or _same(residual, lin.residual)):
+        # The fit's own J^T J at theta: no Jacobian to compute here.
+        res = None
+        cost = jnp.where(jnp.isfinite(fit.cost), fit.cost, 0.0).astype(theta.dtype)
+        rest: tuple = (jnp.asarray(lin.jtj, theta.dtype), jnp.asarray(lin.active))
+    else:
+        res = make_residual(fit.model, fit.space) if residual is None else residual
+        cost = jnp.zeros(theta.shape[:1], theta.dtype)  # recomputed from ``res``
+        rest = (data.astype(theta.dtype),)
+        if data.obs.shape[0] != theta.shape[0]:
+            raise ValueError(f"data has {data.obs.shape[0]} pixels, the fit {theta.shape[0]}")
 
-    def run(theta, data, cost, status):
+    def run(theta, cost, status, *rest):
         return _laplace_jit(
+            fit.space,
             res,
             theta,
-            data,
+            rest,
             cost,
             status,
             noise == "estimate",
@@ -228,7 +258,12 @@ def laplace(
         )
 
     # Pixels are independent: spread them over every device, as the fit does (``_shard``).
-    args = (theta, data, cost, jnp.asarray(fit.status))
+    args = (theta, cost, jnp.asarray(fit.status), *rest)
     out = map_sharded(run, args, device_count(devices))
     std, corr, cov, std_t, s2, flag, identified = out
     return LaplaceResult(fit.space.labels, std, corr, cov, std_t, s2, flag, identified)
+
+
+def _same(a: Residual, b: Residual) -> bool:
+    """Whether two residuals are the same function (identical, or equal leaf by leaf)."""
+    return a is b or bool(eqx.tree_equal(a, b))

@@ -155,6 +155,7 @@ class LMState(eqx.Module):
     cost: Float[Array, ""]
     jtj: Float[Array, "P P"]
     grad: Float[Array, " P"]  # J^T r
+    active: Int[Array, ""]  # residual rows with r != 0 or a non-zero Jacobian row
     lam: Float[Array, ""]
     nu: Float[Array, ""]
     lam_scale: Float[Array, ""]  # mean(diag(J^T J(theta0))): the unit of lam
@@ -181,8 +182,9 @@ class LMResult(eqx.Module):
     converged: Bool[Array, "*n"]
     status: Int[Array, "*n"]
     lam: Float[Array, "*n"]
-    jtj: Float[Array, "*n P P"]
+    jtj: Float[Array, "*n P P"]  # J^T J at the returned theta (the Laplace precision)
     grad: Float[Array, "*n P"]
+    active: Int[Array, "*n"]  # active residual rows there (the Laplace step's n)
 
 
 # ---------------------------------------------------------------------------- linear algebra
@@ -261,7 +263,11 @@ def _linearise(residual_fn: ResidualFn, theta, data):
     # is a slow small-matrix kernel on CPU, the elementwise form fuses (2.4x faster, P = 7).
     jtj = jnp.sum(jac[:, :, None] * jac[:, None, :], axis=0)
     grad = jnp.sum(jac * r[:, None], axis=0)
-    return cost, jtj, grad
+    # Rows that take part in the fit at theta: a satisfied censored observation (and a
+    # masked one) has r = 0 and a zero Jacobian row. Counted here so that the Laplace step
+    # can reuse the fit's last linearisation instead of a Jacobian of its own.
+    active = jnp.sum(jnp.any(jac != 0.0, axis=-1) | (r != 0.0)).astype(jnp.int32)
+    return cost, jtj, grad, active
 
 
 def lm_init(
@@ -270,7 +276,7 @@ def lm_init(
     """State at theta0. A non-finite theta0 (or cost there) gives a frozen, invalid state."""
     finite0 = jnp.all(jnp.isfinite(theta0))
     theta = jnp.where(finite0, theta0, 0.0)
-    cost, jtj, grad = _linearise(residual_fn, theta, data)
+    cost, jtj, grad, active = _linearise(residual_fn, theta, data)
     valid = finite0 & jnp.isfinite(cost) & jnp.all(jnp.isfinite(jtj)) & jnp.all(jnp.isfinite(grad))
     cost = jnp.where(valid, cost, 0.0)
     jtj = jnp.where(valid, jtj, 0.0)
@@ -285,6 +291,7 @@ def lm_init(
         cost=cost,
         jtj=jtj,
         grad=grad,
+        active=active,
         lam=options.lam0 * lam_scale * one,
         nu=2.0 * one,
         lam_scale=lam_scale,
@@ -320,7 +327,7 @@ def lm_step(
     longest = jnp.max(jnp.abs(delta))
     delta = delta * jnp.minimum(1.0, options.max_step / jnp.maximum(longest, options.max_step))
     theta_t = state.theta + delta
-    cost_t, jtj_t, grad_t = _linearise(residual_fn, theta_t, data)
+    cost_t, jtj_t, grad_t, active_t = _linearise(residual_fn, theta_t, data)
     finite_t = jnp.isfinite(cost_t) & jnp.all(jnp.isfinite(jtj_t)) & jnp.all(jnp.isfinite(grad_t))
     actual = state.cost - cost_t
     # Reduction predicted by the Gauss-Newton model, -(g.d + d^T J^T J d / 2).
@@ -350,6 +357,7 @@ def lm_step(
         cost=pick(cost_t, state.cost),
         jtj=pick(jtj_t, state.jtj),
         grad=pick(grad_t, state.grad),
+        active=pick(active_t, state.active),
         lam=jnp.where(keep, state.lam, lam),
         nu=jnp.where(keep, state.nu, nu),
         lam_scale=state.lam_scale,
@@ -387,6 +395,7 @@ def _finish(state: LMState, theta0, options, space, n_usable) -> tuple[Array, LM
         lam=state.lam,
         jtj=state.jtj,
         grad=state.grad,
+        active=state.active,
     )
     return theta, result
 

@@ -40,6 +40,7 @@ from ._residual import (
     Loss,
     NoiseModel,
     PixelData,
+    Residual,
     make_residual,
     pixel_data,
 )
@@ -47,9 +48,27 @@ from ._shard import device_count, map_sharded
 from ._status import Status, describe
 from ._transform import ParamSpace
 
-__all__ = ["FitResult", "fit_pixels", "fit_samples"]
+__all__ = ["FitResult", "Linearisation", "fit_pixels", "fit_samples"]
 
 Init = Literal["auto", "defaults"] | ArrayLike | Mapping[str, ArrayLike]
+
+
+@dataclass(frozen=True, eq=False)
+class Linearisation:
+    """The solver's last linearisation, at the returned theta of every pixel.
+
+    residual: the :class:`Residual` that was minimised
+    jtj:      (N, P, P) J^T J of that residual at theta (the Gauss-Newton precision)
+    active:   (N,) residual rows taking part there (r != 0 or a non-zero Jacobian row;
+              satisfied censored and masked observations do not)
+
+    :func:`laplace` reuses it instead of differentiating the residual again (the Jacobian is
+    most of the Laplace step's cost).
+    """
+
+    residual: Residual
+    jtj: Float[Array, "N P P"]
+    active: Int[Array, " N"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -63,6 +82,8 @@ class FitResult:
     cost:       (...) final 1/2 |r|^2 (whitened, robust); NaN where there is no estimate
     iterations: (...) solver iterations
     n_used:     (...) usable observations (entries of the K x C grid)
+    linearisation: the solver's J^T J at theta (:class:`Linearisation`), for
+                :func:`laplace`; None where the result was assembled otherwise
     """
 
     params: dict[str, Array]
@@ -74,6 +95,7 @@ class FitResult:
     space: ParamSpace
     model: BRDF
     backend: str = "lean"
+    linearisation: Linearisation | None = None
 
     def status_counts(self) -> dict[str, int]:
         """``{"CONVERGED": ..., "MAX_ITERATIONS": ..., ...}`` (see :func:`describe`)."""
@@ -141,7 +163,8 @@ def _run(model, data, space, noise, loss, backend, init, max_iters, options, dev
 
     theta, info = map_sharded(solve_batch, (theta0, data, n_used), ndev)
     theta, status, cost = _finalise(theta, info.status, info.cost, n_used, nonfinite, space.size)
-    return theta, status, cost, info.iterations, n_used
+    lin = Linearisation(res, info.jtj, info.active)
+    return theta, status, cost, info.iterations, n_used, lin
 
 
 def fit_pixels(
@@ -186,7 +209,7 @@ def fit_pixels(
         raise ValueError("give bounds/fixed through the ParamSpace when passing space")
     if space.channels != c:
         raise ValueError(f"space has {space.channels} channels, data has {c}")
-    theta, status, cost, iters, n_used = _run(
+    theta, status, cost, iters, n_used, lin = _run(
         model,
         data,
         space,
@@ -200,7 +223,7 @@ def fit_pixels(
         prior,
     )
     return FitResult(
-        space.to_natural(theta), theta, status, cost, iters, n_used, space, model, backend
+        space.to_natural(theta), theta, status, cost, iters, n_used, space, model, backend, lin
     )
 
 
@@ -303,5 +326,14 @@ def fit_samples(
     kinds = {q.name: q.kind for q in model.params}
     params = {n: (v[:, 0] if kinds[n] == "color" else v) for n, v in r.params.items()}
     return FitResult(
-        params, r.theta, r.status, r.cost, r.iterations, r.n_used, r.space, model, backend
+        params,
+        r.theta,
+        r.status,
+        r.cost,
+        r.iterations,
+        r.n_used,
+        r.space,
+        model,
+        backend,
+        r.linearisation,
     )

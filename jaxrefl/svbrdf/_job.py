@@ -296,7 +296,15 @@ def _keep_lower(a, b):
         return jnp.where(m, y, x)
 
     fields = ("params", "theta", "status", "cost", "iterations", "n_used")
-    return replace(a, **{f: jax.tree.map(pick, getattr(a, f), getattr(b, f)) for f in fields})
+    out = {f: jax.tree.map(pick, getattr(a, f), getattr(b, f)) for f in fields}
+    la, lb = a.linearisation, b.linearisation
+    # The curvature goes with the theta it was taken at; without both there is none.
+    same = la is not None and lb is not None
+    if same and (la.residual is lb.residual or bool(eqx.tree_equal(la.residual, lb.residual))):
+        lin = replace(la, jtj=pick(la.jtj, lb.jtj), active=pick(la.active, lb.active))
+    else:
+        lin = None
+    return replace(a, **out, linearisation=lin)
 
 
 # Starting slopes besides 0: four at this radius (11 degrees) along the axes. On demo pixels
