@@ -220,3 +220,31 @@ def test_censored_and_unknown_scale_likelihood():
     f = jax.jit(jax.vmap(lambda g: lp2(jnp.stack([jnp.asarray(0.4), g]), d2)))
     vals = np.asarray(f(jnp.asarray(grid)))
     assert math.exp(grid[int(np.argmax(vals))]) == pytest.approx(0.05, rel=0.1)
+
+
+def test_dark_clipped_term_and_the_uncensored_specialisation():
+    """A dark-clipped observation contributes log Phi(-z); ``for_data`` drops the censored
+    branch only for data without censored observations, with the same value and gradient."""
+    m = brdf.get("lambert")
+    space = fit.ParamSpace(m, channels=1, transforms={"albedo": fit.Identity()})
+    lp = jp.log_posterior(m, space, fit.GaussianNoise(0.1), priors={"albedo": jp.Normal(0.5, 10)})
+    wi = np.array([[0.0, 0.0, 1.0]] * 3)
+    obs = np.array([[0.2], [0.3], [0.1]])
+    d = fit.pixel_data(obs, wi, censored=np.array([[0], [1], [-1]]))
+    t = jnp.asarray([0.5])
+    pred = 0.5 / math.pi
+    z = (pred - obs[:, 0]) / 0.1
+    ndtr = jax.scipy.special.log_ndtr
+    expect = -0.5 * z[0] ** 2 - math.log(0.1) + float(ndtr(z[1])) + float(ndtr(-z[2]))
+    assert float(lp.for_data(d).log_likelihood(t, d)) == pytest.approx(expect, rel=1e-12)
+    assert lp.for_data(d).censoring and lp.censoring
+    plain = fit.pixel_data(obs, wi)
+    fast = lp.for_data(plain)
+    assert not fast.censoring
+    g_full = jax.value_and_grad(lambda x: lp(x, plain))(t)
+    g_fast = jax.value_and_grad(lambda x: fast(x, plain))(t)
+    np.testing.assert_allclose(np.asarray(g_fast[0]), np.asarray(g_full[0]), rtol=1e-14)
+    np.testing.assert_allclose(np.asarray(g_fast[1]), np.asarray(g_full[1]), rtol=1e-14)
+    # Under a trace the data are not concrete: the general posterior is kept.
+    kept = jax.jit(lambda d: jnp.asarray(lp.for_data(d).censoring))(plain)
+    assert bool(kept)

@@ -26,7 +26,9 @@ MCMC summaries are the draws' mean, std and empirical 5% / 95% quantiles.
 
 Large maps: the MCMC pixels run in chunks of ``chunk`` pixels (the last one padded by
 repeating pixels, whose results are dropped), so the sampler compiles once for the whole
-map whatever the number of flagged pixels, memory stays bounded, and ``progress`` shows a
+map whatever the number of flagged pixels (twice where some have censored observations and
+some none: pixels without any go first and skip the censored likelihood branch, see
+:meth:`LogPosterior.for_data`), memory stays bounded, and ``progress`` shows a
 bar over the chunks. :data:`MAP_OPTIONS` is a cheaper sampler setting for maps, whose
 targets are a std and 5% / 95% quantiles rather than tail probabilities: 2 chains of 100
 warm-up and 100 kept steps of 8 leapfrog steps (a quarter of the gradients of the default
@@ -66,7 +68,8 @@ class UncertaintyMap:
 
     mean, std, q05, q95: (N, D) natural units; method: (N,) uint8 (:data:`METHODS`);
     rhat, ess_bulk, ess_tail: (N,) max R-hat / min ESS over parameters (NaN off MCMC);
-    divergences: (N,) count (0 off MCMC); mcmc_pixels: indices of the sampled pixels;
+    divergences: (N,) count (0 off MCMC); mcmc_pixels: indices of the sampled pixels,
+    in the order of ``samples`` (those without censored observations first);
     samples: their draws; laplace_std: (N, D) the Laplace std everywhere (NaN where none)
     """
 
@@ -194,6 +197,10 @@ def adaptive_uncertainty(
         raise ValueError(f"mcmc must be 'flagged', 'all' or 'none', not {mcmc!r}")
     t_lap = time.perf_counter() - t0
     idx = np.flatnonzero(np.isin(method, (2, 3)))
+    # Pixels without censored observations first: their chunks run the cheaper posterior
+    # without the censored branch (LogPosterior.for_data); at most one chunk is mixed.
+    censored_px = np.any(np.asarray(data.censored)[idx] != 0, axis=(-2, -1))
+    idx = idx[np.argsort(censored_px, kind="stable")]
     d = lp.size
     extra = d - p
     big = np.full((n, extra), np.nan)

@@ -227,6 +227,7 @@ def sample_pixels(
     timing:    run twice on the first batch to measure compilation apart (``compile_s``)
     """
     opts = HMCOptions() if options is None else options
+    lp = lp.for_data(data)  # drops the censored branch where nothing is censored
     n = data.obs.shape[0]
     dtype = data.obs.dtype
     t0_arr = jnp.asarray(theta0, dtype)

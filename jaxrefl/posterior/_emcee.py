@@ -25,6 +25,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
+from jaxrefl.fit import PixelData
+
 from ._batched import Samples
 
 __all__ = ["sample_emcee"]
@@ -60,6 +62,8 @@ def sample_emcee(
     Returns :class:`Samples` with N = 1, walkers as chains (after burn-in and thinning);
     ``extra`` holds ``tau``, ``burn``, ``thin``, ``tau_reliable`` and ``acceptance``.
     """
+    if args and isinstance(args[0], PixelData) and hasattr(logdensity, "for_data"):
+        logdensity = logdensity.for_data(args[0])  # drops the unused censored branch
     x0 = np.asarray(theta0, dtype=np.float64)
     d = x0.size
     n_walkers = max(32, 2 * d + 2) if n_walkers is None else int(n_walkers)

@@ -34,15 +34,24 @@ f_r(wi, wo) max(cos theta_i, 0) scale with wi = l and wo carried into each norma
 Unknown Gaussian noise scale (``noise_scale=``): sd = s * noise.std, s > 0 sampled as log s
 with prior ``noise_scale`` (default :class:`~jaxrefl.posterior.Jeffreys` when the noise
 model is ``GaussianNoise(sigma=None)``).
+
+Cost: log Phi (``log_ndtr``, an erfc with an asymptotic branch) is most of a gradient's
+cost where it is evaluated on every observation. The censored terms go through one log Phi
+on a selected argument (not one per side), and :meth:`LogPosterior.for_data` gives the
+samplers a copy without the censored branch for data that have no censored observation
+(K = 32, GGX + Lambert RGB, one gradient: 29 -> 11 us in float64, 17 -> 3.5 us in float32,
+``benchmarks/posterior_speed.py``).
 """
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax.scipy.special import log_ndtr
 from jaxtyping import Array, Float
 
@@ -78,6 +87,18 @@ class LogPosterior(eqx.Module):
     priors: tuple[Prior, ...]  # one per block of residual.space, in block order
     light: SphereDirection | None
     noise_scale: Prior | None
+    # False only in a copy made by :meth:`for_data` for data without censored observations:
+    # the censored branch (log Phi on every observation) is then left out of the graph.
+    censoring: bool = eqx.field(default=True, static=True)
+
+    def for_data(self, data: PixelData) -> LogPosterior:
+        """This posterior specialised to ``data`` (concrete arrays): without the censored
+        branch where no observation is censored, else unchanged. Same values either way."""
+        try:
+            any_censored = bool(np.any(np.asarray(data.censored) != 0))
+        except jax.errors.TracerArrayConversionError:  # traced data: keep the general graph
+            return self
+        return dataclasses.replace(self, censoring=any_censored)
 
     @property
     def space(self) -> ParamSpace:
@@ -172,7 +193,10 @@ class LogPosterior(eqx.Module):
         sat = data.censored > 0
         dark = data.censored < 0
         value = -self.residual.loss.rho(z) - jnp.log(sd)
-        ll = jnp.where(sat, log_ndtr(z), jnp.where(dark, log_ndtr(-z), value))
+        if not self.censoring:  # for_data saw no censored observation
+            return jnp.sum(w * value)
+        # One log Phi for both sides: log Phi(z) where saturated, log Phi(-z) where dark.
+        ll = jnp.where(sat | dark, log_ndtr(jnp.where(sat, z, -z)), value)
         return jnp.sum(w * ll)
 
     def __call__(
@@ -265,6 +289,10 @@ class SharedLight(eqx.Module):
     @property
     def per_pixel(self) -> int:
         return self.pixel.size - 3
+
+    def for_data(self, data: PixelData) -> SharedLight:
+        """:meth:`LogPosterior.for_data` of the pixel posterior."""
+        return dataclasses.replace(self, pixel=self.pixel.for_data(data))
 
     @property
     def size(self) -> int:
