@@ -31,7 +31,7 @@ some none: pixels without any go first and skip the censored likelihood branch, 
 :meth:`LogPosterior.for_data`), memory stays bounded, and ``progress`` shows a
 bar over the chunks. :data:`MAP_OPTIONS` is a cheaper sampler setting for maps, whose
 targets are a std and 5% / 95% quantiles rather than tail probabilities: 2 chains of 100
-warm-up and 100 kept steps of 8 leapfrog steps (a quarter of the gradients of the default
+warm-up and 100 kept steps of 8 leapfrog steps (1/16 of the gradients of the default
 :class:`HMCOptions`), adaptation still per chain and per pixel (the Laplace std is the
 initial metric). ``keep_samples=False`` keeps only the summaries (a 256 x 256 map's draws
 are ~1 GB).
