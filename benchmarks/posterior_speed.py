@@ -345,6 +345,101 @@ def part_emcee_sbc(args):
     print(table(["parameter", "rank chi2 p", "50% coverage z", "90% coverage z"], rows))
 
 
+def part_gradient(args) -> None:
+    """Cost of one log-posterior gradient (value_and_grad, vmapped over pixels), with the
+    censored branch evaluated on every observation (the general posterior, as for data
+    with censoring) and without it (``LogPosterior.for_data`` on uncensored data)."""
+    n = args.gradient_pixels
+    _model, _space, lp, theta, data = simulate(n)
+    rows = []
+    for dtype in (jnp.float64, jnp.float32):
+        d = data.astype(dtype)
+        t = jnp.asarray(theta, dtype)
+        us = {}
+        for name, post in (("general", lp), ("for_data", lp.for_data(d))):
+            f = jax.jit(jax.vmap(jax.value_and_grad(lambda x, dd, post=post: post(x, dd))))
+            jax.block_until_ready(f(t, d))
+            best = min(_timed_call(f, t, d) for _ in range(5))
+            us[name] = 1e6 * best / n
+        rows.append(
+            [
+                jnp.dtype(dtype).name,
+                f"{us['general']:.2f}",
+                f"{us['for_data']:.2f}",
+                f"{us['general'] / us['for_data']:.1f}x",
+            ]
+        )
+    print(f"\none log-posterior gradient, K = {K}, GGX + Lambert RGB, {n} pixels (us per pixel):")
+    print(table(["dtype", "with censored branch", "for_data (none)", "ratio"], rows))
+
+
+def _timed_call(f, *a) -> float:
+    t0 = time.perf_counter()
+    jax.block_until_ready(f(*a))
+    return time.perf_counter() - t0
+
+
+def part_mixing(args) -> None:
+    """MCMC mixing on the Laplace-flagged pixels of a small demo capture under variants of
+    ``MAP_OPTIONS`` (same pixels, same seed): does a longer or wider run, or a start
+    clipped into [-4, 4], fix the R-hat of the map's MCMC pixels?"""
+    import dataclasses
+    import tempfile
+
+    from jaxrefl.cli import main as cli
+    from jaxrefl.io import load_capture
+
+    with tempfile.TemporaryDirectory() as tmp:
+        d = Path(tmp) / "demo"
+        cli(["demo", "--out", str(d), "--size", str(args.mixing_size), "--no-fit"])
+        cap = load_capture(d)
+    cf = svbrdf.fit_capture(cap, svbrdf.FitJob(model="ggx", dtype="float64", tile_pixels=4096))
+    c = cap.shape[-1]
+    model, space = svbrdf.capture_model("ggx", channels=c, alpha_min=cf.extra["alpha_min"])
+    lp = jp.log_posterior(model, space, fit.GaussianNoise(None))
+    theta = np.asarray(cf.theta, np.float64)
+    n = theta.shape[0]
+    ok = np.all(np.isfinite(theta), -1)
+    flag = cf.maps["laplace_flag"].reshape(-1)
+    sel = np.flatnonzero(ok & (flag != 0))[: args.mixing_pixels]
+    dn = np.asarray(space.dnatural(jnp.asarray(theta[sel])))
+    tsd = np.stack([_std_map(cf, lab).reshape(-1)[sel] for lab in space.labels], -1) / np.abs(dn)
+    noise0 = np.nan_to_num(cf.maps["noise_std"].reshape(-1)[sel], nan=1e-2)
+    s0 = np.where(noise0 > 0, noise0, 1e-2)
+    sub = jax.tree.map(lambda v: v[sel], svbrdf.pixel_block(cap, 0, n, dtype=np.float64))
+    sd = np.concatenate([tsd, np.ones((sel.size, 1))], -1)
+    m = jp.MAP_OPTIONS
+    variants = [
+        ("MAP_OPTIONS", theta[sel], m),
+        ("start clipped to [-4, 4]", np.clip(theta[sel], -4, 4), m),
+        ("4 chains", theta[sel], dataclasses.replace(m, num_chains=4)),
+        ("300 warm-up steps", theta[sel], dataclasses.replace(m, num_warmup=300)),
+        ("16 leapfrog steps", theta[sel], dataclasses.replace(m, num_integration_steps=16)),
+    ]
+    rows = []
+    for name, th, opts in variants:
+        x0 = lp.init_theta(jnp.asarray(th), noise_scale=s0)
+        smp = jp.sample_pixels(lp, sub, x0, theta_std=sd, options=opts, seed=1)
+        dg = jp.diagnostics(smp)
+        r = dg["max_rhat"]
+        rows.append(
+            [
+                name,
+                f"{np.nanmedian(r):.2f}",
+                f"{np.nanquantile(r, 0.9):.2f}",
+                f"{np.nanmedian(dg['min_ess_bulk']):.0f}",
+                str(int(np.sum(dg["divergences"] > 0))),
+            ]
+        )
+    vals, counts = np.unique(flag[sel], return_counts=True)
+    flags = {int(v): int(k) for v, k in zip(vals, counts, strict=True)}
+    print(
+        f"\nMCMC mixing on {sel.size} Laplace-flagged pixels of a {args.mixing_size} x "
+        f"{args.mixing_size} demo capture (Laplace flags: pixels {flags}):"
+    )
+    print(table(["variant", "max R-hat median", "q90", "min bulk ESS median", "px w/ div."], rows))
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--pixels", type=int, default=200)
@@ -359,10 +454,21 @@ def main() -> None:
     p.add_argument("--only-emcee-sbc", action="store_true")
     p.add_argument("--window-pixels", type=int, default=100)
     p.add_argument("--only-window", action="store_true", help="only the metric-window part")
+    p.add_argument("--only-gradient", action="store_true", help="only the gradient-cost part")
+    p.add_argument("--gradient-pixels", type=int, default=4096)
+    p.add_argument("--only-mixing", action="store_true", help="only the map-mixing part")
+    p.add_argument("--mixing-size", type=int, default=64)
+    p.add_argument("--mixing-pixels", type=int, default=512)
     args = p.parse_args()
     print(machine())
     if args.only_window:
         part_window(args)
+        return
+    if args.only_gradient:
+        part_gradient(args)
+        return
+    if args.only_mixing:
+        part_mixing(args)
         return
     if args.only_emcee_sbc:
         part_emcee_sbc(args)

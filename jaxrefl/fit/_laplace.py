@@ -55,6 +55,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
+from ._lm import _linearise as lm_linearise
 from ._lm import cho_solve_unrolled, cholesky_unrolled
 from ._residual import PixelData, Residual
 from ._shard import device_count, map_sharded
@@ -113,14 +114,12 @@ class LaplaceResult:
 
 
 def _linearise(res: Residual, theta, data: PixelData):
-    """J^T J and the active row count at theta (a pixel without an estimate at 0)."""
-    # Gradient-safe: a pixel without an estimate is linearised at 0 and flagged.
+    """J^T J, the active row count and the cost at theta, as the LM computes them (a pixel
+    without an estimate is linearised at 0 and flagged; gradient-safe)."""
     t = jnp.where(jnp.all(jnp.isfinite(theta)), theta, 0.0)
-    jac = jax.jacfwd(res)(t, data)  # (K*C, P)
-    r = res(t, data)
     # A non-finite Jacobian entry makes the pixel NOT_POSITIVE_DEFINITE (through jtj).
-    active = jnp.sum(jnp.any(jac != 0.0, axis=-1) | (r != 0.0)).astype(jnp.int32)
-    return jac.T @ jac, active, 0.5 * jnp.sum(r * r)
+    cost, jtj, _, active = lm_linearise(res, t, data)
+    return jtj, active, cost
 
 
 def _pixel(space, theta, jtj, active, cost, estimate: bool, unroll_max: int, cond_max):
