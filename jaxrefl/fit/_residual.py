@@ -28,6 +28,7 @@ Jacobian. Callers should still zero-weight bad observations themselves.
 from __future__ import annotations
 
 import numbers
+from collections.abc import Mapping
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -291,6 +292,17 @@ def gaussian_prior(space: ParamSpace, priors: dict[str, tuple[float, float]]) ->
 
 
 # ---------------------------------------------------------------------------- residual
+def _replaced(params: dict[str, Array], replace: Mapping[str, Array]) -> dict[str, Array]:
+    """``params`` with the named entries swapped for ``replace``'s (broadcast, same dtype)."""
+    out = dict(params)
+    for name, v in replace.items():
+        if name not in out:
+            raise KeyError(f"replace: {name!r} is not a parameter of the model ({tuple(out)})")
+        old = out[name]
+        out[name] = jnp.broadcast_to(jnp.asarray(v, old.dtype), old.shape)
+    return out
+
+
 class Residual(eqx.Module):
     """r(theta, data): the whitened, weighted, censored, robust residual of one pixel.
 
@@ -322,8 +334,14 @@ class Residual(eqx.Module):
         bad = (bad & (data.weight != 0)) | ~jnp.isfinite(data.weight)
         return jnp.any(bad, axis=(-2, -1))
 
-    def predict(self, theta: Float[Array, " P"], data: PixelData) -> Float[Array, "K C"]:
-        """model.eval(params, wi, wo) * scale with unusable observations swapped out."""
+    def predict(
+        self,
+        theta: Float[Array, " P"],
+        data: PixelData,
+        replace: Mapping[str, Array] | None = None,
+    ) -> Float[Array, "K C"]:
+        """model.eval(params, wi, wo) * scale with unusable observations swapped out;
+        ``replace`` overrides natural parameters by name (e.g. ``{"albedo": zeros}``)."""
         ok = self.usable(data)
         row_ok = jnp.all(jnp.isfinite(data.wi) & jnp.isfinite(data.wo), axis=-1)
         up = jnp.asarray([0.0, 0.0, 1.0], dtype=theta.dtype)
@@ -334,6 +352,8 @@ class Residual(eqx.Module):
         # Parameters get a leading unit axis so they align with the (K, 3) directions
         # without implicit rank promotion.
         params = self.space.to_natural(theta[None, :])
+        if replace:
+            params = _replaced(params, replace)
         return self.model.eval(params, wi, wo) * scale
 
     def __call__(self, theta: Float[Array, " P"], data: PixelData) -> Float[Array, " KC"]:

@@ -44,6 +44,7 @@ from jaxtyping import Array
 from jaxrefl.fit import PixelData
 
 from ._logpost import LogPosterior
+from ._reparam import ConditionalAlbedo, conditional_albedo
 
 __all__ = ["HMCOptions", "Samples", "sample_pixels"]
 
@@ -68,8 +69,14 @@ class HMCOptions:
     # ESS 5% 20 -> 21 but median 325 -> 270; acceptance 0.95 -> 0.93, both still above the
     # 0.8 target (the averaged step size of dual averaging ends small).
     metric_window_end: float = 0.75
+    # Coordinates the chains move in (:mod:`jaxrefl.posterior._reparam`): "albedo", the
+    # diffuse albedo non-centred on its conditional given the other parameters; "none",
+    # the fit's theta; "auto", "albedo" where the model is affine in a bounded albedo.
+    reparam: Literal["auto", "albedo", "none"] = "auto"
 
     def __post_init__(self):
+        if self.reparam not in ("auto", "albedo", "none"):
+            raise ValueError(f"reparam must be 'auto', 'albedo' or 'none', not {self.reparam!r}")
         if not 0.15 < self.metric_window_end <= 1.0:
             w = self.metric_window_end
             raise ValueError(f"metric_window_end must be in (0.15, 1], got {w}")
@@ -206,6 +213,45 @@ def _run(lp: LogPosterior, opts: HMCOptions, keys, x0, imm0, data: PixelData, no
     return jax.lax.map(pixel, (keys, x0, imm0, data, normals), batch_size=opts.batch_size)
 
 
+def _coordinates(lp: LogPosterior, mode: str) -> ConditionalAlbedo | None:
+    """The reparameterisation of ``HMCOptions.reparam`` (None: the fit's theta)."""
+    if mode == "none":
+        return None
+    try:
+        return conditional_albedo(lp)
+    except ValueError:
+        if mode == "albedo":
+            raise
+        return None  # "auto": not applicable to this model
+
+
+@eqx.filter_jit
+def _map_starts(rp: ConditionalAlbedo, x0, data: PixelData, normals):
+    """(N, chains, D) starts theta -> theta'."""
+
+    def pixel(x, d, n):
+        return jax.vmap(lambda t: rp.from_theta(t, d, n))(x)
+
+    if normals is None:
+        return jax.vmap(lambda x, d: pixel(x, d, None))(x0, data)
+    return jax.vmap(pixel)(x0, data, normals)
+
+
+@eqx.filter_jit
+def _map_draws(rp: ConditionalAlbedo, pos, data: PixelData, normals, batch_size: int):
+    """(N, chains, draws, D) draws theta' -> (theta, log|dT/dtheta'| (N, chains, draws))."""
+    n_c, n_d, d_ = pos.shape[1:]
+
+    def pixel(args):
+        x, d, n = args
+        t, ld, _ = jax.vmap(lambda y: rp.to_theta(y, d, n))(x.reshape(-1, d_))
+        return t.reshape(n_c, n_d, d_), ld.reshape(n_c, n_d)
+
+    if normals is None:
+        return jax.lax.map(lambda a: pixel((*a, None)), (pos, data), batch_size=batch_size)
+    return jax.lax.map(pixel, (pos, data, normals), batch_size=batch_size)
+
+
 def sample_pixels(
     lp: LogPosterior,
     data: PixelData,
@@ -246,15 +292,22 @@ def sample_pixels(
     sd = jnp.broadcast_to(
         jnp.where(jnp.isfinite(sd) & (sd > 0), jnp.minimum(sd, 1.0), 1.0), (n, lp.size)
     )
-    key = jax.random.PRNGKey(seed)
-    k_init, k_run = jax.random.split(key)
-    eps = jax.random.normal(k_init, (n, opts.num_chains, lp.size), dtype)
-    x0 = (x if per_chain else x[:, None, :]) + opts.init_jitter * sd[:, None, :] * eps
-    keys = jax.random.split(k_run, n)
     if normals is None:
         nrm = jnp.zeros((n, 1, 3), dtype)  # unused without a light; keeps one code path
     else:
         nrm = jnp.broadcast_to(jnp.asarray(normals, dtype), (n, data.obs.shape[1], 3))
+    x = x if per_chain else jnp.broadcast_to(x[:, None, :], (n, opts.num_chains, lp.size))
+    rp = _coordinates(lp, opts.reparam)
+    normals_or_none = nrm if lp.light is not None else None
+    if rp is not None:  # the chains move in theta': starts mapped there, theta'_rho has scale 1
+        x = _map_starts(rp, x, data, normals_or_none)
+        sd = sd.at[:, rp.start : rp.stop].set(1.0)
+    target = lp if rp is None else rp
+    key = jax.random.PRNGKey(seed)
+    k_init, k_run = jax.random.split(key)
+    eps = jax.random.normal(k_init, (n, opts.num_chains, lp.size), dtype)
+    x0 = x + opts.init_jitter * sd[:, None, :] * eps
+    keys = jax.random.split(k_run, n)
 
     imm0 = jax.vmap(jnp.diag)(sd * sd)  # the initial metric: the Laplace scales
 
@@ -268,7 +321,7 @@ def sample_pixels(
         args = jax.tree.map(lambda a: a[rows], args)
 
     def call():
-        out = jax.block_until_ready(_run(lp, opts, *args))
+        out = jax.block_until_ready(_run(target, opts, *args))
         return jax.tree.map(lambda a: a[:n], out)
 
     t0 = time.perf_counter()
@@ -282,6 +335,10 @@ def sample_pixels(
         run_s = t2 - t1
     else:
         run_s = t1 - t0
+    if rp is not None:  # draws back to theta; "lp" is theta's density (Jacobian removed)
+        pos_p, lpd_p = out[0], out[1]
+        pos_t, log_det = _map_draws(rp, pos_p, data, normals_or_none, opts.batch_size)
+        out = (pos_t, lpd_p - log_det, *out[2:])
     pos, lpd, acc, div, step = (np.asarray(a) for a in out)
     bad = ~np.asarray(ok)
     pos = pos.astype(np.float64)
@@ -296,5 +353,5 @@ def sample_pixels(
         tuning={"step_size": step},
         compile_s=compile_s,
         run_s=run_s,
-        extra={"options": opts, "no_estimate": bad},
+        extra={"options": opts, "no_estimate": bad, "reparam": "none" if rp is None else rp.name},
     )

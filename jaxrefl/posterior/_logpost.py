@@ -158,12 +158,17 @@ class LogPosterior(eqx.Module):
         return total
 
     def predict(
-        self, theta: Float[Array, " D"], data: PixelData, normals: Array | None = None
+        self,
+        theta: Float[Array, " D"],
+        data: PixelData,
+        normals: Array | None = None,
+        replace: Mapping[str, Array] | None = None,
     ) -> Float[Array, "K C"]:
-        """The predicted observations (K, C) at theta."""
+        """The predicted observations (K, C) at theta; ``replace`` overrides natural
+        parameters by name (as in :meth:`jaxrefl.fit.Residual.predict`)."""
         tb, u, _ = self.split(theta)
         if u is None or self.light is None:
-            return self.residual.predict(tb, data)
+            return self.residual.predict(tb, data, replace)
         if normals is None:
             raise ValueError("a posterior over the light direction needs normals (K, 3)")
         dtype = theta.dtype
@@ -174,18 +179,26 @@ class LogPosterior(eqx.Module):
         ok = self.residual.usable(data)
         scale = jnp.where(ok, data.scale.astype(dtype), 0.0)
         params = self.space.to_natural(tb[None, :])
+        if replace:
+            params = {**params, **{k: jnp.broadcast_to(v, params[k].shape) for k, v in replace.items()}}
         return self.model.eval_cos(params, wi, wo) * scale
 
     def log_likelihood(
-        self, theta: Float[Array, " D"], data: PixelData, normals: Array | None = None
+        self,
+        theta: Float[Array, " D"],
+        data: PixelData,
+        normals: Array | None = None,
+        pred: Array | None = None,
     ) -> Float[Array, ""]:
-        """log p(data | theta) (module docstring)."""
+        """log p(data | theta) (module docstring); ``pred``: :meth:`predict` at theta where
+        the caller already has it."""
         _, _, log_s = self.split(theta)
         dtype = theta.dtype
         ok = self.residual.usable(data)
         obs = jnp.where(ok, data.obs.astype(dtype), 0.0)
         w = jnp.where(ok, data.weight.astype(dtype), 0.0)
-        pred = self.predict(theta, data, normals)
+        if pred is None:
+            pred = self.predict(theta, data, normals)
         sd = self.residual.noise.std(obs)
         if log_s is not None:
             sd = sd * jnp.exp(log_s)
