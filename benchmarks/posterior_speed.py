@@ -381,8 +381,10 @@ def _timed_call(f, *a) -> float:
 
 def part_mixing(args) -> None:
     """MCMC mixing on the Laplace-flagged pixels of a small demo capture under variants of
-    ``MAP_OPTIONS`` (same pixels, same seed): does a longer or wider run, or a start
-    clipped into [-4, 4], fix the R-hat of the map's MCMC pixels?"""
+    ``MAP_OPTIONS`` (same pixels, same seed): in the fit's coordinates does a longer or
+    wider run, or a start clipped into [-4, 4], fix the R-hat of the map's MCMC pixels? And
+    in the non-centred coordinates (``reparam``, :mod:`jaxrefl.posterior._reparam`), at
+    which trajectory length?"""
     import dataclasses
     import tempfile
 
@@ -409,26 +411,37 @@ def part_mixing(args) -> None:
     sub = jax.tree.map(lambda v: v[sel], svbrdf.pixel_block(cap, 0, n, dtype=np.float64))
     sd = np.concatenate([tsd, np.ones((sel.size, 1))], -1)
     m = jp.MAP_OPTIONS
+    rep = dataclasses.replace
+    fit8 = rep(m, reparam="none", num_integration_steps=8)  # MAP_OPTIONS until stop 12
     variants = [
-        ("MAP_OPTIONS", theta[sel], m),
-        ("start clipped to [-4, 4]", np.clip(theta[sel], -4, 4), m),
-        ("4 chains", theta[sel], dataclasses.replace(m, num_chains=4)),
-        ("300 warm-up steps", theta[sel], dataclasses.replace(m, num_warmup=300)),
-        ("16 leapfrog steps", theta[sel], dataclasses.replace(m, num_integration_steps=16)),
+        ("fit's theta, 8 leapfrog (old MAP_OPTIONS)", theta[sel], fit8),
+        ("fit's theta, start clipped to [-4, 4]", np.clip(theta[sel], -4, 4), fit8),
+        ("fit's theta, 4 chains", theta[sel], rep(fit8, num_chains=4)),
+        ("fit's theta, 300 warm-up steps", theta[sel], rep(fit8, num_warmup=300)),
+        ("fit's theta, 16 leapfrog", theta[sel], rep(fit8, num_integration_steps=16)),
+        ("fit's theta, 32 leapfrog", theta[sel], rep(m, reparam="none")),
+        ("non-centred albedo, 8 leapfrog", theta[sel], rep(m, num_integration_steps=8)),
+        ("non-centred albedo, 16 leapfrog", theta[sel], rep(m, num_integration_steps=16)),
+        ("non-centred albedo, 32 leapfrog (MAP_OPTIONS)", theta[sel], m),
     ]
     rows = []
     for name, th, opts in variants:
         x0 = lp.init_theta(jnp.asarray(th), noise_scale=s0)
-        smp = jp.sample_pixels(lp, sub, x0, theta_std=sd, options=opts, seed=1)
+        smp = jp.sample_pixels(lp, sub, x0, theta_std=sd, options=opts, seed=1, timing=True)
         dg = jp.diagnostics(smp)
         r = dg["max_rhat"]
+        ess = np.nanmedian(dg["min_ess_bulk"])
         rows.append(
             [
                 name,
-                f"{np.nanmedian(r):.2f}",
+                f"{np.nanmedian(r):.3f}",
                 f"{np.nanquantile(r, 0.9):.2f}",
-                f"{np.nanmedian(dg['min_ess_bulk']):.0f}",
+                f"{np.mean(r < 1.1):.2f}",
+                f"{ess:.0f}",
                 str(int(np.sum(dg["divergences"] > 0))),
+                f"{smp.run_s:.1f}",
+                f"{ess * sel.size / smp.run_s:.0f}",
+                f"{smp.compile_s:.1f}",
             ]
         )
     vals, counts = np.unique(flag[sel], return_counts=True)
@@ -437,7 +450,9 @@ def part_mixing(args) -> None:
         f"\nMCMC mixing on {sel.size} Laplace-flagged pixels of a {args.mixing_size} x "
         f"{args.mixing_size} demo capture (Laplace flags: pixels {flags}):"
     )
-    print(table(["variant", "max R-hat median", "q90", "min bulk ESS median", "px w/ div."], rows))
+    cols = ["variant", "max R-hat median", "q90", "share < 1.1", "min bulk ESS median"]
+    cols += ["px w/ div.", "run s", "median ESS x px / s", "compile s"]
+    print(table(cols, rows))
 
 
 def main() -> None:

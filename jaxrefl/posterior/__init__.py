@@ -14,7 +14,8 @@ Quick use::
 
 Parts: :mod:`._priors` (priors in natural units), :mod:`._sphere` (light direction on the
 sphere), :mod:`._logpost` (the log-posterior from the fit's model, bijections and noise),
-:mod:`._batched` (BlackJAX HMC/NUTS vmapped over pixels), :mod:`._emcee` (ensemble
+:mod:`._batched` (BlackJAX HMC/NUTS vmapped over pixels), :mod:`._reparam` (the
+non-centred albedo coordinates the batched sampler moves in), :mod:`._emcee` (ensemble
 sampler), :mod:`._adaptive` (Laplace everywhere, MCMC where flagged), :mod:`._diagnostics`
 (ArviZ, R-hat/ESS, plots, predictive checks), :mod:`._sbc` (simulation-based
 calibration), :mod:`._maps` (EXR uncertainty channels).
@@ -52,6 +53,8 @@ from ._priors import Uniform as Uniform
 from ._priors import VonMisesFisher as VonMisesFisher
 from ._priors import default_priors as default_priors
 from ._priors import sample_truncated as sample_truncated
+from ._reparam import ConditionalAlbedo as ConditionalAlbedo
+from ._reparam import conditional_albedo as conditional_albedo
 from ._sbc import SBCResult as SBCResult
 from ._sbc import coverage as coverage
 from ._sbc import pit as pit

@@ -31,10 +31,15 @@ some none: pixels without any go first and skip the censored likelihood branch, 
 :meth:`LogPosterior.for_data`), memory stays bounded, and ``progress`` shows a
 bar over the chunks. :data:`MAP_OPTIONS` is a cheaper sampler setting for maps, whose
 targets are a std and 5% / 95% quantiles rather than tail probabilities: 2 chains of 100
-warm-up and 100 kept steps of 8 leapfrog steps (1/16 of the gradients of the default
+warm-up and 100 kept steps of 32 leapfrog steps (1/4 of the gradients of the default
 :class:`HMCOptions`), adaptation still per chain and per pixel (the Laplace std is the
-initial metric). ``keep_samples=False`` keeps only the summaries (a 256 x 256 map's draws
-are ~1 GB).
+initial metric), in the non-centred coordinates of :mod:`jaxrefl.posterior._reparam`
+(``reparam="auto"``). The flagged pixels are mostly those where no highlight was seen,
+whose posterior is a long curved ridge: in the fit's coordinates no setting tried mixed
+there (max R-hat median 1.31 even at 32 leapfrog steps); non-centred, 8 leapfrog steps
+give 1.12 and 32 give 1.04 (q90 1.11) on 256 flagged demo pixels
+(``benchmarks/posterior_speed.py --only-mixing`` has the full table).
+``keep_samples=False`` keeps only the summaries (a 256 x 256 map's draws are ~1 GB).
 """
 
 from __future__ import annotations
@@ -58,7 +63,7 @@ __all__ = ["MAP_OPTIONS", "METHODS", "UncertaintyMap", "adaptive_uncertainty", "
 METHODS = {0: "none", 1: "laplace", 2: "mcmc", 3: "mcmc_audit"}
 _Z95 = 1.6448536269514722  # standard normal 95% quantile
 MAP_OPTIONS = HMCOptions(
-    num_warmup=100, num_samples=100, num_chains=2, num_integration_steps=8, batch_size=128
+    num_warmup=100, num_samples=100, num_chains=2, num_integration_steps=32, batch_size=128
 )
 
 

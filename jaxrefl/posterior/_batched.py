@@ -22,9 +22,18 @@ steps, which the vmapped batch pays once. A **dense** mass matrix is the default
 specular F0 and log alpha are strongly correlated (a narrower lobe is brighter), and a
 dense metric roughly triples the ESS there.
 
+Coordinates (``reparam``): by default the chains move in theta', where the diffuse albedo
+is non-centred on its conditional given the other parameters
+(:mod:`jaxrefl.posterior._reparam`; an exact change of variables, the draws are mapped
+back to theta and ``lp`` is theta's log density); ``reparam="none"`` samples the fit's
+theta itself. Models without a bounded albedo in which the prediction is affine fall back
+to theta under ``"auto"``.
+
 Chains start from the LM optimum plus a jitter of ``init_jitter`` times the Laplace
 theta-space std (when given) so that split R-hat compares chains that began apart.
-Pixels with no estimate (NaN theta) are run from theta = 0 and come back NaN.
+Pixels with no estimate (NaN theta) are run from theta = 0 and come back NaN. With
+``reparam`` the start and the jitter are taken in theta' (the albedo's entries with scale
+1, its conditional sd), so the chains start on the ridge, not across it.
 """
 
 from __future__ import annotations

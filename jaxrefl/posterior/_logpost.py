@@ -179,8 +179,8 @@ class LogPosterior(eqx.Module):
         ok = self.residual.usable(data)
         scale = jnp.where(ok, data.scale.astype(dtype), 0.0)
         params = self.space.to_natural(tb[None, :])
-        if replace:
-            params = {**params, **{k: jnp.broadcast_to(v, params[k].shape) for k, v in replace.items()}}
+        for k, v in (replace or {}).items():
+            params[k] = jnp.broadcast_to(jnp.asarray(v, dtype), params[k].shape)
         return self.model.eval_cos(params, wi, wo) * scale
 
     def log_likelihood(

@@ -112,10 +112,11 @@ class ConditionalAlbedo(eqx.Module):
         obs = jnp.where(ok, data.obs.astype(dtype), 0.0)
         wgt = jnp.where(ok, data.weight.astype(dtype), 0.0) / self.base.residual.noise.std(obs) ** 2
         axes = (0, 1) if self.grey else (0,)
-        saa = jnp.sum(wgt * a * a, axis=axes)
+        n_rho = self.stop - self.start
+        saa = jnp.sum(wgt * a * a, axis=axes).reshape(n_rho)
         has = saa > 0
         saa1 = jnp.where(has, saa, 1.0)  # gradient-safe: no information -> c = 0, w = w_max
-        m = jnp.sum(wgt * a * (obs - r), axis=axes) / saa1
+        m = jnp.sum(wgt * a * (obs - r), axis=axes).reshape(n_rho) / saa1
         _, _, log_s = self.base.split(theta)
         s = jnp.exp(log_s) if log_s is not None else jnp.ones((), dtype)
         sd = s / jnp.sqrt(saa1)
@@ -139,7 +140,7 @@ class ConditionalAlbedo(eqx.Module):
         u = c + w * theta_p[self.start : self.stop]
         theta = theta_p.at[self.start : self.stop].set(u)
         rho = self.lower + (self.upper - self.lower) * jax.nn.sigmoid(u)  # g(u), ScaledSigmoid
-        return theta, jnp.sum(jnp.log(w)), r + a * rho
+        return theta, jnp.sum(jnp.log(w)), r + a * rho[None, :]
 
     def from_theta(self, theta: Float[Array, " D"], data: PixelData, normals=None):
         """theta' for one point theta (the inverse of :meth:`to_theta`)."""
