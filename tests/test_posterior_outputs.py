@@ -111,6 +111,8 @@ def test_cli_sample_capture_end_to_end(tmp_path):
     u = rep["uncertainty"]
     assert u["method_counts"]["mcmc"] + u["method_counts"]["mcmc_audit"] == 16
     assert u["mcmc"]["max_rhat"]["median"] < 1.2
+    n_above = u["mcmc"]["pixels_rhat_above_1.1"]
+    assert n_above <= u["mcmc"]["pixels_rhat_above_1.01"] and n_above < 8
     im = read_exr(out / "uncertainty.exr")
     assert {"albedo.mean.R", "noise_scale.mean", "rhat", "ess_bulk", "method"} <= set(im.channels)
     assert np.all(np.isfinite(im.channels["rhat"]))

@@ -198,7 +198,8 @@ def _run_capture(args, path: Path, opts) -> dict:
     m = umap.report()
     print(
         f"{h} x {w} pixels: {m['method_counts']}; MCMC pixels with R-hat > 1.01: "
-        f"{m['mcmc']['pixels_rhat_above_1.01']}, with divergences: "
+        f"{m['mcmc']['pixels_rhat_above_1.01']}, > 1.1: {m['mcmc']['pixels_rhat_above_1.1']}, "
+        "with divergences: "
         f"{m['mcmc']['pixels_with_divergences']}"
     )
     return report
