@@ -288,7 +288,8 @@ def map_run(args, cap, name):
             f"MCMC: max R-hat median {mc['max_rhat']['median']:.3f}, q95 "
             f"{mc['max_rhat']['q95']:.3f}; min bulk ESS median {mc['min_ess_bulk']['median']:.0f}"
             f", q05 {mc['min_ess_bulk']['q05']:.0f}; pixels with divergences "
-            f"{mc['pixels_with_divergences']}"
+            f"{mc['pixels_with_divergences']}; R-hat > 1.1 on {mc['pixels_rhat_above_1.1']} "
+            f"of {mc['pixels']}"
         )
 
 
