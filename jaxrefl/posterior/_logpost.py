@@ -70,6 +70,7 @@ from jaxrefl.fit import (
     Softplus,
     make_residual,
 )
+from jaxrefl.fit._residual import _replaced
 
 from ._priors import Jeffreys, Prior, resolve_priors
 from ._sphere import SphereDirection, to_local
@@ -179,8 +180,8 @@ class LogPosterior(eqx.Module):
         ok = self.residual.usable(data)
         scale = jnp.where(ok, data.scale.astype(dtype), 0.0)
         params = self.space.to_natural(tb[None, :])
-        for k, v in (replace or {}).items():
-            params[k] = jnp.broadcast_to(jnp.asarray(v, dtype), params[k].shape)
+        if replace:
+            params = _replaced(params, replace)
         return self.model.eval_cos(params, wi, wo) * scale
 
     def log_likelihood(
