@@ -113,6 +113,36 @@ def test_known_answer_mean_and_covariance(linear):
     assert not np.any(s.stats["diverging"])
 
 
+def test_thinning_keeps_every_thin_th_step(linear):
+    """``thin=2`` runs the same chain as ``thin=1`` with twice the kept steps (same seed,
+    same keys) and keeps its every second draw; acceptance is the mean of, and a
+    divergence any of, the steps between."""
+    rng = np.random.default_rng(5)
+    truth = np.array([0.4, 0.6, 0.3, 0.15])
+    y = truth @ linear["a"].T + linear["b"] + SIGMA * rng.normal(size=linear["b"].size)
+    data = fit.pixel_data(
+        y.reshape(1, -1, 3), linear["wi"][None], linear["wo"][None], scale=linear["scale"][None]
+    )
+    base = jp.HMCOptions(num_warmup=20, num_samples=20, num_chains=2, reparam="none")
+    one = jp.sample_pixels(linear["lp"], data, jnp.asarray(truth), options=base, seed=3)
+    two = jp.sample_pixels(
+        linear["lp"],
+        data,
+        jnp.asarray(truth),
+        options=jp.HMCOptions(num_warmup=20, num_samples=10, num_chains=2, reparam="none", thin=2),
+        seed=3,
+    )
+    assert two.theta.shape == (1, 2, 10, 4)
+    # equal up to rounding: XLA may fuse the two programs differently
+    np.testing.assert_allclose(two.theta, one.theta[:, :, 1::2], rtol=1e-9)
+    acc = one.stats["acceptance_rate"]
+    np.testing.assert_allclose(two.stats["acceptance_rate"], (acc[..., ::2] + acc[..., 1::2]) / 2)
+    div = one.stats["diverging"]
+    np.testing.assert_array_equal(two.stats["diverging"], div[..., ::2] | div[..., 1::2])
+    with pytest.raises(ValueError, match="thin"):
+        jp.HMCOptions(thin=0)
+
+
 def test_sbc_statistics_reject_20_percent_dispersion_error(linear):
     """With the exact posterior the statistics pass; sd scaled by 1.2 or 0.8 fails both
     the rank chi-square and the 90% coverage, by a wide margin."""

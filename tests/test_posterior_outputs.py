@@ -175,6 +175,70 @@ def test_adaptive_chunks_have_one_shape_and_map_back(lambert, monkeypatch):
         jp.adaptive_uncertainty(lp, data, th, sd, flag, mcmc="all", chunk=0)
 
 
+def test_second_pass_reruns_the_pixels_whose_chains_disagree(lambert, monkeypatch):
+    """Pixels whose first-pass chains disagree (R-hat > 1.1) run a second, longer pass
+    (longer_options: twice the warm-up, thin 2, no jitter) from first-pass draws, chain c
+    from first-pass chain c, with the draws' std as the initial metric; its summaries and
+    draws replace the first's and the report says what it changed (stand-in sampler)."""
+    from jaxrefl.posterior import _adaptive
+
+    lp, data, r, lap = lambert
+    th, sd, flag = np.asarray(r.theta), np.asarray(lap.theta_std), np.asarray(lap.flag)
+    start = np.asarray(lp.init_theta(th))
+    apart = [1, 4]  # these pixels' first-pass chains sit 1 apart
+    calls = []
+
+    def fake(lp_, sub, th0, *, theta_std, normals, options, seed):
+        th0, theta_std = np.asarray(th0), np.asarray(theta_std)
+        calls.append((th0.copy(), theta_std.copy(), options))
+        rng = np.random.default_rng(seed)
+        c, m = options.num_chains, options.num_samples
+        if th0.ndim == 2:  # first pass: one start per pixel
+            x = np.repeat(th0[:, None, None, :], c, 1).repeat(m, 2)
+            px = [int(np.flatnonzero(np.all(start == t, -1))[0]) for t in th0]
+            x[np.isin(px, apart), 1] += 1.0
+        else:  # second pass: the chains agree, about their starts' mean
+            x = np.repeat(th0.mean(1)[:, None, None, :], c, 1).repeat(m, 2)
+        x = x + 1e-2 * rng.normal(size=x.shape)
+        st = {"acceptance_rate": np.ones(x.shape[:3]), "diverging": np.zeros(x.shape[:3], bool)}
+        n = x.shape[0]
+        return jp.Samples(
+            x, x, lp_.labels, st, "hmc", run_s=1.0, extra={"no_estimate": np.zeros(n, bool)}
+        )
+
+    monkeypatch.setattr(_adaptive, "sample_pixels", fake)
+    opts = jp.HMCOptions(num_warmup=5, num_samples=30, num_chains=2)
+    kw = dict(mcmc="all", options=opts, chunk=4, seed=7)
+    u = jp.adaptive_uncertainty(lp, data, th, sd, flag, **kw)
+    assert len(calls) == 3  # two first-pass chunks (6 pixels), one second-pass chunk
+    x0, sd0, o2 = calls[2]
+    assert (o2.num_warmup, o2.thin, o2.init_jitter) == (10, 2, 0.0)
+    assert (o2.num_chains, o2.num_samples) == (opts.num_chains, opts.num_samples)
+    assert x0.shape[:2] == (2, 2)  # the 2 pixels, one start per chain
+    np.testing.assert_allclose(x0[:2, 0], start[apart], atol=0.05)
+    np.testing.assert_allclose(x0[:2, 1], start[apart] + 1.0, atol=0.05)
+    np.testing.assert_allclose(sd0[:2], 0.5, rtol=0.05)  # the std of chains 1 apart
+    np.testing.assert_array_equal(np.flatnonzero(u.rerun), apart)
+    assert np.all(u.rhat_first[apart] > 1.5) and np.all(np.isnan(u.rhat_first[[0, 2, 3, 5]]))
+    assert np.all(u.rhat < 1.1)
+    at = [int(np.flatnonzero(u.mcmc_pixels == i)[0]) for i in apart]
+    np.testing.assert_allclose(u.samples.theta[at].mean((1, 2)), start[apart] + 0.5, atol=0.01)
+    np.testing.assert_allclose(u.mean[apart], u.samples.natural[at].mean((1, 2)))
+    sp = u.report()["mcmc"]["second_pass"]
+    assert sp["pixels"] == 2 and sp["pixels_rhat_above_1.1_after"] == 0
+    assert sp["max_rhat_before"]["min"] > 1.5 and sp["max_rhat_after"]["max"] < 1.1
+    ch = jp.uncertainty_channels(u, 2, 3)["mcmc_pass"].reshape(-1)
+    np.testing.assert_array_equal(ch, [1, 2, 1, 1, 2, 1])
+    lean = jp.adaptive_uncertainty(lp, data, th, sd, flag, keep_samples=False, **kw)
+    np.testing.assert_array_equal(lean.std, u.std)  # the same without keeping the draws
+    calls.clear()
+    off = jp.adaptive_uncertainty(lp, data, th, sd, flag, rerun_rhat=None, **kw)
+    assert len(calls) == 2 and not off.rerun.any() and np.all(off.rhat[apart] > 1.5)
+    with pytest.raises(ValueError, match="num_chains and num_samples"):
+        bad = jp.HMCOptions(num_warmup=5, num_samples=30, num_chains=4)
+        jp.adaptive_uncertainty(lp, data, th, sd, flag, rerun_options=bad, **kw)
+
+
 def test_vectorised_diagnostics_match_arviz():
     """``diagnostics`` (vectorised R-hat, bulk and tail ESS) equals ArviZ's per-element
     estimators on mixed, autocorrelated, tied (rejected HMC steps), unmixed and NaN chains."""

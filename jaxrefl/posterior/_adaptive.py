@@ -40,10 +40,20 @@ there (max R-hat median 1.31 even at 32 leapfrog steps); non-centred, 8 leapfrog
 give 1.12 and 32 give 1.04 (q90 1.11) on 256 flagged demo pixels
 (``benchmarks/posterior_speed.py --only-mixing`` has the full table).
 ``keep_samples=False`` keeps only the summaries (a 256 x 256 map's draws are ~1 GB).
+
+Second pass: a pixel whose first-pass chains disagree (max split R-hat above
+``rerun_rhat``, 1.1 by default) runs again under :func:`longer_options` (twice the warm-up,
+twice the steps between kept draws). Its chains start from draws of the first pass, chain c
+from first-pass chain c mod C, so they begin apart and on the posterior's ridge, with the
+first pass's draw std as the initial metric. The second pass's summaries and draws replace
+the first's (``rerun`` marks those pixels and ``rhat_first`` keeps the first pass's
+R-hat, so ``report()`` shows what it changed). Pixels still above the threshold after it
+stay marked by their ``rhat``: read their std as a lower bound.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -58,13 +68,28 @@ from ._batched import HMCOptions, Samples, sample_pixels
 from ._diagnostics import diagnostics
 from ._logpost import LogPosterior
 
-__all__ = ["MAP_OPTIONS", "METHODS", "UncertaintyMap", "adaptive_uncertainty", "laplace_summary"]
+__all__ = [
+    "MAP_OPTIONS",
+    "METHODS",
+    "UncertaintyMap",
+    "adaptive_uncertainty",
+    "laplace_summary",
+    "longer_options",
+]
 
 METHODS = {0: "none", 1: "laplace", 2: "mcmc", 3: "mcmc_audit"}
 _Z95 = 1.6448536269514722  # standard normal 95% quantile
 MAP_OPTIONS = HMCOptions(
     num_warmup=100, num_samples=100, num_chains=2, num_integration_steps=32, batch_size=128
 )
+
+_RERUN_SEED = 100_003  # offsets the second pass's seeds from the first's chunk seeds
+
+
+def longer_options(opts: HMCOptions) -> HMCOptions:
+    """The second pass's settings from the first's: twice the warm-up, and thin=2 (twice
+    the steps for the same kept draws), from dispersed first-pass draws (no jitter)."""
+    return dataclasses.replace(opts, num_warmup=2 * opts.num_warmup, thin=2, init_jitter=0.0)
 
 
 @dataclass
@@ -75,7 +100,9 @@ class UncertaintyMap:
     rhat, ess_bulk, ess_tail: (N,) max R-hat / min ESS over parameters (NaN off MCMC);
     divergences: (N,) count (0 off MCMC); mcmc_pixels: indices of the sampled pixels,
     in the order of ``samples`` (those without censored observations first);
-    samples: their draws; laplace_std: (N, D) the Laplace std everywhere (NaN where none)
+    samples: their draws; laplace_std: (N, D) the Laplace std everywhere (NaN where none);
+    rerun: (N,) bool, the pixel's numbers come from the second pass; rhat_first: (N,) its
+    first pass's max R-hat (NaN where no second pass ran)
     """
 
     labels: tuple[str, ...]
@@ -92,6 +119,15 @@ class UncertaintyMap:
     samples: Samples | None
     laplace_std: np.ndarray
     timings: dict[str, float] = field(default_factory=dict)
+    rerun: np.ndarray | None = None
+    rhat_first: np.ndarray | None = None
+
+    def __post_init__(self):
+        n = self.method.size
+        if self.rerun is None:
+            self.rerun = np.zeros(n, bool)
+        if self.rhat_first is None:
+            self.rhat_first = np.full(n, np.nan)
 
     @property
     def audit_std_ratio(self) -> np.ndarray:
@@ -131,6 +167,12 @@ class UncertaintyMap:
                 "pixels_rhat_above_1.1": int(np.sum(self.rhat[on] > 1.1)),
                 "pixels_with_divergences": int(np.sum(self.divergences[on] > 0)),
                 "divergences": int(np.sum(self.divergences[on])),
+                "second_pass": {
+                    "pixels": int(np.sum(self.rerun)),
+                    "max_rhat_before": dist(self.rhat_first[self.rerun]),
+                    "max_rhat_after": dist(self.rhat[self.rerun]),
+                    "pixels_rhat_above_1.1_after": int(np.sum(self.rhat[self.rerun] > 1.1)),
+                },
             },
             "audit_laplace_over_mcmc_std": audit,
             "timings": self.timings,
@@ -169,6 +211,8 @@ def adaptive_uncertainty(
     chunk: int = 2048,
     progress: bool = False,
     keep_samples: bool = True,
+    rerun_rhat: float | None = 1.1,
+    rerun_options: HMCOptions | None = None,
 ) -> UncertaintyMap:
     """Laplace on every pixel, MCMC on the flagged ones and an audit sample (module doc).
 
@@ -178,7 +222,10 @@ def adaptive_uncertainty(
     noise_scale: (N,) starting noise scale when ``lp`` samples it (e.g. the Laplace
     residual std); normals when ``lp`` samples a light. chunk: MCMC pixels per compiled
     call (module docstring); progress: a tqdm bar over the chunks; keep_samples: keep the
-    draws in :attr:`UncertaintyMap.samples` (False: summaries only).
+    draws in :attr:`UncertaintyMap.samples` (False: summaries only). rerun_rhat: pixels
+    whose max R-hat exceeds it run a second, longer pass (module docstring; None: no
+    second pass); rerun_options: its sampler settings (default :func:`longer_options`
+    of ``options``; the same chains and kept draws, so the draws replace the first's).
     """
     if chunk < 1:
         raise ValueError(f"chunk must be >= 1, got {chunk}")
@@ -223,55 +270,79 @@ def adaptive_uncertainty(
     div = np.zeros(n, np.int64)
     samples = None
     timings = {"laplace_summary_s": t_lap}
+    rerun = np.zeros(n, bool)
+    rhat_first = np.full(n, np.nan)
     if idx.size:
         opts = HMCOptions() if options is None else options
-        size = min(chunk, idx.size)
-        starts = range(0, idx.size, size)
-        if progress:
-            from tqdm.auto import tqdm
-
-            starts = tqdm(starts, desc="MCMC pixels", unit="chunk")
-        parts, run_s = [], []
+        second = None if rerun_rhat is None else (rerun_options or longer_options(opts))
+        if second is not None and (
+            second.num_chains != opts.num_chains or second.num_samples != opts.num_samples
+        ):
+            raise ValueError(
+                "rerun_options must keep the first pass's num_chains and num_samples (the "
+                "draws replace the first pass's); lengthen it with num_warmup and thin"
+            )
         s0_all = None if noise_scale is None else np.asarray(noise_scale)
-        for ci, a in enumerate(starts):
-            real = idx[a : a + size]
-            # pad the last chunk by repeating its pixels: one compiled shape for the map
-            rows = np.resize(real, size)
-            sub = jax.tree.map(lambda v, rows=rows: v[rows], data)
+
+        def first_starts(rows):
             s0 = None if s0_all is None else s0_all[rows]
             th0 = lp.init_theta(jnp.asarray(theta_hat[rows]), noise_scale=s0)
-            sd = np.concatenate([theta_std[rows], np.ones((size, extra))], -1)
-            nrm = None if normals is None else jnp.asarray(np.asarray(normals)[rows])
-            smp = sample_pixels(
-                lp, sub, th0, theta_std=sd, normals=nrm, options=opts, seed=seed + ci
-            )
-            run_s.append(smp.run_s)
-            m = real.size
-            x = smp.natural[:m]
-            c, k = x.shape[1:3]
-            flat = x.reshape(m, c * k, d)
-            mean[real] = flat.mean(1)
-            std[real] = flat.std(1, ddof=1)
-            q05[real] = np.quantile(flat, 0.05, axis=1)
-            q95[real] = np.quantile(flat, 0.95, axis=1)
-            cut = _take(smp, m)
-            dg = diagnostics(cut)
-            rhat[real] = dg["max_rhat"]
-            ess_b[real] = dg["min_ess_bulk"]
-            ess_t[real] = dg["min_ess_tail"]
-            div[real] = dg["divergences"]
+            return th0, np.concatenate([theta_std[rows], np.ones((rows.size, extra))], -1)
+
+        out = _Summaries(mean, std, q05, q95, rhat, ess_b, ess_t, div)
+        restart: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        parts, run_s = [], []
+        for real, cut, rs in _chunks(
+            lp, data, idx, first_starts, normals, opts, seed, chunk, progress, "MCMC pixels"
+        ):
+            run_s.append(rs)
+            out.store(real, cut)
+            if second is not None:  # draws kept for the second pass's starts only
+                # NaN R-hat (a chain that never moved) counts as disagreeing
+                stuck = ~(rhat[real] <= rerun_rhat) & ~cut.extra["no_estimate"]
+                for j in np.flatnonzero(stuck):
+                    restart[int(real[j])] = _restarts(cut, j, second.num_chains, rng)
             if keep_samples:
                 parts.append(cut)
-        if keep_samples:
-            samples = _concat(parts)
         timings["mcmc_s"] = float(np.sum(run_s))
         timings["mcmc_pixels"] = int(idx.size)
         timings["mcmc_chunks"] = len(run_s)
-        timings["mcmc_chunk_size"] = int(size)
+        timings["mcmc_chunk_size"] = min(chunk, int(idx.size))
         if len(run_s) > 1:
             # the first chunk compiles; the others reuse it
             timings["mcmc_compile_s"] = max(0.0, run_s[0] - float(np.median(run_s[1:])))
             timings["mcmc_chunk_s_median"] = float(np.median(run_s[1:]))
+        if keep_samples:
+            samples = _concat(parts)
+        if restart:
+            # Second pass (module docstring): the pixels whose chains disagree run again.
+            again = idx[np.isin(idx, np.fromiter(restart, int))]  # first pass's order
+            rhat_first[again] = rhat[again]
+
+            def second_starts(rows):
+                return tuple(np.stack([restart[int(i)][k] for i in rows]) for k in (0, 1))
+
+            run2 = []
+            at = {int(i): k for k, i in enumerate(idx)}
+            for real, cut, rs in _chunks(
+                lp,
+                data,
+                again,
+                second_starts,
+                normals,
+                second,
+                seed + _RERUN_SEED,
+                chunk,
+                progress,
+                "MCMC second pass",
+            ):
+                run2.append(rs)
+                out.store(real, cut)
+                if samples is not None:
+                    _put(samples, [at[int(i)] for i in real], cut)
+            rerun[again] = True
+            timings["rerun_s"] = float(np.sum(run2))
+            timings["rerun_pixels"] = int(again.size)
     return UncertaintyMap(
         labels=lp.labels,
         mean=mean,
@@ -287,7 +358,84 @@ def adaptive_uncertainty(
         samples=samples,
         laplace_std=lap_std,
         timings=timings,
+        rerun=rerun,
+        rhat_first=rhat_first,
     )
+
+
+@dataclass
+class _Summaries:
+    """The map's (N, ...) summary arrays, filled in place chunk by chunk."""
+
+    mean: np.ndarray
+    std: np.ndarray
+    q05: np.ndarray
+    q95: np.ndarray
+    rhat: np.ndarray
+    ess_bulk: np.ndarray
+    ess_tail: np.ndarray
+    divergences: np.ndarray
+
+    def store(self, real: np.ndarray, cut: Samples) -> None:
+        """Summaries of the draws ``cut`` of the map's pixels ``real``."""
+        m = real.size
+        flat = cut.natural.reshape(m, -1, cut.natural.shape[-1])
+        self.mean[real] = flat.mean(1)
+        self.std[real] = flat.std(1, ddof=1)
+        self.q05[real] = np.quantile(flat, 0.05, axis=1)
+        self.q95[real] = np.quantile(flat, 0.95, axis=1)
+        dg = diagnostics(cut)
+        self.rhat[real] = dg["max_rhat"]
+        self.ess_bulk[real] = dg["min_ess_bulk"]
+        self.ess_tail[real] = dg["min_ess_tail"]
+        self.divergences[real] = dg["divergences"]
+
+
+def _chunks(lp, data, idx, starts, normals, opts, seed, chunk, progress, desc):
+    """Sample the pixels ``idx`` in chunks of one compiled size (module docstring).
+
+    starts(rows) -> (theta0 (R, D) or (R, chains, D), theta_std (R, D)) for the map's
+    pixels ``rows``. Yields (real pixels, their Samples, run seconds).
+    """
+    size = min(chunk, idx.size)
+    firsts = range(0, idx.size, size)
+    if progress:
+        from tqdm.auto import tqdm
+
+        firsts = tqdm(firsts, desc=desc, unit="chunk")
+    for ci, a in enumerate(firsts):
+        real = idx[a : a + size]
+        # pad the last chunk by repeating its pixels: one compiled shape for the map
+        rows = np.resize(real, size)
+        sub = jax.tree.map(lambda v, rows=rows: v[rows], data)
+        th0, sd = starts(rows)
+        nrm = None if normals is None else jnp.asarray(np.asarray(normals)[rows])
+        smp = sample_pixels(lp, sub, th0, theta_std=sd, normals=nrm, options=opts, seed=seed + ci)
+        yield real, _take(smp, real.size), smp.run_s
+
+
+def _restarts(cut: Samples, j: int, chains: int, rng) -> tuple[np.ndarray, np.ndarray]:
+    """Second-pass starts of pixel j of ``cut``: (chains, D) theta, chain c from a random
+    draw of first-pass chain c mod C (so the new chains start where the old ones went,
+    apart), and (D,) the first pass's theta-space draw std (the initial metric)."""
+    th = cut.theta[j]  # (C, K, D)
+    c, k = th.shape[:2]
+    x = th[np.arange(chains) % c, rng.integers(0, k, size=chains)]
+    return x, th.reshape(c * k, -1).std(0)
+
+
+def _put(s: Samples, at: list[int], cut: Samples) -> None:
+    """Overwrite pixels ``at`` of ``s`` with ``cut``'s (same chains and draws)."""
+
+    def put(a, b):
+        a = a if a.flags.writeable else a.copy()  # arrays from JAX are read-only views
+        a[at] = b
+        return a
+
+    s.theta = put(s.theta, cut.theta)
+    s.natural = put(s.natural, cut.natural)
+    s.stats = {k: put(v, cut.stats[k]) for k, v in s.stats.items()}
+    s.tuning = {k: put(v, cut.tuning[k]) for k, v in s.tuning.items()}
 
 
 def _take(s: Samples, m: int) -> Samples:

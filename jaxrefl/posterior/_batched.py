@@ -82,6 +82,10 @@ class HMCOptions:
     # diffuse albedo non-centred on its conditional given the other parameters; "none",
     # the fit's theta; "auto", "albedo" where the model is affine in a bounded albedo.
     reparam: Literal["auto", "albedo", "none"] = "auto"
+    # Keep every thin-th draw: ``num_samples`` draws are kept of num_samples * thin steps
+    # (acceptance averaged over, and divergences counted in, the steps between). Used by
+    # the longer second pass of adaptive_uncertainty, whose draws keep the first's shape.
+    thin: int = 1
 
     def __post_init__(self):
         if self.reparam not in ("auto", "albedo", "none"):
@@ -97,6 +101,7 @@ class HMCOptions:
             "num_chains",
             "num_integration_steps",
             "batch_size",
+            "thin",
         ):
             if getattr(self, k) < 1:
                 raise ValueError(f"{k} must be >= 1, got {getattr(self, k)}")
@@ -204,11 +209,24 @@ def _one_chain(lp: LogPosterior, opts: HMCOptions, key, x0, imm0, data, normals)
         out = (state.position, state.logdensity, acc, info.is_divergent)
         return (state, da, imm, mean, m2, count, final_eps), out
 
-    total = n_warm + opts.num_samples
-    xs = (jnp.arange(total), jax.random.split(key, total))
-    (_, _, imm, *_, eps), (pos, lpd, acc, div) = jax.lax.scan(body, carry0, xs)
-    keep = slice(n_warm, None)
-    return pos[keep], lpd[keep], acc[keep], div[keep], eps
+    thin = opts.thin
+    total = n_warm + opts.num_samples * thin
+    steps, keys = jnp.arange(total), jax.random.split(key, total)
+    # Warm-up: nothing of it is kept, so its scan stores no per-step output.
+    warm_xs = (steps[:n_warm], keys[:n_warm])
+    carry, _ = jax.lax.scan(lambda c, x: (body(c, x)[0], None), carry0, warm_xs)
+
+    def block(c, x):
+        """``thin`` steps, keeping the last draw; a divergence in any of them counts."""
+        c, (p, l, a, v) = jax.lax.scan(body, c, x)
+        return c, (p[-1], l[-1], jnp.mean(a), jnp.any(v))
+
+    blocks = (
+        steps[n_warm:].reshape(opts.num_samples, thin),
+        keys[n_warm:].reshape(opts.num_samples, thin, *keys.shape[1:]),
+    )
+    (*_, eps), (pos, lpd, acc, div) = jax.lax.scan(block, carry, blocks)
+    return pos, lpd, acc, div, eps
 
 
 @eqx.filter_jit

@@ -4,7 +4,9 @@ For each parameter label and statistic ``mean``, ``std``, ``q05``, ``q95``: a co
 ``albedo.R`` becomes the channel ``albedo.<stat>.R`` (layer ``albedo.mean`` with R, G, B,
 so viewers show it as a colour image), a scalar ``alpha`` becomes ``alpha.<stat>``. Then
 ``method`` (UINT, :data:`~jaxrefl.posterior.METHODS`), ``rhat``, ``ess_bulk``, ``ess_tail``
-(FLOAT, NaN off the MCMC pixels) and ``divergences`` (UINT). For GGX-type models
+(FLOAT, NaN off the MCMC pixels), ``divergences`` (UINT) and ``mcmc_pass`` (UINT: 0 off
+MCMC, 1 the first pass, 2 the longer second pass of the pixels whose first chains
+disagreed). For GGX-type models
 ``roughness.<stat>`` (perceptual roughness sqrt(alpha): quantiles and mean mapped through
 the square root, std by the delta method std(alpha) / (2 sqrt(alpha))) is added. The
 method codes and labels go into the file's metadata.
@@ -57,6 +59,7 @@ def uncertainty_channels(umap: UncertaintyMap, height: int, width: int) -> dict[
     out["ess_bulk"] = img(umap.ess_bulk).astype(np.float32)
     out["ess_tail"] = img(umap.ess_tail).astype(np.float32)
     out["divergences"] = img(umap.divergences).astype(np.uint32)
+    out["mcmc_pass"] = img(np.where(umap.rerun, 2, np.isin(umap.method, (2, 3)))).astype(np.uint32)
     return out
 
 
