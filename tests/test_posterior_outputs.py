@@ -177,7 +177,7 @@ def test_adaptive_chunks_have_one_shape_and_map_back(lambert, monkeypatch):
 
 def test_second_pass_reruns_the_pixels_whose_chains_disagree(lambert, monkeypatch):
     """Pixels whose first-pass chains disagree (R-hat > 1.1) run a second, longer pass
-    (longer_options: twice the warm-up, thin 2, no jitter) from first-pass draws, chain c
+    (longer_options: twice the warm-up, thin 4, no jitter) from first-pass draws, chain c
     from first-pass chain c, with the draws' std as the initial metric; its summaries and
     draws replace the first's and the report says what it changed (stand-in sampler)."""
     from jaxrefl.posterior import _adaptive
@@ -212,7 +212,7 @@ def test_second_pass_reruns_the_pixels_whose_chains_disagree(lambert, monkeypatc
     u = jp.adaptive_uncertainty(lp, data, th, sd, flag, **kw)
     assert len(calls) == 3  # two first-pass chunks (6 pixels), one second-pass chunk
     x0, sd0, o2 = calls[2]
-    assert (o2.num_warmup, o2.thin, o2.init_jitter) == (10, 2, 0.0)
+    assert (o2.num_warmup, o2.thin, o2.init_jitter) == (10, 4, 0.0)
     assert (o2.num_chains, o2.num_samples) == (opts.num_chains, opts.num_samples)
     assert x0.shape[:2] == (2, 2)  # the 2 pixels, one start per chain
     np.testing.assert_allclose(x0[:2, 0], start[apart], atol=0.05)
