@@ -116,6 +116,13 @@ def test_cli_sample_capture_end_to_end(tmp_path):
     im = read_exr(out / "uncertainty.exr")
     assert {"albedo.mean.R", "noise_scale.mean", "rhat", "ess_bulk", "method"} <= set(im.channels)
     assert np.all(np.isfinite(im.channels["rhat"]))
+    # the second pass: the pixels it reran are those above 1.1 after the first
+    sp = u["mcmc"]["second_pass"]
+    assert rep["second_pass"]["rerun_rhat"] == 1.1 and rep["second_pass"]["options"]["thin"] == 4
+    passes = im.channels["mcmc_pass"]
+    assert set(np.unique(passes)) <= {1, 2} and int(np.sum(passes == 2)) == sp["pixels"]
+    if sp["pixels"]:
+        assert sp["max_rhat_before"]["min"] > 1.1
     post = az.from_netcdf(str(out / "posterior.nc"))
     assert post.posterior["albedo_R"].shape[-1] == 16
     assert main(["sample", str(tmp_path / "missing"), "--out", str(out)]) == 1
@@ -137,10 +144,11 @@ def test_cli_sample_brdf_file(shared_data, tmp_path):
 
 
 def test_adaptive_chunks_have_one_shape_and_map_back(lambert, monkeypatch):
-    """MCMC on all 6 pixels in chunks of 4: every sampler call gets the same 4-pixel shape
-    (the last chunk padded by repeating pixels, one compiled program for the map), and each
-    pixel's summary comes from its own draws (the sampler is replaced by a stand-in whose
-    draws sit at the start point: no compilation)."""
+    """MCMC on 5 pixels (the 6th has no estimate) in chunks of at most 4: two balanced
+    chunks of 3, every sampler call the same shape (the last chunk padded by repeating
+    pixels, one compiled program for the map), and each pixel's summary comes from its own
+    draws (the sampler is replaced by a stand-in whose draws sit at the start point: no
+    compilation)."""
     from jaxrefl.posterior import _adaptive
 
     lp, data, r, lap = lambert
@@ -160,14 +168,18 @@ def test_adaptive_chunks_have_one_shape_and_map_back(lambert, monkeypatch):
     monkeypatch.setattr(_adaptive, "sample_pixels", fake)
     opts = jp.HMCOptions(num_warmup=5, num_samples=30, num_chains=2)
     th, sd, flag = np.asarray(r.theta), np.asarray(lap.theta_std), np.asarray(lap.flag)
+    th = th.copy()
+    th[5] = np.nan
     kw = dict(mcmc="all", options=opts, chunk=4, seed=7)
     u = jp.adaptive_uncertainty(lp, data, th, sd, flag, **kw)
-    assert [c[0] for c in calls] == [(4, 6, 3), (4, 6, 3)] and [c[2] for c in calls] == [7, 8]
-    np.testing.assert_array_equal(calls[1][1], np.asarray(lp.init_theta(th[[4, 5, 4, 5]])))
-    np.testing.assert_allclose(u.mean, th, atol=2e-3)  # each pixel its own draws
-    assert u.samples.theta.shape == (6, 2, 30, lp.size)
+    assert [c[0] for c in calls] == [(3, 6, 3), (3, 6, 3)] and [c[2] for c in calls] == [7, 8]
+    np.testing.assert_array_equal(calls[1][1], np.asarray(lp.init_theta(th[[3, 4, 3]])))
+    np.testing.assert_allclose(u.mean[:5], th[:5], atol=2e-3)  # each pixel its own draws
+    assert np.all(np.isnan(u.mean[5])) and u.method[5] == 0
+    assert u.samples.theta.shape == (5, 2, 30, lp.size)
     assert u.timings["mcmc_chunks"] == 2 and u.timings["mcmc_s"] == 2.0
-    assert np.all(np.isfinite(u.rhat)) and np.all(np.isin(u.method, (2, 3)))
+    assert u.timings["mcmc_chunk_size"] == 3
+    assert np.all(np.isfinite(u.rhat[:5])) and np.all(np.isin(u.method[:5], (2, 3)))
     lean = jp.adaptive_uncertainty(lp, data, th, sd, flag, keep_samples=False, **kw)
     assert lean.samples is None
     np.testing.assert_array_equal(lean.std, u.std)

@@ -2,14 +2,17 @@
 
     jaxrefl sample CAPTURE_DIR --out OUT_DIR [--pixels R0:R1,C0:C1] [--downsample F]
                    [--model ggx] [--mcmc flagged|all|none] [--audit 0.02]
-                   [--warmup N] [--samples N] [--chains N] [--seed S]
+                   [--warmup N] [--samples N] [--chains N] [--rerun-rhat R] [--seed S]
     jaxrefl sample BRDF_FILE --out OUT_DIR [--brdf-model cook_torrance_ggx]
                    [--sampler emcee|hmc] [--steps N] [--walkers N]
 
 A capture (any layout :func:`jaxrefl.io.load_capture` reads) is first fitted by the capture
 job (:func:`jaxrefl.svbrdf.fit_capture`, float64: the LM optimum and Laplace covariance of
 every pixel), then :func:`jaxrefl.posterior.adaptive_uncertainty` keeps Laplace where it is
-flagged reliable and runs vmapped HMC on the flagged pixels and a random audit sample.
+flagged reliable and runs vmapped HMC on the flagged pixels and a random audit sample;
+the pixels whose chains then disagree (max R-hat above ``--rerun-rhat``, 1.1; 0 turns it
+off) run a second, longer pass (:func:`jaxrefl.posterior.longer_options`: twice the
+warm-up, four steps per kept draw).
 ``--pixels`` restricts everything to a crop (rows R0:R1, columns C0:C1, after
 ``--downsample``). The noise scale is unknown (sampled per pixel, Jeffreys prior).
 Writes OUT_DIR/uncertainty.exr (mean, std, q05, q95 per parameter, method, R-hat, ESS),
@@ -62,6 +65,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--warmup", type=int, default=300, help="HMC warm-up steps per chain")
     p.add_argument("--samples", type=int, default=500, help="HMC draws per chain")
     p.add_argument("--chains", type=int, default=4, help="chains per pixel")
+    p.add_argument(
+        "--rerun-rhat",
+        type=float,
+        default=1.1,
+        help="rerun pixels above this max R-hat, longer (0: no second pass)",
+    )
     p.add_argument("--brdf-model", default="cook_torrance_ggx", help="model for a BRDF file")
     p.add_argument("--sampler", default="emcee", choices=("emcee", "hmc"), help="for a BRDF file")
     p.add_argument("--steps", type=int, default=3000, help="emcee steps")
@@ -159,6 +168,7 @@ def _run_capture(args, path: Path, opts) -> dict:
         options=opts,
         noise_scale=noise0,
         seed=args.seed,
+        rerun_rhat=args.rerun_rhat if args.rerun_rhat > 0 else None,
     )
     t_post = time.perf_counter() - t1
     files = ["uncertainty.exr"]
@@ -190,6 +200,10 @@ def _run_capture(args, path: Path, opts) -> dict:
         "noise": "Gaussian, unknown scale per pixel (Jeffreys prior)",
         "priors": {b.name: repr(p) for b, p in zip(space.blocks, lp.priors, strict=True)},
         "sampler": {**vars(opts)},
+        "second_pass": {
+            "rerun_rhat": args.rerun_rhat if args.rerun_rhat > 0 else None,
+            "options": {**vars(jp.longer_options(opts))},
+        },
         "fit_report": {k: cf.report[k] for k in ("status_counts", "laplace_flag_counts")},
         "uncertainty": umap.report(),
         "timings": {"fit_s": t_fit, "posterior_s": t_post},
@@ -202,6 +216,13 @@ def _run_capture(args, path: Path, opts) -> dict:
         "with divergences: "
         f"{m['mcmc']['pixels_with_divergences']}"
     )
+    sp = m["mcmc"]["second_pass"]
+    if sp["pixels"]:
+        print(
+            f"second pass on {sp['pixels']} pixels: max R-hat median "
+            f"{sp['max_rhat_before']['median']:.3f} -> {sp['max_rhat_after']['median']:.3f}, "
+            f"still above 1.1: {sp['pixels_rhat_above_1.1_after']}"
+        )
     return report
 
 

@@ -24,8 +24,9 @@ delta-method std theta_std |g'(theta*)|, and the quantiles g(theta* + z_q theta_
 (exact quantiles of the pushed-forward Gaussian, since g is monotone per entry).
 MCMC summaries are the draws' mean, std and empirical 5% / 95% quantiles.
 
-Large maps: the MCMC pixels run in chunks of ``chunk`` pixels (the last one padded by
-repeating pixels, whose results are dropped), so the sampler compiles once for the whole
+Large maps: the MCMC pixels run in chunks of at most ``chunk`` pixels, of one balanced
+size (:func:`_chunk_size`; the last one padded by repeating pixels, whose results are
+dropped), so the sampler compiles once for the whole
 map whatever the number of flagged pixels (twice where some have censored observations and
 some none: pixels without any go first and skip the censored likelihood branch, see
 :meth:`LogPosterior.for_data`), memory stays bounded, and ``progress`` shows a
@@ -89,7 +90,8 @@ _RERUN_SEED = 100_003  # offsets the second pass's seeds from the first's chunk 
 def longer_options(opts: HMCOptions) -> HMCOptions:
     """The second pass's settings from the first's: twice the warm-up and thin=4 (four
     times the steps for the same kept draws), no start jitter (the starts are first-pass
-    draws, already apart). On MAP_OPTIONS a pixel costs 5x its first pass.
+    draws, already apart). On MAP_OPTIONS (100 + 100 steps) a pixel costs 3x its first
+    pass (200 + 4 x 100 steps).
 
     Measured on the 137 of 512 flagged demo pixels above R-hat 1.1 after MAP_OPTIONS
     (``benchmarks/posterior_speed.py --only-mixing``): share below 1.1 after the second
@@ -314,7 +316,7 @@ def adaptive_uncertainty(
         timings["mcmc_s"] = float(np.sum(run_s))
         timings["mcmc_pixels"] = int(idx.size)
         timings["mcmc_chunks"] = len(run_s)
-        timings["mcmc_chunk_size"] = min(chunk, int(idx.size))
+        timings["mcmc_chunk_size"] = _chunk_size(int(idx.size), chunk, opts.batch_size)
         if len(run_s) > 1:
             # the first chunk compiles; the others reuse it
             timings["mcmc_compile_s"] = max(0.0, run_s[0] - float(np.median(run_s[1:])))
@@ -404,7 +406,7 @@ def _chunks(lp, data, idx, starts, normals, opts, seed, chunk, progress, desc):
     starts(rows) -> (theta0 (R, D) or (R, chains, D), theta_std (R, D)) for the map's
     pixels ``rows``. Yields (real pixels, their Samples, run seconds).
     """
-    size = min(chunk, idx.size)
+    size = _chunk_size(idx.size, chunk, opts.batch_size)
     firsts = range(0, idx.size, size)
     if progress:
         from tqdm.auto import tqdm
@@ -419,6 +421,19 @@ def _chunks(lp, data, idx, starts, normals, opts, seed, chunk, progress, desc):
         nrm = None if normals is None else jnp.asarray(np.asarray(normals)[rows])
         smp = sample_pixels(lp, sub, th0, theta_std=sd, normals=nrm, options=opts, seed=seed + ci)
         yield real, _take(smp, real.size), smp.run_s
+
+
+def _chunk_size(n: int, chunk: int, batch: int) -> int:
+    """The fewest chunks of at most ``chunk`` pixels, balanced: ceil(n / ceil(n / chunk)),
+    rounded up to a multiple of the sampler's ``batch`` where that stays within ``chunk``
+    (sample_pixels pads a chunk to whole batches). 3,078 pixels in chunks of at most 2048,
+    batches of 128, run as 2 chunks of 1664, not 2 of 2048 with 1,018 of them padding."""
+    k = -(-n // chunk)
+    size = -(-n // k)
+    if size <= batch:  # one batch: sample_pixels does not pad it
+        return size
+    whole = -(-size // batch) * batch
+    return whole if whole <= chunk else size
 
 
 def _restarts(cut: Samples, j: int, chains: int, rng) -> tuple[np.ndarray, np.ndarray]:
