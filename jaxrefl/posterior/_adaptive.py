@@ -95,8 +95,8 @@ def longer_options(opts: HMCOptions) -> HMCOptions:
 
     Measured on the 137 of 512 flagged demo pixels above R-hat 1.1 after MAP_OPTIONS
     (``benchmarks/posterior_speed.py --only-mixing``): share below 1.1 after the second
-    pass 0.83 restarting from the LM optimum with thin 2, 0.89 from first-pass draws with
-    thin 2, 0.94 from draws with thin 4 (these settings).
+    pass 0.82 restarting from the LM optimum with thin 2, 0.89 from first-pass draws with
+    thin 2, 0.96 from draws with thin 4 (these settings).
     """
     return dataclasses.replace(opts, num_warmup=2 * opts.num_warmup, thin=4, init_jitter=0.0)
 
