@@ -209,24 +209,24 @@ def _one_chain(lp: LogPosterior, opts: HMCOptions, key, x0, imm0, data, normals)
         out = (state.position, state.logdensity, acc, info.is_divergent)
         return (state, da, imm, mean, m2, count, final_eps), out
 
-    thin = opts.thin
-    total = n_warm + opts.num_samples * thin
-    steps, keys = jnp.arange(total), jax.random.split(key, total)
-    # Warm-up: nothing of it is kept, so its scan stores no per-step output.
-    warm_xs = (steps[:n_warm], keys[:n_warm])
-    carry, _ = jax.lax.scan(lambda c, x: (body(c, x)[0], None), carry0, warm_xs)
+    thin, n_keep = opts.thin, opts.num_samples
+    total = n_warm + n_keep * thin
+    xs = (jnp.arange(total), jax.random.split(key, total))
+    # One scan over warm-up and sampling: one copy of the kernel (and the model's gradient)
+    # to compile. Thinning afterwards: of each block of ``thin`` steps the last draw is
+    # kept, the acceptance averaged and a divergence in any step counted.
+    (*_, eps), (pos, lpd, acc, div) = jax.lax.scan(body, carry0, xs)
 
-    def block(c, x):
-        """``thin`` steps, keeping the last draw; a divergence in any of them counts."""
-        c, (p, l, a, v) = jax.lax.scan(body, c, x)
-        return c, (p[-1], l[-1], jnp.mean(a), jnp.any(v))
+    def blocks(a):
+        return a[n_warm:].reshape(n_keep, thin, *a.shape[1:])
 
-    blocks = (
-        steps[n_warm:].reshape(opts.num_samples, thin),
-        keys[n_warm:].reshape(opts.num_samples, thin, *keys.shape[1:]),
+    return (
+        blocks(pos)[:, -1],
+        blocks(lpd)[:, -1],
+        blocks(acc).mean(1),
+        blocks(div).any(1),
+        eps,
     )
-    (*_, eps), (pos, lpd, acc, div) = jax.lax.scan(block, carry, blocks)
-    return pos, lpd, acc, div, eps
 
 
 @eqx.filter_jit
