@@ -239,6 +239,80 @@ def test_materialgan_layout(demo, demo_dir, tmp_path):
         load_capture(mg)
 
 
+def _optim_layout(demo_dir, dst):
+    """The demo capture rewritten in the newer svbrdf-diff-renderer layout (optim.json)."""
+    params = json.loads((demo_dir / "parameters.json").read_text())
+    target = dst / "target" / str(SIZE)
+    shutil.copytree(demo_dir / "images/reference" / str(SIZE), target)
+    optim = {
+        "target_dir": f"target/{SIZE}",
+        "optimize_dir": "optim/256",  # the optimiser's output folders: not read
+        "rerender_dir": "optim/256",
+        "im_size": params["image_size"],
+        "idx": params["idx"],
+        "camera_pos": params["camera_pos"],
+        "light_pos": params["light_pos"],
+        "light_pow": params["light_pow"],
+        "gamma": params.get("gamma", 2.2),
+    }
+    (dst / "optim.json").write_text(json.dumps(optim))
+    return dst
+
+
+def test_optim_json_layout(demo, demo_dir, tmp_path):
+    folder = _optim_layout(demo_dir, tmp_path / "o")
+    for where in (folder, folder / "optim.json"):
+        cap = load_capture(where)
+        assert cap.layout == "svbrdf-diff-renderer" and cap.meta["parameters_file"] == "optim.json"
+        np.testing.assert_array_equal(cap.images, demo.images)
+        np.testing.assert_array_equal(cap.status, demo.status)
+        np.testing.assert_array_equal(cap.light_pos, demo.light_pos)
+        np.testing.assert_array_equal(cap.camera_pos, demo.camera_pos)
+        np.testing.assert_array_equal(cap.light_power, demo.light_power)
+        assert cap.side == demo.side
+    # resolution= box-downsamples from the named folder.
+    assert load_capture(folder, resolution=SIZE // 2).shape == (9, SIZE // 2, SIZE // 2, 3)
+
+
+@pytest.mark.parametrize(
+    ("edit", "field", "match"),
+    [
+        (lambda d: d.pop("im_size"), "im_size", "missing key 'im_size'"),
+        (lambda d: d.pop("target_dir"), "target_dir", "missing key 'target_dir'"),
+        (lambda d: d.update(target_dir="target/64"), "target_dir", "is not a folder"),
+        (lambda d: d.update(target_dir=3), "target_dir", "expected a folder name"),
+        (lambda d: d.pop("camera_pos"), "camera_pos", "missing key 'camera_pos'"),
+        (lambda d: d.pop("light_pow"), "light_pow", "missing key 'light_pow'"),
+    ],
+)
+def test_bad_optim_json(demo_dir, tmp_path, edit, field, match):
+    folder = _optim_layout(demo_dir, tmp_path / "o")
+    data = json.loads((folder / "optim.json").read_text())
+    edit(data)
+    (folder / "optim.json").write_text(json.dumps(data))
+    with pytest.raises(CaptureError, match=match) as e:
+        load_capture(folder)
+    assert e.value.field == field and e.value.path.name == "optim.json"
+    assert "optim.json" in str(e.value) and field in str(e.value)
+
+
+def test_yellow_box_loads_from_optim_json(shared_data):
+    folder = shared_data / "svbrdf_flash/yellow_box"
+    optim = json.loads((folder / "optim.json").read_text())
+    cap = load_capture(folder, resolution=64)
+    assert cap.shape == (9, 64, 64, 3) and cap.meta["parameters_file"] == "optim.json"
+    assert cap.side == optim["im_size"]
+    np.testing.assert_array_equal(cap.light_pos, optim["light_pos"])
+    np.testing.assert_array_equal(cap.camera_pos, optim["camera_pos"])
+    full = Image.open(folder / optim["target_dir"] / "04.png")
+    assert full.size == (1024, 1024)
+    # Photo 4, box-downsampled 16x after linearisation, against an independent read.
+    lin = (np.asarray(full, np.float64) / 255.0) ** 2.2
+    ref = lin.reshape(64, 16, 64, 16, 3).mean(axis=(1, 3))
+    ok = cap.valid[4]
+    np.testing.assert_allclose(cap.images[4][ok], ref[ok], rtol=1e-5, atol=1e-6)
+
+
 def test_generic_round_trip_exr(tmp_path):
     """Linear EXR: NaN/Inf/negative pixels, a saturation level and a light under the plane."""
     rng = np.random.default_rng(0)

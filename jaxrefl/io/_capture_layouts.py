@@ -24,7 +24,8 @@
     or one per channel; all lights are of one type. Images are EXR (R, G, B or Y, optional
     A) or PNG/any 8-bit format Pillow reads.
 
-``parameters.json`` -- svbrdf-diff-renderer (Guo, ``tflsguoyu/svbrdf-diff-renderer``)::
+``parameters.json`` or ``optim.json`` -- svbrdf-diff-renderer (Guo,
+``tflsguoyu/svbrdf-diff-renderer``)::
 
     {"image_size": S, "idx": [0, 1, ...], "camera_pos": [[x, y, z], ...],
      "light_pos": [[x, y, z], ...], "light_pow": ..., "images_dir": "images",
@@ -36,6 +37,12 @@
     ``light_pow`` is one number; one value per channel (the real data: [1500, 1500, 1500]);
     one value per photo (our demo); or per photo and channel. A list as long as both the
     channel count and the photo list counts as per channel.
+
+    The layout that tool writes since 2024 keeps the same lists in ``optim.json``, with
+    ``im_size`` for ``image_size`` and ``target_dir`` (e.g. ``"target/1024"``) naming the
+    photo folder itself; ``resolution=`` picks a sibling ``target/<N>`` folder if there is
+    one. Its other keys (``optimize_dir``, ``rerender_dir``: the optimiser's output folders)
+    are not read. ``parameters.json`` wins where a folder holds both.
 
 MaterialGAN (Guo et al. 2020) -- the photos ``NN.png`` (numeric names, in numeric order;
 other PNGs such as ``rendered.png`` are ignored) beside ``camera_pos.txt``,
@@ -69,9 +76,9 @@ __all__ = ["load_capture", "save_generic_capture"]
 
 _LAYOUTS = ("generic", "svbrdf-diff-renderer", "materialgan")
 _EXPECTED = (
-    "capture.json (generic); parameters.json + images/reference/<N>/NN.png "
-    "(svbrdf-diff-renderer); camera_pos.txt, light_pos.txt, light_power.txt, image_size.txt "
-    "beside NN.png (MaterialGAN)"
+    "capture.json (generic); parameters.json + images/reference/<N>/NN.png or optim.json "
+    "+ <target_dir>/NN.png (svbrdf-diff-renderer); camera_pos.txt, light_pos.txt, "
+    "light_power.txt, image_size.txt beside NN.png (MaterialGAN)"
 )
 _MG_FILES = ("camera_pos.txt", "light_pos.txt", "light_power.txt", "image_size.txt")
 
@@ -213,10 +220,26 @@ def _resolution_folder(ref: Path, resolution: int | None) -> tuple[Path, int]:
     raise CaptureError(ref, f"no folder for resolution {resolution}; available: {sizes}")
 
 
-def _load_svbrdf(folder: Path, resolution, max_photos) -> Capture:
-    pj = folder / "parameters.json"
+def _target_folder(folder: Path, pj: Path, target: str, resolution: int | None):
+    """The photo folder named by ``optim.json``'s ``target_dir`` (e.g. ``target/1024``):
+    that folder, or a sibling resolution folder when ``resolution`` asks for another."""
+    named = folder / target
+    if not named.is_dir():
+        raise CaptureError(pj, f"names {target!r}, but {named} is not a folder", "target_dir")
+    if resolution is None or not named.name.isdigit():
+        return named, int(named.name) if named.name.isdigit() else None
+    return _resolution_folder(named.parent, resolution)
+
+
+def _load_svbrdf(folder: Path, resolution, max_photos, file: str = "parameters.json") -> Capture:
+    """The svbrdf-diff-renderer layouts: ``parameters.json`` (``image_size``,
+    ``images_dir``/reference/<N>) and, since 2024, ``optim.json`` (``im_size``,
+    ``target_dir`` naming the photo folder itself)."""
+    pj = folder / file
     data = _read_json(pj)
-    side = _positive(_get(data, "image_size", pj), pj, "image_size")
+    newer = file == "optim.json"
+    size_key = "im_size" if newer else "image_size"
+    side = _positive(_get(data, size_key, pj), pj, size_key)
     cams = _vectors(_get(data, "camera_pos", pj), pj, "camera_pos")
     lights = _vectors(_get(data, "light_pos", pj), pj, "light_pos")
     if len(cams) != len(lights):
@@ -237,22 +260,30 @@ def _load_svbrdf(folder: Path, resolution, max_photos) -> Capture:
             "idx",
         )
     idx = idx[:max_photos] if max_photos else idx
-    images_dir = folder / str(data.get("images_dir", "images"))
-    res_dir, n = _resolution_folder(images_dir / "reference", resolution)
+    if newer:
+        target = _get(data, "target_dir", pj)
+        if not isinstance(target, str) or not target:
+            raise CaptureError(pj, f"expected a folder name, got {target!r}", "target_dir")
+        res_dir, n = _target_folder(folder, pj, target, resolution)
+        listed = "target_dir"
+    else:
+        images_dir = folder / str(data.get("images_dir", "images"))
+        res_dir, n = _resolution_folder(images_dir / "reference", resolution)
+        listed = "idx"
     files = []
     for i in idx:
         cands = [res_dir / f"{i:02d}.png", res_dir / f"{i}.png"]
         f = next((c for c in cands if c.is_file()), None)
         if f is None:
             raise CaptureError(
-                pj, f"photo {int(i)} listed in idx: {cands[0]} does not exist", "idx"
+                pj, f"photo {int(i)} listed in idx: {cands[0]} does not exist", listed
             )
         files.append(f)
     gamma = _positive(data.get("gamma", 2.2), pj, "gamma")
     photos = Photos(files, f"gamma{gamma!r}", pj)
     c = photos.images.shape[-1]
     power = _light_power(_get(data, "light_pow", pj), len(cams), idx, c, pj, "light_pow")
-    meta = {"idx": [int(i) for i in idx], "resolution_folder": n}
+    meta = {"idx": [int(i) for i in idx], "resolution_folder": n, "parameters_file": file}
     return _finish(
         photos,
         files,
@@ -429,7 +460,7 @@ def _detect(path: Path) -> tuple[str, Path]:
         name = path.name.lower()
         if name == "capture.json":
             return "generic", path
-        if name == "parameters.json":
+        if name in ("parameters.json", "optim.json"):
             return "svbrdf-diff-renderer", path.parent
         if name in _MG_FILES:
             return "materialgan", path.parent
@@ -438,7 +469,7 @@ def _detect(path: Path) -> tuple[str, Path]:
         raise CaptureError(path, "no such file or folder")
     if (path / "capture.json").is_file():
         return "generic", path / "capture.json"
-    if (path / "parameters.json").is_file():
+    if (path / "parameters.json").is_file() or (path / "optim.json").is_file():
         return "svbrdf-diff-renderer", path
     if (path / "camera_pos.txt").is_file():
         return "materialgan", path
@@ -479,12 +510,14 @@ def load_capture(
             where = path.parent
     if max_photos is not None and max_photos < 1:
         raise ValueError(f"max_photos must be >= 1, got {max_photos}")
-    loader = {
-        "generic": _load_generic,
-        "svbrdf-diff-renderer": _load_svbrdf,
-        "materialgan": _load_materialgan,
-    }[layout]
-    cap = loader(where, resolution, max_photos)
+    if layout == "svbrdf-diff-renderer":
+        newer = not (where / "parameters.json").is_file() and (where / "optim.json").is_file()
+        cap = _load_svbrdf(
+            where, resolution, max_photos, "optim.json" if newer else "parameters.json"
+        )
+    else:
+        loader = {"generic": _load_generic, "materialgan": _load_materialgan}[layout]
+        cap = loader(where, resolution, max_photos)
     w = cap.shape[2]
     if resolution is not None and resolution != w:
         if resolution < 1 or w % resolution or cap.shape[1] % (w // resolution):
