@@ -9,8 +9,10 @@ from ._base import Param as Param
 from ._base import Params as Params
 from ._convert import alpha_to_phong_exponent as alpha_to_phong_exponent
 from ._convert import alpha_to_roughness as alpha_to_roughness
+from ._convert import metallic_to_specular as metallic_to_specular
 from ._convert import phong_exponent_to_alpha as phong_exponent_to_alpha
 from ._convert import roughness_to_alpha as roughness_to_alpha
+from ._convert import specular_to_metallic as specular_to_metallic
 from ._cook_torrance import CookTorrance as CookTorrance
 from ._diagnostics import directional_albedo as directional_albedo
 from ._diagnostics import furnace_test as furnace_test

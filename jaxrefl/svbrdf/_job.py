@@ -39,6 +39,7 @@ from jaxrefl.fit import Status
 
 from ._data import pixel_block, resolvable_alpha
 from ._models import TWO_STAGE, capture_model
+from ._pooled import PoolChoice, choose_pooled
 
 __all__ = ["CaptureFit", "FitJob", "fit_capture"]
 
@@ -119,9 +120,20 @@ class CaptureFit:
     tiles_loaded: int = 0
     extra: dict[str, Any] = field(default_factory=dict)
 
+    def model(self) -> tuple[brdf.BRDF, Any]:
+        """(model, parameter space) the pixels were fitted with (for ``pooled``: the choice
+        and shared alpha of ``extra["pooled"]``)."""
+        pooled = self.extra.get("pooled")
+        return capture_model(
+            self.job.model,
+            channels=self._channels,
+            alpha_min=self.extra.get("alpha_min"),
+            alpha=None if pooled is None else pooled.alpha,
+        )
+
     def params(self) -> dict[str, np.ndarray]:
         """Natural parameters as (H, W, ...) arrays for ``model.eval``."""
-        _model, space = capture_model(self.job.model, channels=self._channels)
+        _model, space = self.model()
         h, w = self.maps["status"].shape
         t = jnp.asarray(np.nan_to_num(self.theta), dtype=self.job.dtype)
         nat = space.to_natural(t)
@@ -178,16 +190,42 @@ class _TileFitter:
         self.train = np.ones(k, bool)
         self.train[list(job.holdout)] = False
         self.alpha_min = resolvable_alpha(capture) if job.alpha_min is None else job.alpha_min
+        self.pooled: PoolChoice | None = None
+        if job.model == "pooled":
+            self.pooled = choose_pooled(capture, self.train, self.alpha_min, dtype=job.dtype)
         self.model, self.space = capture_model(
-            job.model, channels=capture.shape[-1], alpha_min=self.alpha_min
+            job.model,
+            channels=capture.shape[-1],
+            alpha_min=self.alpha_min,
+            alpha=None if self.pooled is None else self.pooled.alpha,
         )
         self.noise: fit.NoiseModel
         if job.noise == "shot":
             self.noise = fit.ShotNoise(read=job.read, gain=job.gain)
         else:
             self.noise = fit.GaussianNoise(sigma=job.sigma)
+        self.prior = None
+        self.known_noise = None  # noise variance the Laplace step takes as known
+        if self.pooled is not None and self.pooled.alpha is not None:
+            # The F0 prior is in noise units: the noise scale is the selection's estimate
+            # unless the job gives one (a prior's scale is tied to the noise scale).
+            if isinstance(self.noise, fit.GaussianNoise) and self.noise.sigma is None:
+                self.noise = fit.GaussianNoise(sigma=self.pooled.sigma)
+                self.known_noise = float(self.pooled.sigma) ** 2
+            chans = [
+                lab.split(".", 1)[1] for lab in self.space.labels if lab.startswith("specular.")
+            ]
+            self.prior = fit.gaussian_prior(
+                self.space,
+                {
+                    f"specular.{ch}": (mu, sd)
+                    for ch, mu, sd in zip(
+                        chans, self.pooled.prior_mean, self.pooled.prior_std, strict=True
+                    )
+                },
+            )
         self.loss = _LOSS[job.loss]()
-        self.residual = fit.make_residual(self.model, self.space, self.noise, self.loss)
+        self.residual = fit.make_residual(self.model, self.space, self.noise, self.loss, self.prior)
         self.dtype = jnp.dtype(job.dtype)
         self.first = None  # (model, space) of the first stage of a two-stage model
         if job.model in TWO_STAGE:
@@ -245,9 +283,9 @@ class _TileFitter:
             backend=self.job.backend,
             max_iters=self.job.max_iters,
         )
-        res, noise_var = self.residual, None
+        res, noise_var = self.residual, self.known_noise
         if self.first is None:
-            r = fit.fit_pixels(self.model, fit_data, space=self.space, **kw)  # type: ignore[arg-type]
+            r = fit.fit_pixels(self.model, fit_data, space=self.space, prior=self.prior, **kw)  # type: ignore[arg-type]
         else:
             r, res, noise_var = self._two_stage(fit_data, kw)
         # A prior's scale is tied to the noise scale: that one is then known, not re-estimated.
@@ -450,7 +488,13 @@ def fit_capture(
         job=job,
         tiles_computed=len(todo),
         tiles_loaded=loaded,
-        extra={"channels": c, "sse": cat["sse"], "cnt": cat["cnt"], "alpha_min": fitter.alpha_min},
+        extra={
+            "channels": c,
+            "sse": cat["sse"],
+            "cnt": cat["cnt"],
+            "alpha_min": fitter.alpha_min,
+            "pooled": fitter.pooled,
+        },
     )
 
 
@@ -479,6 +523,22 @@ def _maps(fitter: _TileFitter, cat, h: int, w: int) -> dict[str, np.ndarray]:
         maps["roughness"] = root
         # d sqrt(alpha) / d alpha = 1 / (2 sqrt(alpha)): the delta method, as for every map.
         maps["roughness.std"] = cat["std"][:, j] / np.where(root > 0, 2.0 * root, np.nan)
+    if fitter.pooled is not None and fitter.pooled.alpha is not None:
+        # The shared width: one value, the same map everywhere a pixel has an estimate.
+        a = np.where(ok, fitter.pooled.alpha, np.nan)
+        maps["alpha"] = a
+        maps["roughness"] = np.sqrt(a)
+    spec = [j for j, lab in enumerate(labels) if lab.startswith("specular.")]
+    alb = [j for j, lab in enumerate(labels) if lab.startswith("albedo.")]
+    if len(spec) > 1 and len(spec) == len(alb):
+        # The metallic-roughness view of a coloured specular (glTF 2.0; brdf._convert).
+        base, metal = brdf.specular_to_metallic(
+            jnp.asarray(np.nan_to_num(nat[:, alb])), jnp.asarray(np.nan_to_num(nat[:, spec]))
+        )
+        base = np.where(ok[:, None], np.asarray(base), np.nan)
+        for j, lab in zip(range(base.shape[1]), [labels[i] for i in alb], strict=True):
+            maps["base_color." + lab.split(".", 1)[1]] = base[:, j]
+        maps["metallic"] = np.where(ok, np.asarray(metal), np.nan)
     if "tilt_x" in labels:
         tx, ty = nat[:, labels.index("tilt_x")], nat[:, labels.index("tilt_y")]
         n = np.asarray(brdf.tilt_normal(jnp.asarray(tx), jnp.asarray(ty)))
@@ -526,6 +586,7 @@ def _report(fitter, cat, capture, job, maps, compile_s, times, n_tiles, loaded) 
             )
         },
         "alpha_min": fitter.alpha_min if "alpha" in fitter.space.labels else None,
+        "pooled": None if fitter.pooled is None else fitter.pooled.as_dict(),
         "job": asdict(job),
         "capture": {
             "layout": capture.layout,

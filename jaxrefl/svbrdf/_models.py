@@ -15,6 +15,10 @@ name            model (``jaxrefl.brdf``) and free parameters per pixel
                 add ``normal.X/Y/Z``): 7 parameters. Fitted in two stages: ``ggx`` from
                 the automatic start, then all 7 from that optimum with the tilt at 0
                 (:data:`TWO_STAGE`).
+``pooled``      ``ggx_rgb`` with one GGX ``alpha`` shared by every pixel, chosen with Lambert
+                as the alternative by leave-one-photo-out over the training photos, and an
+                empirical-Bayes prior on F0 (:mod:`jaxrefl.svbrdf._pooled`): 6 parameters
+                per pixel. What the photos identify for a real capture.
 ``lambert``     Lambertian ``albedo`` (RGB) only: the diffuse-only baseline
 =============  ============================================================================
 """
@@ -40,6 +44,7 @@ CAPTURE_MODELS: dict[str, str] = {
     "beckmann": "Cook-Torrance Beckmann + Lambert, grey specular F0",
     "ggx_rgb": "Cook-Torrance GGX + Lambert, coloured specular F0",
     "ggx_normal": "ggx with a per-pixel normal perturbation (tilt_x, tilt_y slopes)",
+    "pooled": "ggx_rgb with one alpha for the capture, chosen by held-out photos, F0 pooled",
     "lambert": "Lambertian albedo only (diffuse baseline)",
 }
 # Models fitted from another model's optimum (name -> the first stage's model). The
@@ -49,10 +54,16 @@ TWO_STAGE: dict[str, str] = {"ggx_normal": "ggx"}
 
 
 def capture_model(
-    name: str, channels: int = 3, alpha_min: float | None = None
+    name: str, channels: int = 3, alpha_min: float | None = None, alpha: float | None = None
 ) -> tuple[brdf.BRDF, ParamSpace]:
     """(model, parameter space) of a capture model named in :data:`CAPTURE_MODELS`;
-    ``alpha_min`` raises the lower bound of alpha (default 1e-3)."""
+    ``alpha_min`` raises the lower bound of alpha (default 1e-3); ``alpha``: the shared
+    width of ``pooled`` (required there; None with ``pooled`` gives its Lambert choice)."""
+    if name == "pooled":
+        if alpha is None:
+            return capture_model("lambert", channels)
+        m, _ = capture_model("ggx_rgb", channels)
+        return m, ParamSpace(m, channels=channels, fixed={"alpha": float(alpha)})
     lo = ALPHA_RANGE[0] if alpha_min is None else max(ALPHA_RANGE[0], float(alpha_min))
     alpha_range = (lo, ALPHA_RANGE[1])
     if name == "lambert":

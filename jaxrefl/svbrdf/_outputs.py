@@ -14,7 +14,6 @@ the capture's gamma, for up to three photos, held-out ones first).
 
 from __future__ import annotations
 
-import json
 import os
 from dataclasses import replace
 from pathlib import Path
@@ -24,10 +23,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxrefl import fit
+from jaxrefl._jsonsafe import report_json
 
 from ._data import pixel_block
 from ._job import CaptureFit, status_meanings
-from ._models import CAPTURE_MODELS, capture_model
+from ._models import CAPTURE_MODELS
 
 __all__ = ["predict_photos", "write_outputs"]
 
@@ -77,9 +77,7 @@ def predict_photos(result: CaptureFit, capture, photos, step: int = 1) -> tuple[
     """(photographed, fitted) linear radiance (len(photos), H/step, W/step, C)."""
     sub = _strided(capture.select(list(photos)), step)
     k, h, w, c = sub.shape
-    model, space = capture_model(
-        result.job.model, channels=c, alpha_min=result.extra.get("alpha_min")
-    )
+    model, space = result.model()
     theta = result.theta.reshape(*result.maps["status"].shape, -1)[::step, ::step]
     theta = theta.reshape(h * w, -1)
     ok = np.all(np.isfinite(theta), axis=-1)
@@ -176,7 +174,7 @@ def write_outputs(result: CaptureFit, capture, out_dir: str | Path, previews: bo
         files["previews"] = [str(p) for p in write_previews(result, capture, out)]
     report = dict(result.report)
     report["files"] = files
-    _atomic_text(out / "report.json", json.dumps(report, indent=2, default=_json_default))
+    _atomic_text(out / "report.json", report_json(report, default=_json_default))
     files["report"] = str(out / "report.json")
     return files
 
