@@ -87,9 +87,10 @@ def specular_to_metallic(
     specular-glossiness to metallic-roughness converter: with d = Y(albedo) / (1 - F0_d) and
     s = Y(F0), metallic m and the base luminance b solve b (1 - m) = d and
     F0_d (1 - m) + b m = s; eliminating b gives F0_d m^2 + (d + s - 2 F0_d) m + F0_d - s = 0,
-    whose root in [0, 1] is taken (0 where s <= F0_d: a dielectric). The base colour per channel is then the
-    least-squares blend of the two ways to read it: albedo / ((1 - F0_d)(1 - m)) and
-    (F0 - F0_d (1 - m)) / m, weighted by (1 - m)^2 and m^2, clipped to [0, 1]. A pair made
+    whose root in [0, 1] is taken (0 where s <= F0_d: a dielectric). The base colour per
+    channel is then the least-squares blend of the two ways to read it:
+    albedo / ((1 - F0_d)(1 - m)) and (F0 - F0_d (1 - m)) / m, weighted by (1 - m)^2 and m^2,
+    clipped to [0, 1]. A pair made
     by :func:`metallic_to_specular` comes back exactly (up to round-off); a pair that no
     metallic-roughness material makes (a coloured F0 and an unrelated albedo) comes back
     as its nearest such material in that least-squares sense.

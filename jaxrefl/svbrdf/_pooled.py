@@ -104,7 +104,7 @@ class PoolChoice:
 
 def _lobe_basis(alpha, data):
     """(N, K, C) radiance of a unit-F0 lobe (Fresnel factor 1) for every observation."""
-    n, k, c = data.obs.shape
+    n, k, _c = data.obs.shape
     one = jnp.ones((n, k, 1), data.obs.dtype)
     a = jnp.full((n, k), alpha, data.obs.dtype)
     wo = data.wi if data.colocated else data.wo
