@@ -318,6 +318,24 @@ def test_laplace_reuses_the_fits_curvature_with_censored_and_masked_pixels():
     np.testing.assert_allclose(a[0], 0.5 * b[0], rtol=1e-6)
 
 
+def test_laplace_of_a_numerically_singular_jtj_does_not_follow_a_rounding_pivot():
+    """Two J^T J equal but for one unit in the last place: singular, so the last Cholesky
+    pivot is 0 in one and 2^-52 in the other. Neither is inverted; both get the same flag and
+    NaN stds (a layout that rounds differently gets the same answer; see ``_laplace``).
+    (The shapes of test_laplace_of_masked_pixels_is_nan_and_flagged: one compiled fit.)"""
+    model, space, data, _ = _synthetic_pixels(2, 16, 0.01, seed=1, dtype=jnp.float64)
+    r = fit.fit_pixels(model, data, space=space)
+    singular = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 1.0], [0.0, 1.0, 1.0]])
+    jtj = np.stack([singular, singular])
+    jtj[1, 2, 2] += 2.0**-52  # a positive last pivot: the factorisation would succeed
+    lin = replace(r.linearisation, jtj=jnp.asarray(jtj))
+    lap = fit.laplace(replace(r, linearisation=lin), data)
+    flag = np.asarray(lap.flag) & ~fit.LaplaceFlag.AT_BOUND
+    assert flag.tolist() == [fit.LaplaceFlag.NOT_IDENTIFIED] * 2, flag
+    assert np.all(np.isnan(np.asarray(lap.std))) and np.all(np.isnan(np.asarray(lap.corr)))
+    assert not np.any(np.asarray(lap.identified))
+
+
 def replace_weight(data, w):
     import equinox as eqx
 

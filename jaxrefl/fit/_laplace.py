@@ -23,8 +23,9 @@ Reliability flags (bits of ``flag``; 0 = the Gaussian approximation is trusted):
 
 =========================  ====  =====================================================
 ``NO_ESTIMATE``              1    the fit gave no estimate (MASKED / NONFINITE_INPUT)
-``NOT_POSITIVE_DEFINITE``    2    J^T J has a non-positive pivot or a non-finite entry:
-                                  no covariance (std NaN)
+``NOT_POSITIVE_DEFINITE``    2    J^T J has a non-finite entry, or a non-positive pivot
+                                  although it passed the condition test: no covariance
+                                  (std NaN)
 ``AT_BOUND``                 4    a parameter sits at a bound: the posterior is cut
                                   off there, a Gaussian is the wrong shape
 ``NOT_IDENTIFIED``           8    some parameter's theta-space std exceeds
@@ -32,9 +33,21 @@ Reliability flags (bits of ``flag``; 0 = the Gaussian approximation is trusted):
                                   down within a factor e of a log-scale parameter, or
                                   within ~one logit unit of an albedo; e.g. roughness where
                                   no highlight was observed), the equilibrated condition
-                                  number of J^T J exceeds ``cond_max``, or n <= P
+                                  number of J^T J exceeds ``cond_max`` (then J^T J is not
+                                  inverted: std NaN), or n <= P
 ``NONFINITE``               16    a std or correlation is not finite
 =========================  ====  =====================================================
+
+A numerically singular J^T J (equilibrated condition number above ``cond_max``, the test
+behind the fit's ``ILL_CONDITIONED``; a zero column included) is never inverted. J^T J is a
+Gram matrix, positive semi-definite; when it is singular to the working precision, whether
+its Cholesky factorisation meets a pivot of +1e-17 or -1e-17, and what an inverse built on
+such a pivot holds (stds of 1e15), is rounding noise, and rounding differs with the batch
+shape XLA compiles for (``_shard``). The condition test decides at ``cond_max`` (1e10 in
+float64), far below the rounding floor 1/eps ~ 4.5e15: rounding moves a condition number of
+1e10 by ~1e-6 relative, so flags and the NaN pattern agree between device layouts except for
+a pixel within that sliver of the threshold. (In float32 the default 1e7 is at the floor,
+1/eps ~ 8.4e6: there the flags of nearly singular pixels can follow the layout.)
 
 Cost: the solver's last linearisation (J^T J and the active row count at theta,
 :class:`~jaxrefl.fit.Linearisation`) is reused, so a pixel costs P x P algebra only: an
@@ -148,8 +161,14 @@ def _pixel(space, theta, jtj, active, cost, estimate: bool, unroll_max: int, con
         l_safe = jnp.where(pd, l_fac, eye)
         inv_a = jax.scipy.linalg.cho_solve((l_safe, True), eye)
     pd = pd & jnp.all(jnp.isfinite(jtj)) & jnp.all(d > 0) & jnp.all(jnp.isfinite(inv_a))
+    # The condition test (eigensolver-free, _status) decides whether J^T J is inverted: the
+    # factorisation and inverse of a numerically singular one are rounding noise (module
+    # docstring).
+    finite = jnp.all(jnp.isfinite(jtj))
+    ill = finite & ill_conditioned(jnp.where(finite, jtj, 0.0), cond_max)
+    formed = pd & ~ill
     cov_t = s2 * inv_a * scale[:, None] * scale[None, :]
-    cov_t = jnp.where(pd, cov_t, jnp.nan)
+    cov_t = jnp.where(formed, cov_t, jnp.nan)
     amat = space.jacobian_natural(t)  # (P, P): dx/dtheta
     cov_x = amat @ cov_t @ amat.T
     std_t = jnp.sqrt(jnp.maximum(jnp.diagonal(cov_t), 0.0))
@@ -157,10 +176,8 @@ def _pixel(space, theta, jtj, active, cost, estimate: bool, unroll_max: int, con
     # Safe division: a zero std (a parameter pinned exactly) gives correlation 0, not NaN.
     denom = std_x[:, None] * std_x[None, :]
     corr = jnp.where(denom > 0, cov_x / jnp.where(denom > 0, denom, 1.0), 0.0)
-    corr = jnp.where(pd, corr, jnp.nan)
-    # Only the flag needs the condition number: the eigensolver-free test (_status).
-    ill = ill_conditioned(jnp.where(jnp.isfinite(jtj), jtj, 0.0), cond_max)
-    return std_x, corr, cov_x, std_t, s2, pd, ill, dof, ok
+    corr = jnp.where(formed, corr, jnp.nan)
+    return std_x, corr, cov_x, std_t, s2, formed, ill, dof, ok
 
 
 @eqx.filter_jit
@@ -176,18 +193,18 @@ def _laplace_jit(space, res, theta, lin, cost, status, estimate, max_theta_std, 
     def one(t, j, a, c):
         return _pixel(space, t, j, a, c, estimate, unroll, cond_max)
 
-    std, corr, cov, std_t, s2, pd, ill, dof, ok = jax.vmap(one)(theta, jtj, active, cost)
+    std, corr, cov, std_t, s2, formed, ill, dof, ok = jax.vmap(one)(theta, jtj, active, cost)
     at_bound = jnp.any(space.at_bound(jnp.where(ok[:, None], theta, 0.0)), axis=-1)
     identified = std_t <= max_theta_std
     none = (status >= Status.MASKED) | ~ok
     flag = jnp.zeros(theta.shape[:1], jnp.int32)
     flag = flag | jnp.where(none, LaplaceFlag.NO_ESTIMATE, 0)
-    flag = flag | jnp.where(~pd & ~none, LaplaceFlag.NOT_POSITIVE_DEFINITE, 0)
+    flag = flag | jnp.where(~formed & ~ill & ~none, LaplaceFlag.NOT_POSITIVE_DEFINITE, 0)
     flag = flag | jnp.where(at_bound & ~none, LaplaceFlag.AT_BOUND, 0)
-    not_id = (~jnp.all(identified, axis=-1) | ill | (dof <= 0)) & pd & ~none
+    not_id = (ill | (formed & (~jnp.all(identified, axis=-1) | (dof <= 0)))) & ~none
     flag = flag | jnp.where(not_id, LaplaceFlag.NOT_IDENTIFIED, 0)
     finite = jnp.all(jnp.isfinite(std), axis=-1) & jnp.all(jnp.isfinite(corr), axis=(-2, -1))
-    flag = flag | jnp.where(~finite & pd & ~none, LaplaceFlag.NONFINITE, 0)
+    flag = flag | jnp.where(~finite & formed & ~none, LaplaceFlag.NONFINITE, 0)
     nan = jnp.nan
     std = jnp.where(none[:, None], nan, std)
     std_t = jnp.where(none[:, None], nan, std_t)

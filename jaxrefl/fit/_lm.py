@@ -30,7 +30,8 @@ Design decisions, from measurements (``MEASUREMENTS.md``):
   lam0 = 1e-3 ends worse twice as often as better.
 * The number of iterations is fixed (``lax.scan``, no ``while_loop`` under ``vmap``, which
   would run every pixel until the slowest stops). Converged pixels are frozen (their state
-  stops changing), so results do not depend on the batch they are in. ``batched_lm`` then
+  stops changing), so a pixel takes the same steps whatever batch it is in (up to the
+  rounding of XLA's compilation for the batch shape; see ``_shard``). ``batched_lm`` then
   saves the work of frozen pixels by compacting the unconverged ones (see there).
 * The step cap (``max_step`` = 4 in theta units) keeps a long Gauss-Newton step from
   throwing a sigmoid or exp parameter into its flat tail, where the solver would stall.

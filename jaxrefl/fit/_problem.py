@@ -195,8 +195,8 @@ def fit_pixels(
     max_iters: iteration budget (lean default 40, libraries 256)
     dtype:    computation dtype (default: that of ``data.obs``); float32 is the fast one
     prior:    a :class:`GaussianPrior` on natural parameters (MAP fit; see ``_residual``)
-    devices:  how many of JAX's devices share the pixels (default all; see ``_shard``);
-              results do not depend on it
+    devices:  how many of JAX's devices share the pixels (default all); results agree up
+              to rounding (``_shard`` says how far)
     """
     if data.obs.ndim != 3:
         raise ValueError(f"fit_pixels expects data of shape (N, K, C); got {data.obs.shape}")
