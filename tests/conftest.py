@@ -8,10 +8,14 @@
   the cache compiles each once. It is set through the environment so subprocesses inherit it.
 * ``shared_data`` locates ``../shared/data`` through ``JAXREFL_SHARED_DATA``. In CI
   (``CI`` set, as ``.ci/run`` does) a missing data folder is a failure, never a skip.
+* Every ``report.json`` a test leaves under its ``tmp_path`` must parse as strict JSON (no
+  ``NaN`` or ``Infinity`` tokens; ``jaxrefl._jsonsafe``): checked after the test, an error of
+  that test otherwise. ``strict_json`` is the parser.
 """
 
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
 
@@ -71,3 +75,30 @@ def shared_data() -> Path:
             pytest.fail(msg)
         pytest.skip(msg)
     return d
+
+
+def strict_json_loads(text: str):
+    """``json.loads`` that refuses the non-standard tokens NaN, Infinity and -Infinity."""
+
+    def refuse(token: str):
+        raise ValueError(f"non-standard token {token}")
+
+    return json.loads(text, parse_constant=refuse)
+
+
+@pytest.fixture
+def strict_json():
+    return strict_json_loads
+
+
+@pytest.fixture(autouse=True)
+def _reports_are_strict_json(request):
+    yield
+    tmp = getattr(request.node, "funcargs", {}).get("tmp_path")
+    if tmp is None:
+        return
+    for path in sorted(Path(tmp).rglob("report.json")):
+        try:
+            strict_json_loads(path.read_text())
+        except ValueError as e:
+            pytest.fail(f"{path} is not strict JSON ({e})", pytrace=False)

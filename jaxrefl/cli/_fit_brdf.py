@@ -18,7 +18,6 @@ against fitted f_r cos(theta_o) in the plane of incidence at several incidence a
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 HELP = "fit analytic models to a measured BRDF (Cornell, CURET, MERL)"
@@ -85,6 +84,7 @@ def _model_names(raw: list[str] | None) -> list[str] | None:
 
 def run(args: argparse.Namespace) -> int:
     from jaxrefl import measured as jm
+    from jaxrefl._jsonsafe import report_json
 
     names = _model_names(args.models)
     m = jm.load_measured(
@@ -110,7 +110,7 @@ def run(args: argparse.Namespace) -> int:
     )
     args.out.mkdir(parents=True, exist_ok=True)
     report_path = args.out / "report.json"
-    report_path.write_text(json.dumps(report.to_dict(), indent=2, allow_nan=True) + "\n")
+    report_path.write_text(report_json(report.to_dict()))
     print(report.table())
     print(f"best (cosine-weighted L2): {report.best()}")
     print(f"wrote {report_path}")

@@ -29,7 +29,6 @@ Writes OUT_DIR/posterior.nc, OUT_DIR/corner.png and OUT_DIR/report.json.
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 from typing import Any
@@ -80,8 +79,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _json(path: Path, obj: Any) -> None:
+    from jaxrefl._jsonsafe import report_json
+
     tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(obj, indent=2, default=_default))
+    tmp.write_text(report_json(obj, default=_default))
     tmp.replace(path)
 
 

@@ -25,13 +25,13 @@ report gives their angle to the capture's own lights.
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from pathlib import Path
 
 import numpy as np
 
+from jaxrefl._jsonsafe import report_json
 from jaxrefl.fit import Status, describe
 
 from ._brdf import brdf_method
@@ -190,5 +190,5 @@ def run_ps(
     timings["write_s"] = time.perf_counter() - t
     timings["total_s"] = time.perf_counter() - t0
     report["timings"] = timings
-    (out / "report.json").write_text(json.dumps(report, indent=2) + "\n")
+    (out / "report.json").write_text(report_json(report))
     return report
