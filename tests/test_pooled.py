@@ -15,7 +15,7 @@ import pytest
 from jaxrefl import brdf
 from jaxrefl.demo import demo_scene
 from jaxrefl.io._capture import Capture
-from jaxrefl.svbrdf import FitJob, fit_capture
+from jaxrefl.svbrdf import FitJob, fit_capture, leave_one_out
 from jaxrefl.svbrdf._pooled import choose_pooled
 
 ALPHA = 0.03
@@ -121,3 +121,73 @@ def test_metallic_view_round_trip():
     # A dielectric's grey F0 at 0.04 or below reads as metallic 0.
     _, m = brdf.specular_to_metallic(np.full((1, 3), 0.5), np.full((1, 3), 0.03))
     assert float(m[0]) == 0.0
+
+
+def test_leave_one_out_reuses_one_compile(shared_lobe_capture, tmp_path):
+    import jax
+
+    cap, _ = shared_lobe_capture
+    cap = cap.select([0, 1, 2, 3, 4, 5])
+    compiles: list[tuple[int, str]] = []
+    fold = {"i": -1}
+
+    def listener(event, duration, **kw):
+        if event == "/jax/core/compile/backend_compile_duration":
+            compiles.append((fold["i"], event))
+
+    def progress(line):
+        fold["i"] += 1
+
+    jax.monitoring.register_event_duration_secs_listener(listener)
+    try:
+        loo = leave_one_out(cap, FitJob(model="pooled", alpha_min=1e-3), progress=progress)
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listener)
+    k = cap.n_photos
+    # Folds 1..K-1 of the model and 1..K-1 of the baseline compile nothing: progress is
+    # called after each fold, so events tagged i were compiled during fold i + 1.
+    model_later = [c for c in compiles if 0 <= c[0] < k - 1]
+    base_later = [c for c in compiles if k <= c[0] < 2 * k - 1]
+    assert compiles and not model_later and not base_later
+    assert np.all(np.isfinite(loo.per_photo)) and np.all(np.isfinite(loo.baseline_per_photo))
+    # The shared lobe predicts every unseen photo far better than Lambert.
+    assert np.all(loo.per_photo < 0.5 * loo.baseline_per_photo)
+    r = loo.report
+    assert r["heldout_rmse"] == pytest.approx(np.mean(loo.per_photo))
+    assert r["lambert_heldout_rmse"] == pytest.approx(np.mean(loo.baseline_per_photo))
+    assert set(r["heldout_rmse_per_photo"]) == {str(i) for i in range(k)}
+    assert r["heldout_pixel_rmse_p99"] <= r["lambert_heldout_pixel_rmse_p99"]
+    assert r["photos_worse_than_baseline"] == []
+    assert len(r["pooled_per_fold"]) == k
+
+
+def test_cli_holdout_all(shared_lobe_capture, tmp_path):
+    import json
+
+    from jaxrefl.cli import main
+    from jaxrefl.io import save_generic_capture
+
+    cap, _ = shared_lobe_capture
+    cap = cap.select([0, 1, 2, 3])
+    folder = save_generic_capture(
+        tmp_path / "cap",
+        cap.images,
+        side=cap.side,
+        light_pos=cap.light_pos,
+        light_power=cap.light_power[0],
+        camera_pos=cap.camera_pos,
+    ).parent
+    out = tmp_path / "out"
+    argv = ["fit", str(folder), "--out", str(out), "--model", "pooled", "--holdout", "all"]
+    assert main([*argv, "--quiet", "--no-previews", "--alpha-min", "0.001"]) == 0
+
+    def refuse(name):
+        raise ValueError(f"non-finite number {name} in report.json")
+
+    report = json.loads((out / "report.json").read_text(), parse_constant=refuse)
+    assert report["holdout"] == "all" and report["baseline"] == "lambert"
+    for key in ("heldout_rmse", "lambert_heldout_rmse", "heldout_pixel_rmse_p99"):
+        assert isinstance(report[key], float)
+    assert len(report["heldout_rmse_per_photo"]) == 4
+    assert report["heldout_rmse"] < report["lambert_heldout_rmse"]
+    assert report["pooled"]["model"] == "lobe"

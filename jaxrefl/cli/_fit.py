@@ -19,12 +19,14 @@ from pathlib import Path
 HELP = "fit a capture: per-pixel maps, uncertainty, held-out error"
 
 
-def _indices(text: str) -> tuple[int, ...]:
+def _indices(text: str) -> tuple[int, ...] | str:
+    if text.strip().lower() == "all":
+        return "all"
     try:
         return tuple(int(t) for t in text.split(",") if t.strip())
     except ValueError:
         raise argparse.ArgumentTypeError(
-            f"--holdout takes photo indices separated by commas (e.g. 0,4), not {text!r}"
+            f"--holdout takes photo indices separated by commas (e.g. 0,4) or 'all', not {text!r}"
         ) from None
 
 
@@ -34,7 +36,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("capture", type=Path, help="capture folder (or generic JSON file)")
     p.add_argument("--out", type=Path, required=True, help="output folder")
     p.add_argument("--model", default="ggx", choices=sorted(CAPTURE_MODELS), help="model")
-    p.add_argument("--holdout", type=_indices, default=(), help="photos to leave out, e.g. 0,4")
+    p.add_argument(
+        "--holdout",
+        type=_indices,
+        default=(),
+        help="photos to leave out, e.g. 0,4; 'all': leave-one-out over every photo against "
+        "Lambert, then the maps from all photos",
+    )
     p.add_argument("--tile-pixels", type=int, default=4096, help="pixels per tile")
     p.add_argument("--resolution", type=int, default=None, help="image folder to read")
     p.add_argument("--downsample", type=int, default=1, help="box-filter factor before fitting")
@@ -71,9 +79,10 @@ def run(args: argparse.Namespace) -> int:
     capture = load_capture(args.capture, resolution=args.resolution, max_photos=args.max_photos)
     if args.downsample > 1:
         capture = capture.downsample(args.downsample)
+    loo_all = args.holdout == "all"
     job = FitJob(
         model=args.model,
-        holdout=args.holdout,
+        holdout=() if loo_all else args.holdout,
         tile_pixels=args.tile_pixels,
         backend=args.backend,
         dtype=args.dtype,
@@ -83,7 +92,14 @@ def run(args: argparse.Namespace) -> int:
         tilt_std=args.tilt_std,
     )
     print(f"{capture}")
+    loo = None
+    if loo_all:
+        from jaxrefl.svbrdf import leave_one_out
+
+        loo = leave_one_out(capture, job, progress=None if args.quiet else print)
     result = fit_capture(capture, job, args.out, restart=args.restart, progress=not args.quiet)
+    if loo is not None:
+        result.report.update(loo.report)
     files = write_outputs(result, capture, args.out, previews=not args.no_previews)
     print_summary(result.report)
     print(
@@ -107,8 +123,23 @@ def print_summary(report: dict) -> None:
     if report.get("train_rmse") is not None:
         print(f"fit RMSE (linear radiance, fitted photos): {report['train_rmse']:.5f}")
     if "heldout_rmse" in report and report["heldout_rmse"] is not None:
-        per = ", ".join(f"{k}: {v:.5f}" for k, v in report["heldout_rmse_per_photo"].items())
+        per = ", ".join(
+            f"{k}: " + ("-" if v is None else f"{v:.5f}")
+            for k, v in report["heldout_rmse_per_photo"].items()
+        )
         print(f"held-out RMSE: {report['heldout_rmse']:.5f} ({per})")
         med, p99 = report.get("heldout_pixel_rmse_median"), report.get("heldout_pixel_rmse_p99")
         if med is not None:
             print(f"held-out RMSE per pixel: median {med:.5f}, 99th percentile {p99:.5f}")
+        base = report.get("baseline")
+        if base and report.get(f"{base}_heldout_rmse") is not None:
+            b_p99 = report.get(f"{base}_heldout_pixel_rmse_p99")
+            print(
+                f"{base} (same photos held out): {report[f'{base}_heldout_rmse']:.5f}, "
+                f"per-pixel 99th percentile {b_p99:.5f}; photos predicted worse than "
+                f"{base}: {report['photos_worse_than_baseline'] or 'none'}"
+            )
+    if report.get("pooled"):
+        pc = report["pooled"]
+        alpha = f" (alpha {pc['alpha']:.4f})" if pc["alpha"] else ""
+        print(f"pooled: chose {pc['model']}{alpha}: {pc['why']}")

@@ -11,13 +11,17 @@ Quick use::
     result.report["heldout_rmse"], result.maps["roughness"]
 
 Parts: :mod:`._models` (named capture models), :mod:`._data` (capture pixels as least-squares
-data: weights, censoring, geometry), :mod:`._job` (tiled fit with Laplace uncertainty and
-resume), :mod:`._outputs` (EXR maps, report, previews).
+data: weights, censoring, geometry), :mod:`._pooled` (one lobe shape per capture, chosen by
+held-out photos), :mod:`._job` (tiled fit with Laplace uncertainty and resume),
+:mod:`._holdout` (leave-one-photo-out against a baseline), :mod:`._outputs` (EXR maps,
+report, previews).
 """
 
 from ._data import is_colocated as is_colocated
 from ._data import pixel_block as pixel_block
 from ._data import resolvable_alpha as resolvable_alpha
+from ._holdout import LeaveOneOut as LeaveOneOut
+from ._holdout import leave_one_out as leave_one_out
 from ._job import CaptureFit as CaptureFit
 from ._job import FitJob as FitJob
 from ._job import fit_capture as fit_capture
@@ -28,3 +32,5 @@ from ._outputs import predict_photos as predict_photos
 from ._outputs import write_maps as write_maps
 from ._outputs import write_outputs as write_outputs
 from ._outputs import write_previews as write_previews
+from ._pooled import PoolChoice as PoolChoice
+from ._pooled import choose_pooled as choose_pooled

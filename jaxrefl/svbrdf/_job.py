@@ -210,7 +210,10 @@ class _TileFitter:
             # The F0 prior is in noise units: the noise scale is the selection's estimate
             # unless the job gives one (a prior's scale is tied to the noise scale).
             if isinstance(self.noise, fit.GaussianNoise) and self.noise.sigma is None:
-                self.noise = fit.GaussianNoise(sigma=self.pooled.sigma)
+                # An array, not a float: equinox's jit would treat a float as static and
+                # compile again for every capture or leave-one-out fold.
+                sigma = jnp.asarray(self.pooled.sigma, jnp.dtype(job.dtype))
+                self.noise = fit.GaussianNoise(sigma=sigma)
                 self.known_noise = float(self.pooled.sigma) ** 2
             chans = [
                 lab.split(".", 1)[1] for lab in self.space.labels if lab.startswith("specular.")
