@@ -15,7 +15,10 @@ predictions: nothing clipped):
   observations (every photo, each predicted by the fold that left it out), then the median
   and the 99th percentile over pixels: where the error sits, not only how much there is;
 * the same under ``lambert_*`` (or ``<baseline>_*``) for the baseline, and
-  ``photos_worse_than_baseline``: the photos whose held-out RMSE exceeds the baseline's.
+  ``photos_worse_than_baseline``: the photos whose held-out RMSE exceeds the baseline's;
+* ``fold_status_counts`` / ``fold_laplace_flag_counts``: fit statuses and Laplace flags
+  summed over the K folds (K x pixels in all): how much of the map is at a bound or not
+  identified.
 """
 
 from __future__ import annotations
@@ -72,6 +75,7 @@ def _run(capture, job: FitJob, progress: Callable[[str], None] | None):
     sse = np.zeros(h * w)
     cnt = np.zeros(h * w)
     choices = []
+    counts: dict[str, dict[str, int]] = {"status": {}, "laplace_flag": {}}
     for i in range(k):
         t0 = time.perf_counter()
         fit = fit_capture(capture, replace(job, holdout=(i,)))
@@ -83,11 +87,14 @@ def _run(capture, job: FitJob, progress: Callable[[str], None] | None):
         cnt += c
         if fit.report.get("pooled") is not None:
             choices.append(fit.report["pooled"])
+        for key, src in (("status", "status_counts"), ("laplace_flag", "laplace_flag_counts")):
+            for name, v in fit.report[src].items():
+                counts[key][name] = counts[key].get(name, 0) + int(v)
         if progress is not None:
             progress(f"{job.model}: photo {i} held out, RMSE {per[i]:.5f} ({wall:.1f} s)")
     with np.errstate(invalid="ignore", divide="ignore"):
         pix = np.where(cnt > 0, np.sqrt(sse / np.maximum(cnt, 1)), np.nan).reshape(h, w)
-    return per, pix, secs, compile_s, choices
+    return per, pix, secs, compile_s, choices, counts
 
 
 def _finite(x: float) -> float | None:
@@ -111,9 +118,9 @@ def leave_one_out(
     job = FitJob() if job is None else job
     if capture.n_photos < 2:
         raise ValueError("leave-one-out needs at least two photos")
-    per, pix, secs, comp, choices = _run(capture, job, progress)
+    per, pix, secs, comp, choices, counts = _run(capture, job, progress)
     base_job = replace(job, model=baseline)
-    b_per, b_pix, b_secs, b_comp, _ = _run(capture, base_job, progress)
+    b_per, b_pix, b_secs, b_comp, _, _ = _run(capture, base_job, progress)
     tag = baseline
     report: dict[str, Any] = {
         "holdout": "all",
@@ -130,6 +137,8 @@ def leave_one_out(
         "fold_fit_s": [float(s) for s in secs],
         "fold_compile_s": comp,
         f"{tag}_fold_fit_s": [float(s) for s in b_secs],
+        "fold_status_counts": counts["status"],
+        "fold_laplace_flag_counts": counts["laplace_flag"],
     }
     if choices:
         report["pooled_per_fold"] = choices
