@@ -56,20 +56,22 @@ except ImportError:  # hypothesis is a test extra
     pass
 
 
-def _shared_data_dir() -> Path | None:
+def _shared_data_dir() -> Path:
+    """$JAXREFL_SHARED_DATA, else shared/data beside the checkout (it may not exist)."""
     env = os.environ.get("JAXREFL_SHARED_DATA")
     if env:
         return Path(env)
-    guess = Path(__file__).resolve().parents[1].parent / "shared" / "data"
-    return guess if guess.is_dir() else None
+    return Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
 
 @pytest.fixture(scope="session")
 def shared_data() -> Path:
     d = _shared_data_dir()
-    if d is None or not d.is_dir():
+    if not d.is_dir():
+        where = "JAXREFL_SHARED_DATA" if os.environ.get("JAXREFL_SHARED_DATA") else "no env var"
         msg = (
-            f"shared data not found: set JAXREFL_SHARED_DATA to the folder ../shared/data (got {d})"
+            f"shared data not found at {d} ({where}): set JAXREFL_SHARED_DATA to the shared/data"
+            " folder, or put it beside the checkout"
         )
         if os.environ.get("CI"):
             pytest.fail(msg)
