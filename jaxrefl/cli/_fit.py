@@ -1,11 +1,15 @@
 """Fit a photographed planar capture: per-pixel reflectance maps with uncertainty.
 
-    jaxrefl fit CAPTURE_DIR --out OUT_DIR [--model ggx|beckmann|ggx_rgb|lambert]
-                [--holdout i,j,...] [--tile-pixels N] [--downsample F] [--restart]
+    jaxrefl fit CAPTURE_DIR --out OUT_DIR [--model ggx|beckmann|ggx_rgb|pooled|lambert|...]
+                [--holdout i,j,...|all] [--tile-pixels N] [--downsample F] [--restart]
 
 CAPTURE_DIR is in one of the layouts :func:`jaxrefl.io.load_capture` reads (the
-svbrdf-diff-renderer ``parameters.json`` layout, MaterialGAN's text files, or the generic
-JSON). Writes OUT_DIR/maps.exr (parameters, their Laplace std, correlations, status and
+svbrdf-diff-renderer ``parameters.json`` or ``optim.json`` layouts, MaterialGAN's text
+files, or the generic JSON). ``--holdout all`` fits every photo out in turn and reports each
+one's held-out RMSE beside Lambert's (:func:`jaxrefl.svbrdf.leave_one_out`), then writes the
+maps of the fit on all photos.
+
+Writes OUT_DIR/maps.exr (parameters, their Laplace std, correlations, status and
 reliability flags), OUT_DIR/report.json (timings with compile apart, pixel counts by status,
 the model, and with --holdout the held-out RMSE in linear radiance, overall and per photo)
 and PNG previews. An interrupted run resumes from OUT_DIR/tiles (--restart to start over).

@@ -53,12 +53,16 @@ def write_maps(result: CaptureFit, path: Path) -> Path:
             "roughness": "perceptual roughness sqrt(alpha)",
             "tilt_x, tilt_y": "slopes of the shading normal, 1 (ggx_normal)",
             "normal": "unit shading normal in the sample frame (+z = the sample's normal)",
+            "base_color, metallic": "the metallic-roughness view of a coloured F0 (glTF 2.0; "
+            "jaxrefl.brdf.specular_to_metallic), 1",
             "*.std": "Laplace standard deviation, same units",
             "noise_std": "estimated noise std, radiance units of the capture",
         },
         "status_codes": status_meanings(),
         "laplace_flags": {b.name: int(b.value) for b in fit.LaplaceFlag},
     }
+    if result.extra.get("pooled") is not None:
+        meta["pooled"] = result.extra["pooled"].as_dict()
     return write_exr(path, result.maps, metadata=meta)
 
 
