@@ -518,3 +518,74 @@ def test_bad_generic_json(tmp_path):
     assert e.field == "transfer" and "missing key" in str(e)
     e = broken(cameras=[{"position": [0, 0, 5]}] * 3)
     assert e.field == "cameras" and "1 or 2" in str(e)
+
+
+# ----------------------------------------------------------------------------- non-finite input
+def _tiny_materialgan(dst, k=2):
+    """A MaterialGAN folder of k 2x2 grey photos with finite geometry."""
+    dst.mkdir()
+    for i in range(k):
+        write_png(dst / f"{i:02d}.png", np.full((2, 2), 128, np.uint8))
+    np.savetxt(dst / "camera_pos.txt", np.tile([0.0, 0.0, 10.0], (k, 1)), delimiter=",")
+    np.savetxt(dst / "light_pos.txt", np.tile([1.0, 0.0, 10.0], (k, 1)), delimiter=",")
+    (dst / "light_power.txt").write_text("100\n")
+    (dst / "image_size.txt").write_text("2.0\n")
+    return dst
+
+
+@pytest.mark.parametrize("fname", ["camera_pos.txt", "light_pos.txt", "light_power.txt"])
+@pytest.mark.parametrize("bad", ["nan", "inf", "-inf"])
+def test_materialgan_refuses_non_finite_numbers(tmp_path, fname, bad):
+    mg = _tiny_materialgan(tmp_path / "mg")
+    assert np.all(np.isfinite(load_capture(mg).light_pos))
+    lines = (mg / fname).read_text().splitlines()
+    lines[-1] = ",".join([bad, *lines[-1].split(",")[1:]])
+    (mg / fname).write_text("\n".join(lines) + "\n")
+    with pytest.raises(CaptureError, match=rf"{fname}: line {len(lines)}: .*finite") as e:
+        load_capture(mg)
+    assert e.value.path.name == fname
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [
+        ("light_pos", [[np.nan, 0.0, 10.0]]),
+        ("camera_pos", [[0.0, np.inf, 10.0]]),
+        ("light_power", [[np.nan]]),
+        ("side", np.nan),
+        ("side", 0.0),
+        ("light_power", [[-1.0]]),
+    ],
+)
+def test_capture_refuses_non_finite_geometry(field, value):
+    cap = _small(np.zeros((1, 2, 2, 1)))
+    with pytest.raises(CaptureError, match=field) as e:
+        replace(cap, **{field: np.asarray(value)})
+    assert e.value.field == field
+
+
+def test_capture_refuses_bad_light_dir():
+    cap = _small(np.zeros((1, 2, 2, 1)))
+    for d, msg in (([[np.nan, 0.0, 1.0]], "non-finite"), ([[0.0, 0.0, 0.0]], "zero vector")):
+        with pytest.raises(CaptureError, match=msg) as e:
+            replace(cap, light_pos=None, light_dir=np.asarray(d))
+        assert e.value.field == "light_dir"
+
+
+def test_json_booleans_are_not_numbers(tmp_path):
+    img = np.full((1, 2, 2, 3), 0.5)
+    cj = save_generic_capture(
+        tmp_path, img, side=2.0, light_pos=[0.0, 0.0, 5.0], light_power=1.0,
+        camera_pos=[0.0, 0.0, 5.0], transfer="gamma2.2", file_format="png8",
+    )  # fmt: skip
+    spec = json.loads(cj.read_text())
+    for key, value in (("side", True), ("saturation", False)):
+        cj.write_text(json.dumps({**spec, key: value}))
+        with pytest.raises(CaptureError, match="boolean") as e:
+            load_capture(cj)
+        assert e.value.field == key
+    spec["lights"][0]["position"] = [0.0, True, 5.0]
+    cj.write_text(json.dumps(spec))
+    with pytest.raises(CaptureError, match="boolean") as e:
+        load_capture(cj)
+    assert e.value.field == "lights[0].position"

@@ -220,8 +220,35 @@ class Capture:
         ):
             if a is not None and a.shape != shape:
                 raise ValueError(f"{name} must have shape {shape}, got {a.shape}")
+        # Geometry must be finite: a NaN direction or position has no safe fallback, and a
+        # light direction must have a length to be normalised.
+        for name, a in (
+            ("light_pos", lp),
+            ("light_dir", ld),
+            ("camera_pos", cp),
+            ("light_power", pw),
+            ("points", pts),
+            ("side", np.asarray(self.side, np.float64)),
+        ):
+            if a is not None and not np.all(np.isfinite(a)):
+                idx = np.argwhere(~np.isfinite(np.atleast_1d(a)))[0]
+                raise CaptureError(
+                    self.source,
+                    f"holds a non-finite value at index {tuple(int(i) for i in idx)}; "
+                    "geometry and light power must be finite numbers",
+                    name,
+                )
+        if np.any(pw < 0):
+            raise CaptureError(self.source, "must be >= 0 (a light's intensity)", "light_power")
+        if not float(self.side) > 0:
+            raise CaptureError(self.source, f"must be a positive length, got {self.side}", "side")
         if ld is not None:
-            ld = ld / np.linalg.norm(ld, axis=-1, keepdims=True)
+            norm = np.linalg.norm(ld, axis=-1, keepdims=True)
+            if np.any(norm == 0):
+                raise CaptureError(
+                    self.source, "a direction is the zero vector; give unit vectors", "light_dir"
+                )
+            ld = ld / norm
         for name, v in (
             ("images", images),
             ("status", status),

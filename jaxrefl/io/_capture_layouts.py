@@ -106,7 +106,18 @@ def _get(data: dict, key: str, path: Path):
     return data[key]
 
 
+def _has_bool(value) -> bool:
+    """Whether a JSON value holds a boolean anywhere (``true`` is not the number 1)."""
+    if isinstance(value, (bool, np.bool_)):
+        return True
+    if isinstance(value, (list, tuple)):
+        return any(_has_bool(v) for v in value)
+    return False
+
+
 def _array(value, path: Path, field: str, shape_doc: str) -> np.ndarray:
+    if _has_bool(value):
+        raise CaptureError(path, f"expected {shape_doc} of numbers, got a boolean", field)
     try:
         a = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError):
@@ -298,16 +309,26 @@ def _load_svbrdf(folder: Path, resolution, max_photos, file: str = "parameters.j
 
 
 def _read_txt(path: Path) -> np.ndarray:
+    """The numbers of a MaterialGAN text file, one row per line; all must be finite."""
     if not path.is_file():
         raise CaptureError(path, "file not found (MaterialGAN layout)")
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)  # an empty file is reported below
-            return np.loadtxt(path, delimiter=",", ndmin=2, dtype=np.float64)
-    except ValueError as e:
+            a = np.loadtxt(path, delimiter=",", ndmin=2, dtype=np.float64, encoding="utf-8")
+    except (ValueError, UnicodeDecodeError) as e:
         raise CaptureError(
             path, f"expected comma-separated numbers, one line per photo: {e}"
         ) from None
+    bad = ~np.isfinite(a)
+    if np.any(bad):
+        row, col = np.argwhere(bad)[0]
+        raise CaptureError(
+            path,
+            f"number {col + 1} is {a[row, col]}; every value must be a finite number",
+            f"line {row + 1}",
+        )
+    return a
 
 
 def _load_materialgan(folder: Path, resolution, max_photos) -> Capture:
