@@ -223,3 +223,47 @@ def test_float32_is_finite(sphere):
     assert r.normals.dtype == jnp.float32
     ok = np.asarray(r.status) < Status.MASKED
     assert np.all(np.isfinite(np.asarray(r.normals)[ok]))
+
+
+# ----------------------------------------------------------------------------- bad input
+def _bad_case(kind):
+    """(obs, lights, intensities, weight, argument named) of one refused input."""
+    k, c = 4, 3
+    lights = np.array([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8], [0.0, 0.6, 0.8], [-0.6, 0.0, 0.8]])
+    obs, e, w = np.ones((5, k, c)), np.ones((k, c)), np.ones((5, k, c))
+    if kind == "below":
+        lights[1] = [0.6, 0.0, -0.8]
+    elif kind == "nan_light":
+        lights[2, 0] = np.nan
+    elif kind == "not_unit":
+        lights[3] *= 2.0
+    elif kind == "light_shape":
+        lights = lights[:3]
+    elif kind == "negative_e":
+        e[1, 2] = -1.0
+    elif kind == "nan_e":
+        e[0, 0] = np.nan
+    elif kind == "e_shape":
+        e = np.ones((k, 2))
+    elif kind == "weight_shape":
+        w = np.ones((5, k, 1))
+    elif kind == "negative_w":
+        w[0, 0, 0] = -1.0
+    elif kind == "obs_shape":
+        obs = np.ones((5, k))
+    names = {"nan_e": "intensities", "e_shape": "intensities", "negative_e": "intensities"}
+    arg = names.get(kind, "weight" if "_w" in kind or "weight" in kind else "lights")
+    return obs, lights, e, w, "obs" if kind == "obs_shape" else arg
+
+
+@pytest.mark.parametrize("method", ["woodham", "robust"])
+@pytest.mark.parametrize(
+    "kind",
+    ["below", "nan_light", "not_unit", "light_shape", "negative_e", "nan_e", "e_shape",
+     "weight_shape", "negative_w", "obs_shape"],
+)  # fmt: skip
+def test_calibrated_methods_refuse_bad_lights_and_shapes(method, kind):
+    obs, lights, e, w, arg = _bad_case(kind)
+    with pytest.raises(ps.PSInputError, match=rf"^{arg}: ") as err:
+        getattr(ps, method)(obs, lights, e, w)
+    assert err.value.where == arg

@@ -28,6 +28,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from jaxrefl.fit import Status, cho_solve_unrolled, cholesky_unrolled, equilibrated_condition
@@ -136,11 +137,110 @@ def woodham(
     return cut(_woodham(obs, lights, e, w), n)
 
 
+# Largest accepted | |l| - 1 | of a light direction (float32 rounding is ~1e-7).
+_UNIT_TOL = 1e-3
+
+
+def _concrete(a) -> bool:
+    """Whether ``a`` holds values (not a JAX tracer inside a transformation)."""
+    return not isinstance(a, jax.core.Tracer)
+
+
+def check_inputs(obs, lights, intensities, weight):
+    """Refuse inputs of the calibrated methods that would give a wrong answer silently.
+
+    Rules (each failure raises :class:`~jaxrefl.ps.PSInputError` naming the argument):
+    ``obs`` is (N, K, C); ``lights`` is (K, 3), finite, of unit length (within 1e-3) and
+    above the horizon (z > 0: a light at or below it cannot light a surface the camera
+    sees); ``intensities`` is (K, C), (K, 1) or (K,), finite and >= 0; ``weight`` is
+    (N, K, C) and >= 0 where finite (non-finite weights and observations are dropped).
+    Value checks are skipped for traced arrays (inside ``jax.jit``); shapes are always
+    checked. Returns intensities as (K, C) (None stays None).
+    """
+    from ._capture import PSInputError
+
+    shape = getattr(obs, "shape", None)
+    if shape is None or len(shape) != 3:
+        raise PSInputError(
+            "obs", f"must be (N pixels, K lights, C channels), got shape {shape or '()'}"
+        )
+    n, k, c = shape
+    ls = getattr(lights, "shape", None)
+    if ls is None:
+        lights = np.asarray(lights, np.float64)
+        ls = lights.shape
+    if tuple(ls) != (k, 3):
+        raise PSInputError(
+            "lights", f"must be (K, 3) = ({k}, 3), one unit direction per image; got {ls}"
+        )
+    if _concrete(lights):
+        d = np.asarray(lights, np.float64)
+        if not np.all(np.isfinite(d)):
+            i = int(np.flatnonzero(~np.all(np.isfinite(d), axis=1))[0])
+            raise PSInputError("lights", f"light {i} is not finite: {d[i].tolist()}")
+        norm = np.linalg.norm(d, axis=1)
+        off = np.abs(norm - 1.0)
+        if np.any(off > _UNIT_TOL):
+            i = int(np.argmax(off))
+            raise PSInputError(
+                "lights",
+                f"must be unit vectors (|l| = 1 within {_UNIT_TOL:g}); light {i} has length "
+                f"{norm[i]:.6g}",
+            )
+        if np.any(d[:, 2] <= 0):
+            i = int(np.flatnonzero(d[:, 2] <= 0)[0])
+            raise PSInputError(
+                "lights",
+                f"light {i} is at or below the horizon (z = {d[i, 2]:.3g}); directions go "
+                "from the surface towards the light with +z towards the camera (z > 0)",
+            )
+    if intensities is not None:
+        es = getattr(intensities, "shape", None)
+        if es is None:
+            intensities = np.asarray(intensities, np.float64)
+            es = intensities.shape
+        if len(es) == 1 and es[0] == k:
+            intensities = intensities[:, None]
+            es = (k, 1)
+        if len(es) != 2 or es[0] != k or es[1] not in (1, c):
+            raise PSInputError(
+                "intensities", f"must be (K, C) = ({k}, {c}), ({k}, 1) or ({k},); got {es}"
+            )
+        if _concrete(intensities):
+            e = np.asarray(intensities, np.float64)
+            if not np.all(np.isfinite(e)) or np.any(e < 0):
+                i = int(np.flatnonzero(~np.all(np.isfinite(e) & (e >= 0), axis=1))[0])
+                raise PSInputError(
+                    "intensities",
+                    f"must be finite and >= 0; light {i} has {e[i].tolist()}",
+                )
+        if es[1] != c:
+            intensities = jnp.broadcast_to(jnp.asarray(intensities), (k, c))
+    if weight is not None:
+        ws = getattr(weight, "shape", None)
+        if ws is None:
+            weight = np.asarray(weight, np.float64)
+            ws = weight.shape
+        if tuple(ws) != (n, k, c):
+            raise PSInputError(
+                "weight", f"must have the shape of obs (N, K, C) = ({n}, {k}, {c}); got {ws}"
+            )
+        if _concrete(weight):
+            wv = np.asarray(weight, np.float64)
+            if np.any(wv < 0):
+                raise PSInputError(
+                    "weight", f"must be >= 0 (0 drops an observation); min is {np.min(wv):g}"
+                )
+    return lights, intensities, weight
+
+
 def prepare_inputs(obs, lights, intensities, weight):
     """Arrays of one floating dtype (float32 unless obs is floating): obs (N, K, C), lights
     (K, 3), intensities E (K, C) (default 1), weights (N, K, C) (default 1), with non-finite
-    observations or weights dropped (weight 0, value 0) before any arithmetic."""
+    observations or weights dropped (weight 0, value 0) before any arithmetic. The inputs
+    pass :func:`check_inputs` first."""
     obs = jnp.asarray(obs)
+    lights, intensities, weight = check_inputs(obs, lights, intensities, weight)
     if not jnp.issubdtype(obs.dtype, jnp.floating):
         obs = obs.astype(jnp.float32)
     dt = obs.dtype
