@@ -34,13 +34,7 @@ def shared_lobe_capture():
         "specular": np.broadcast_to(np.asarray(F0), (SIZE, SIZE, 3)),
         "alpha": np.full((SIZE, SIZE), ALPHA),
     }
-    model = brdf.get(
-        "cook_torrance",
-        distribution="ggx",
-        shadowing="smith_height_correlated",
-        fresnel="schlick",
-        diffuse="lambert",
-    )
+    model = scene.model  # Cook-Torrance GGX, height-correlated Smith, Schlick, Lambert base
     points = np.asarray(scene.points, np.float64)
     k = len(scene.positions)
     cap = Capture(
