@@ -150,3 +150,37 @@ def test_pixel_data_builder():
     one2 = jax.tree.map(lambda x: x[0], fit.pixel_data(obs, wi, wi + 0.0))
     r_fn = jax.jit(lambda t, d: res(t, d))
     np.testing.assert_allclose(r_fn(th, one), r_fn(th, one2), rtol=1e-6)
+
+
+def test_pixel_data_refuses_bad_arguments_naming_them():
+    obs = np.ones((4, 5, 3))
+    wi = np.tile([0.0, 0.6, 0.8], (4, 5, 1))
+    for kw, msg in (
+        ({"scale": np.ones((4, 2, 3))}, r"scale has shape \(4, 2, 3\).*\(4, 5, 3\)"),
+        ({"weight": np.ones((3, 5, 3))}, r"weight has shape \(3, 5, 3\)"),
+        ({"censored": np.zeros((1, 4, 5, 3))}, r"censored has shape .*more axes"),
+        ({"scale": np.full((4, 5, 3), np.nan)}, r"scale holds a non-finite"),
+        ({"wo": np.tile([0.0, 0.3, 0.4], (4, 5, 1))}, r"wo must be unit.*length 0\.5"),
+        ({"wi": 1e-3 * wi}, r"wi must be unit.*length 0\.001"),
+        ({"wo": np.ones((4, 2, 3))}, r"wo has shape \(4, 2, 3\)"),
+    ):
+        args = {"wi": wi, **kw}
+        with pytest.raises(ValueError, match=msg):
+            fit.pixel_data(obs, **args)
+    # A non-unit direction of an observation at weight 0 is not used: accepted.
+    w = np.ones((4, 5, 3))
+    w[1, 2] = 0.0
+    bad = wi.copy()
+    bad[1, 2] *= 0.5
+    fit.pixel_data(obs, bad, weight=w)
+
+
+def test_fixed_values_must_be_finite():
+    m = jaxrefl.brdf.get("cook_torrance", diffuse="lambert")
+    for v in (np.nan, np.inf, [0.1, np.nan, 0.2]):
+        name = "alpha" if np.ndim(v) == 0 else "albedo"
+        with pytest.raises(ValueError, match=rf"fixed\['{name}'\].*not finite"):
+            fit.ParamSpace(m, fixed={name: v})
+    data = fit.pixel_data(np.ones((2, 3, 3)), np.tile([0.0, 0.0, 1.0], (2, 3, 1)))
+    with pytest.raises(ValueError, match=r"fixed\['alpha'\]"):
+        fit.fit_pixels(m, data, fixed={"alpha": np.nan})

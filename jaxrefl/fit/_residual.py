@@ -31,7 +31,9 @@ import numbers
 from collections.abc import Mapping
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from jaxrefl.brdf import BRDF
@@ -108,7 +110,13 @@ def pixel_data(
     and ``censored`` (default 0) to the shape of ``obs`` ((*n, K, C)); ``wi``/``wo`` are
     broadcast to (*n, K, 3). ``wo=None`` (or ``wo is wi``) means co-located light and view:
     wo = wi and ``colocated=True``. ``dtype`` defaults to the dtype of ``obs`` (float32 if it
-    is not floating)."""
+    is not floating).
+
+    Refused with a ValueError naming the argument: an argument that does not broadcast to
+    its shape; a non-finite ``scale``; finite ``wi``/``wo`` that are not unit vectors
+    (within 1e-3) where the observation has weight. Non-finite directions and observations
+    are kept: the residual drops them and reports them as non-finite input. Value checks
+    are skipped for traced arrays (inside ``jax.jit``)."""
     colocated = wo is None or wo is wi
     obs = jnp.asarray(obs)
     if dtype is None:
@@ -118,22 +126,64 @@ def pixel_data(
         raise ValueError(f"obs must have shape (*n, K, C), got {obs.shape}")
     lead = obs.shape[:-1]
 
-    def full(v, default):
-        v = jnp.asarray(default if v is None else v, dtype=dtype)
-        return jnp.broadcast_to(v.reshape((1,) * (obs.ndim - v.ndim) + v.shape), obs.shape)
+    def lift(v, shape, name):
+        if v.ndim > len(shape):
+            raise ValueError(
+                f"{name} has shape {v.shape}, more axes than {shape} (obs is (*n, K, C))"
+            )
+        try:
+            return jnp.broadcast_to(v.reshape((1,) * (len(shape) - v.ndim) + v.shape), shape)
+        except ValueError:
+            raise ValueError(
+                f"{name} has shape {v.shape}, which does not broadcast to {shape} "
+                "(obs is (*n, K, C))"
+            ) from None
+
+    def full(v, default, name):
+        return lift(jnp.asarray(default if v is None else v, dtype=dtype), obs.shape, name)
 
     def direction(w, name):
         w = jnp.asarray(w, dtype=dtype)
         if w.shape[-1:] != (3,):
             raise ValueError(f"{name} must have a trailing axis of 3, got {w.shape}")
-        return jnp.broadcast_to(w.reshape((1,) * (obs.ndim - w.ndim) + w.shape), (*lead, 3))
+        return lift(w, (*lead, 3), name)
 
     cens = jnp.zeros(obs.shape, jnp.int8) if censored is None else jnp.asarray(censored)
-    cens = cens.astype(jnp.int8).reshape((1,) * (obs.ndim - cens.ndim) + cens.shape)
-    cens = jnp.broadcast_to(cens, obs.shape)
+    cens = lift(cens.astype(jnp.int8), obs.shape, "censored")
     wi_b = direction(wi, "wi")
     wo_b = wi_b if colocated else direction(wo, "wo")
-    return PixelData(obs, wi_b, wo_b, full(scale, 1.0), full(weight, 1.0), cens, colocated)
+    scale_b, weight_b = full(scale, 1.0, "scale"), full(weight, 1.0, "weight")
+    if _concrete(scale_b) and not bool(jnp.all(jnp.isfinite(scale_b))):
+        raise ValueError(
+            "scale holds a non-finite value; give finite scales (weight 0 drops an observation)"
+        )
+    for name, w in (("wi", wi_b), ("wo", None if colocated else wo_b)):
+        if w is not None and _concrete(w) and _concrete(weight_b):
+            _check_unit(name, w, weight_b)
+    return PixelData(obs, wi_b, wo_b, scale_b, weight_b, cens, colocated)
+
+
+# Largest accepted | |w| - 1 | of a direction given to :func:`pixel_data`.
+_UNIT_TOL = 1e-3
+
+
+def _concrete(a) -> bool:
+    """Whether ``a`` holds values (not a JAX tracer inside a transformation)."""
+    return not isinstance(a, jax.core.Tracer)
+
+
+def _check_unit(name: str, w: Array, weight: Array) -> None:
+    """Refuse finite directions off unit length where an observation has weight."""
+    w = np.asarray(w, np.float64)
+    used = np.any(np.asarray(weight) != 0, axis=-1)  # (*n, K)
+    norm = np.sqrt(np.sum(w * w, axis=-1))
+    off = np.where(used & np.isfinite(norm), np.abs(norm - 1.0), 0.0)
+    if off.size and np.max(off) > _UNIT_TOL:
+        i = np.unravel_index(int(np.argmax(off)), off.shape)
+        raise ValueError(
+            f"{name} must be unit vectors (|{name}| = 1 within {_UNIT_TOL:g}); the worst, at "
+            f"index {tuple(int(j) for j in i)}, has length {norm[i]:.6g}"
+        )
 
 
 # ---------------------------------------------------------------------------- noise models

@@ -351,6 +351,12 @@ class ParamSpace(eqx.Module):
                 v = jnp.asarray(fixed[q.name])
                 if not jnp.issubdtype(v.dtype, jnp.floating):
                     v = v.astype(jnp.float32)
+                # A fixed value is used as given: it must be a finite number.
+                if not isinstance(v, jax.core.Tracer) and not bool(jnp.all(jnp.isfinite(v))):
+                    raise ValueError(
+                        f"fixed[{q.name!r}] = {np.asarray(v).tolist()} is not finite; give a "
+                        f"finite value in [{q.lower}, {q.upper}]"
+                    )
                 shape = _natural_shape(q, channels)
                 fx[q.name] = jnp.broadcast_to(v, shape) if v.ndim == 0 else v
         self.fixed = fx
