@@ -1,0 +1,360 @@
+"""A generated campaign of bad inputs at the public boundaries.
+
+Every case asserts one outcome: the project's error (:class:`~jaxrefl.io.CaptureError`,
+:class:`~jaxrefl.ps.PSInputError`, or a ``ValueError`` naming the argument) whose message
+names the file, field or argument. Any other exception fails the case (``pytest.raises``
+lets it through). Families:
+
+* MaterialGAN text files (``camera_pos.txt``, ``light_pos.txt``, ``light_power.txt``,
+  ``image_size.txt``) holding a non-finite number at every line and column;
+* a :class:`~jaxrefl.io.Capture` built in Python with a non-finite or invalid field;
+* generic ``capture.json`` holding booleans or non-finite numbers where numbers belong;
+* ``ps.woodham`` / ``ps.robust``: non-finite, non-unit or below-horizon lights, negative or
+  non-finite intensities, negative weights, mismatched shapes (parametrised and
+  property-based);
+* ``fit.pixel_data`` / ``fit.ParamSpace`` / ``fit.fit_pixels``: non-finite ``scale``,
+  non-unit ``wi``/``wo``, arguments that do not broadcast, non-finite ``fixed`` values.
+
+Validation fails before any compilation, so the module stays fast.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import shutil
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from jaxrefl import brdf, fit, ps
+from jaxrefl.io._capture import Capture, CaptureError
+from jaxrefl.io._capture_layouts import load_capture, save_generic_capture
+from jaxrefl.io._photos import write_png
+from jaxrefl.scene import planar_points
+
+BAD_NUMBERS = ("nan", "inf", "-inf", "NaN", "1e999")
+NONFINITE = (np.nan, np.inf, -np.inf)
+K = 2  # photos of the small captures
+HYP = settings(
+    max_examples=150,
+    deadline=None,
+    derandomize=True,
+    database=None,
+    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
+)
+
+
+# ----------------------------------------------------------------------------- MaterialGAN
+@pytest.fixture(scope="module")
+def mg_template(tmp_path_factory):
+    """A MaterialGAN folder of K 2x2 grey photos with finite geometry, one line per photo."""
+    d = tmp_path_factory.mktemp("mg")
+    for i in range(K):
+        write_png(d / f"{i:02d}.png", np.full((2, 2, 3), 128, np.uint8))
+    np.savetxt(d / "camera_pos.txt", np.tile([0.0, 0.5, 10.0], (K, 1)), delimiter=",")
+    np.savetxt(d / "light_pos.txt", np.tile([1.0, 0.0, 10.0], (K, 1)), delimiter=",")
+    np.savetxt(d / "light_power.txt", np.full((K, 3), 100.0), delimiter=",")
+    (d / "image_size.txt").write_text("2.0\n")
+    assert load_capture(d).n_photos == K
+    return d
+
+
+MG_CASES = [
+    (f, tok, line, col)
+    for f in ("camera_pos.txt", "light_pos.txt", "light_power.txt")
+    for tok, line, col in itertools.product(BAD_NUMBERS, range(K), range(3))
+] + [("image_size.txt", tok, 0, 0) for tok in BAD_NUMBERS]
+
+
+@pytest.mark.parametrize(("fname", "token", "line", "col"), MG_CASES)
+def test_materialgan_non_finite(mg_template, tmp_path, fname, token, line, col):
+    d = tmp_path / "mg"
+    shutil.copytree(mg_template, d)
+    rows = [r.split(",") for r in (d / fname).read_text().splitlines()]
+    rows[line][col] = token
+    (d / fname).write_text("\n".join(",".join(r) for r in rows) + "\n")
+    with pytest.raises(CaptureError, match=rf"{fname}: line {line + 1}: number {col + 1} ") as e:
+        load_capture(d)
+    assert e.value.path.name == fname and "finite" in e.value.problem
+
+
+# ----------------------------------------------------------------------------- Capture
+def _capture(light_dir=False) -> Capture:
+    h = w = 2
+    return Capture(
+        images=np.ones((K, h, w, 3), np.float32),
+        status=np.zeros((K, h, w, 3), np.uint8),
+        light_pos=None if light_dir else np.tile([1.0, 0.0, 10.0], (K, 1)),
+        light_dir=np.tile([0.0, 0.6, 0.8], (K, 1)) if light_dir else None,
+        light_power=np.full((K, 3), 100.0),
+        camera_pos=np.tile([0.0, 0.0, 10.0], (K, 1)),
+        side=2.0,
+        points=np.asarray(planar_points(h, w, 2.0), np.float64),
+    )
+
+
+def _capture_cases():
+    cap = _capture()
+    cases = []
+    for name in ("light_pos", "light_dir", "camera_pos", "light_power", "points"):
+        shape = cap.light_pos.shape if name == "light_dir" else getattr(cap, name).shape
+        for idx, v in itertools.product(np.ndindex(shape), NONFINITE):
+            cases.append((name, idx, v))
+    cases += [("side", (), v) for v in (*NONFINITE, 0.0, -1.0)]
+    cases += [("light_power", (k, c), -1.0) for k in range(K) for c in range(3)]
+    return cases
+
+
+@pytest.mark.parametrize(("name", "idx", "value"), _capture_cases())
+def test_capture_field(name, idx, value):
+    cap = _capture(light_dir=name == "light_dir")
+    if name == "side":
+        kw = {"side": value}
+    else:
+        a = np.array(getattr(cap, name), np.float64)
+        a[idx] = value
+        kw = {name: a}
+    with pytest.raises(CaptureError) as e:
+        replace(cap, **kw)
+    assert e.value.field == name and name in str(e.value)
+
+
+@HYP
+@given(
+    name=st.sampled_from(["light_pos", "camera_pos", "light_power"]),
+    k=st.integers(0, K - 1),
+    j=st.integers(0, 2),
+    value=st.sampled_from(NONFINITE),
+    base=st.floats(-50, 50),
+)
+def test_capture_field_property(name, k, j, value, base):
+    cap = _capture()
+    a = np.abs(np.array(getattr(cap, name))) + abs(base)
+    a[k, j] = value
+    with pytest.raises(CaptureError) as e:
+        replace(cap, **{name: a})
+    assert e.value.field == name
+
+
+# ----------------------------------------------------------------------------- generic JSON
+@pytest.fixture(scope="module")
+def generic_template(tmp_path_factory):
+    d = tmp_path_factory.mktemp("generic")
+    save_generic_capture(
+        d, np.full((K, 2, 2, 3), 0.5), side=2.0, light_pos=[0.0, 0.0, 5.0], light_power=1.0,
+        camera_pos=[0.0, 0.0, 5.0], transfer="gamma2.2", file_format="png8",
+    )  # fmt: skip
+    return d
+
+
+JSON_FIELDS = [
+    ("side", ("side",)),
+    ("saturation", ("saturation",)),
+    *[(f"lights[{k}].position", ("lights", k, "position", j)) for k in range(K) for j in range(3)],
+    *[(f"lights[{k}].power", ("lights", k, "power")) for k in range(K)],
+    *[
+        (f"cameras[{k}].position", ("cameras", k, "position", j))
+        for k in range(K)
+        for j in range(3)
+    ],
+]
+JSON_VALUES = (True, False, float("nan"), float("inf"), float("-inf"))
+
+
+@pytest.mark.parametrize("value", JSON_VALUES, ids=repr)
+@pytest.mark.parametrize(("field", "path"), JSON_FIELDS, ids=[f for f, _ in JSON_FIELDS])
+def test_generic_json_field(generic_template, tmp_path, field, path, value):
+    d = tmp_path / "g"
+    shutil.copytree(generic_template, d)
+    spec = json.loads((d / "capture.json").read_text())
+    node = spec
+    for key in path[:-1]:
+        node = node[key]
+    node[path[-1]] = value
+    (d / "capture.json").write_text(json.dumps(spec))  # NaN/Infinity as Python writes them
+    with pytest.raises(CaptureError) as e:
+        load_capture(d)
+    assert e.value.field == field and e.value.path.name == "capture.json"
+
+
+# ----------------------------------------------------------------------------- ps
+NK, NC, NN = 4, 3, 5
+LIGHTS = np.array([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8], [0.0, 0.6, 0.8], [-0.6, 0.0, 0.8]])
+
+
+def _ps_ok():
+    return np.ones((NN, NK, NC)), LIGHTS.copy(), np.ones((NK, NC)), np.ones((NN, NK, NC))
+
+
+def _ps_cases():
+    cases = []
+    for k, j, v in itertools.product(range(NK), range(3), NONFINITE):
+        cases.append(("lights", ("light", k, j, v)))
+    for k, z in itertools.product(range(NK), (0.0, -0.1, -0.8, -1.0)):
+        cases.append(("lights", ("below", k, z)))
+    for k, f in itertools.product(range(NK), (0.0, 1e-3, 0.5, 0.99, 1.01, 2.0, -1.0)):
+        cases.append(("lights", ("scale", k, f)))
+    for k, c, v in itertools.product(range(NK), range(NC), (*NONFINITE, -1.0, -1e-9)):
+        cases.append(("intensities", ("e", k, c, v)))
+    for i, k, v in itertools.product((0, NN - 1), range(NK), (-1.0, -1e-6)):
+        cases.append(("weight", ("w", i, k, v)))
+    shapes = {
+        "lights": [(NK - 1, 3), (NK + 1, 3), (NK, 2), (NK, 4), (3,), (NK, 3, 1)],
+        "intensities": [(NK, 2), (NK + 1, NC), (NK - 1,), (1, NC), (NK, NC, 1)],
+        "weight": [(NN, NK, 1), (NN + 1, NK, NC), (NN, NK), (1, NK, NC)],
+        "obs": [(NN, NK), (NN * NK * NC,), (1, NN, NK, NC)],
+    }
+    for arg, sh in shapes.items():
+        cases += [(arg, ("shape", s)) for s in sh]
+    return cases
+
+
+def _apply_ps(case):
+    obs, lights, e, w = _ps_ok()
+    kind = case[0]
+    if kind == "light":
+        lights[case[1], case[2]] = case[3]
+    elif kind == "below":
+        lights[case[1]] = [np.sqrt(max(1 - case[2] ** 2, 0.0)), 0.0, case[2]]
+    elif kind == "scale":
+        lights[case[1]] *= case[2]
+    elif kind == "e":
+        e[case[1], case[2]] = case[3]
+    elif kind == "w":
+        w[case[1], case[2]] = case[3]
+    return obs, lights, e, w
+
+
+@pytest.mark.parametrize("method", ["woodham", "robust"])
+@pytest.mark.parametrize(("arg", "case"), _ps_cases(), ids=str)
+def test_ps_calibrated(method, arg, case):
+    obs, lights, e, w = _apply_ps(case)
+    if case[0] == "shape":
+        names = ("obs", "lights", "intensities", "weight")
+        args = dict(zip(names, (obs, lights, e, w), strict=True))
+        args[arg] = np.ones(case[1])
+        obs, lights, e, w = args.values()
+    with pytest.raises(ps.PSInputError, match=rf"^{arg}: ") as err:
+        getattr(ps, method)(obs, lights, e, w)
+    assert err.value.where == arg
+
+
+@HYP
+@given(
+    method=st.sampled_from(["woodham", "robust"]),
+    k=st.integers(0, NK - 1),
+    what=st.sampled_from(["below", "scale", "intensity"]),
+    x=st.floats(0.0, 1.0),
+    f=st.one_of(st.floats(1e-6, 0.99), st.floats(1.01, 1e6)),
+)
+def test_ps_calibrated_property(method, k, what, x, f):
+    obs, lights, e, w = _ps_ok()
+    if what == "below":  # a unit direction with z in [-1, 0]
+        z = -x
+        lights[k] = [np.sqrt(1 - z * z), 0.0, z]
+        arg = "lights"
+    elif what == "scale":
+        lights[k] *= f
+        arg = "lights"
+    else:
+        e[k] = -f
+        arg = "intensities"
+    with pytest.raises(ps.PSInputError, match=rf"^{arg}: ") as err:
+        getattr(ps, method)(obs, lights, e, w)
+    assert err.value.where == arg
+
+
+# ----------------------------------------------------------------------------- fit
+FN, FK, FC = 3, 4, 3
+WI = np.tile([0.0, 0.6, 0.8], (FN, FK, 1))
+
+
+def _fit_cases():
+    cases = []
+    for idx, v in itertools.product([(0, 0, 0), (FN - 1, FK - 1, FC - 1), (1, 2, 0)], NONFINITE):
+        cases.append(("scale", ("value", idx, v), r"scale holds a non-finite"))
+    for arg, idx, f in itertools.product(
+        ("wi", "wo"), [(0, 0), (FN - 1, FK - 1), (1, 2)], (0.0, 1e-3, 0.5, 0.99, 1.01, 2.0)
+    ):
+        cases.append((arg, ("norm", idx, f), rf"{arg} must be unit vectors"))
+    bad_shapes = {
+        "scale": [(FN, FK + 1, FC), (FN + 1, FK, FC), (FN, FK, 2), (2, FN, FK, FC), (FK + 1,)],
+        "weight": [(FN, FK + 1, FC), (FN + 1, FK, FC), (FN, FK, 2), (2, FN, FK, FC)],
+        "censored": [(FN, FK + 1, FC), (FN, FK, 2), (2, FN, FK, FC)],
+        "wi": [(FN, FK + 1, 3), (FN + 1, FK, 3), (2, FN, FK, 3)],
+        "wo": [(FN, FK + 1, 3), (FN + 1, FK, 3), (2, FN, FK, 3)],
+    }
+    for arg, shapes in bad_shapes.items():
+        cases += [(arg, ("shape", s), rf"{arg} has shape {_re_shape(s)}") for s in shapes]
+    return cases
+
+
+def _re_shape(s):
+    return str(tuple(s)).replace("(", r"\(").replace(")", r"\)")
+
+
+@pytest.mark.parametrize(("arg", "case", "msg"), _fit_cases(), ids=str)
+def test_pixel_data(arg, case, msg):
+    kw = {"wi": WI.copy(), "wo": WI.copy(), "scale": np.ones((FN, FK, FC))}
+    if case[0] == "value":
+        kw[arg][case[1]] = case[2]
+    elif case[0] == "norm":
+        kw[arg][case[1]] *= case[2]
+    else:
+        bad = np.zeros(case[1]) if arg == "censored" else np.ones(case[1]) * 0.6
+        if arg in ("wi", "wo"):
+            bad = np.broadcast_to([0.0, 0.6, 0.8], case[1])
+        kw[arg] = bad
+    with pytest.raises(ValueError, match=msg):
+        fit.pixel_data(np.ones((FN, FK, FC)), **kw)
+
+
+@HYP
+@given(
+    arg=st.sampled_from(["wi", "wo"]),
+    n=st.integers(0, FN - 1),
+    k=st.integers(0, FK - 1),
+    f=st.one_of(st.floats(1e-6, 0.995), st.floats(1.005, 1e4)),
+)
+def test_pixel_data_norm_property(arg, n, k, f):
+    kw = {"wi": WI.copy(), "wo": WI.copy()}
+    kw[arg][n, k] *= f
+    with pytest.raises(ValueError, match=rf"{arg} must be unit vectors.*length"):
+        fit.pixel_data(np.ones((FN, FK, FC)), **kw)
+
+
+MODELS = ("lambert", "oren_nayar", "phong", "blinn_phong", "ward", "cook_torrance", "dichromatic")
+FIXED_CASES = [
+    (m, p, v)
+    for m in MODELS
+    for p in brdf.get(m).param_names
+    for v in (*NONFINITE, "one")
+    if brdf.get(m).param_spec(p).kind != "lobes"
+]
+
+
+@pytest.mark.parametrize(("model", "param", "value"), FIXED_CASES, ids=str)
+def test_fixed_non_finite(model, param, value):
+    m = brdf.get(model)
+    if value == "one":  # one non-finite entry among finite ones (per channel)
+        v = np.full(3, 0.2) if m.param_spec(param).kind == "color" else np.array(0.2)
+        v = v.copy()
+        v.flat[-1] = np.nan
+    else:
+        v = value
+    with pytest.raises(ValueError, match=rf"fixed\['{param}'\].*not finite"):
+        fit.ParamSpace(m, channels=3, fixed={param: v})
+
+
+@pytest.mark.parametrize("value", NONFINITE)
+@pytest.mark.parametrize("model", ["lambert", "cook_torrance"])
+def test_fit_pixels_fixed_non_finite(model, value):
+    m = brdf.get(model)
+    param = m.param_names[-1]
+    data = fit.pixel_data(np.ones((FN, FK, FC)), WI)
+    with pytest.raises(ValueError, match=rf"fixed\['{param}'\]"):
+        fit.fit_pixels(m, data, fixed={param: value})
