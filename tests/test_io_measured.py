@@ -166,6 +166,11 @@ def _replace(i, new):
             _replace(22, "2.0" + ",0.0" * 34 + "\n"),
             r"angle\.astm, line 23: polar angle beyond",
         ),
+        (
+            "nan_angle.astm",
+            _replace(22, "0.1,nan" + ",0.0" * 33 + "\n"),
+            r"nan_angle\.astm, line 23: angle 'phi_i' is nan; angles must be finite",
+        ),
     ],
 )
 def test_cornell_corrupt_files(cornell_dir, tmp_path, name, edit, pattern):
@@ -221,6 +226,18 @@ def test_cornell_binary_garbage(tmp_path):
             "table_cols.txt",
             _replace(9, "10 0.1 0.2 0.3\n"),
             r"table_cols\.txt, line 10: wrong number of columns: 4, expected 5",
+        ),
+        (
+            "table.txt",
+            "table_nan.txt",
+            _replace(9, "10 0.1 nan 0.3 0.4\n"),
+            r"table_nan\.txt, line 10: angle phi_v is nan; angles must be finite",
+        ),
+        (
+            "abrdf.dat",
+            "index_nan.dat",
+            _replace(4, "nan" + "   0.1" * 205 + "\n"),
+            r"index_nan\.dat, line 5: sample index nan, expected an integer",
         ),
     ],
 )

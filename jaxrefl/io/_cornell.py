@@ -120,6 +120,16 @@ def read_cornell(path: str | Path) -> MeasuredBRDF:
 
     data = np.asarray(rows, dtype=np.float64).reshape(num_points, len(vars_))
     angles = data[:, :4]
+    # Every angle must be a number: a NaN direction has no safe fallback (values may be NaN:
+    # a fit gives such samples weight 0).
+    bad = np.argwhere(~np.isfinite(angles))
+    if bad.size:
+        i, j = (int(x) for x in bad[0])
+        raise MeasuredDataError(
+            path,
+            f"angle {vars_[j]!r} is {angles[i, j]}; angles must be finite numbers (radians)",
+            linenos[i],
+        )
     theta = angles[:, [0, 2]]
     below = np.flatnonzero(np.any(np.abs(theta) > np.pi / 2 + _ANGLE_TOL, axis=1))
     if below.size:

@@ -74,7 +74,7 @@ def _floats(path: Path, lineno: int, fields: list[str]) -> list[float]:
 
 
 def _index(path: Path, lineno: int, value: float, expected: int | None, what: str) -> int:
-    k = int(value)
+    k = int(value) if np.isfinite(value) else None
     if k != value or (expected is not None and k != expected):
         want = "an integer" if expected is None else str(expected)
         raise MeasuredDataError(path, f"{what} index {value:g}, expected {want}", lineno)
@@ -97,6 +97,12 @@ def read_curet_geometry(table_path: str | Path) -> tuple[np.ndarray, np.ndarray,
             )
         vals = _floats(path, lineno, fields)
         _index(path, lineno, vals[0], k, "geometry")
+        bad = [j for j, v in enumerate(vals[1:]) if not np.isfinite(v)]
+        if bad:
+            name = ("theta_v", "phi_v", "theta_i", "phi_i")[bad[0]]
+            raise MeasuredDataError(
+                path, f"angle {name} is {vals[1 + bad[0]]}; angles must be finite numbers", lineno
+            )
         if abs(vals[1]) > np.pi / 2 or abs(vals[3]) > np.pi / 2:
             raise MeasuredDataError(path, f"polar angle beyond π/2: {vals[1:]}", lineno)
         angles.append(vals[1:])
