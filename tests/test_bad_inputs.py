@@ -20,20 +20,25 @@ Validation fails before any compilation, so the module stays fast.
 
 from __future__ import annotations
 
+import io
 import itertools
 import json
+import re
 import shutil
+import struct
+import zlib
 from dataclasses import replace
 
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from PIL import Image
 
 from jaxrefl import brdf, fit, ps
 from jaxrefl.io._capture import Capture, CaptureError
 from jaxrefl.io._capture_layouts import load_capture, save_generic_capture
-from jaxrefl.io._photos import write_png
+from jaxrefl.io._photos import Photos, PNGError, read_png, write_png
 from jaxrefl.scene import planar_points
 
 BAD_NUMBERS = ("nan", "inf", "-inf", "NaN", "1e999")
@@ -358,3 +363,119 @@ def test_fit_pixels_fixed_non_finite(model, value):
     data = fit.pixel_data(np.ones((FN, FK, FC)), WI)
     with pytest.raises(ValueError, match=rf"fixed\['{param}'\]"):
         fit.fit_pixels(m, data, fixed={param: value})
+
+
+# ----------------------------------------------------------------------------- crashes
+def _png_claiming(w: int, h: int, depth: int = 8, ctype: int = 2) -> bytes:
+    """A PNG whose header claims w x h pixels and whose image data is empty."""
+
+    def chunk(kind: bytes, body: bytes) -> bytes:
+        crc = zlib.crc32(kind + body) & 0xFFFFFFFF
+        return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", crc)
+
+    ihdr = struct.pack(">IIBBBBB", w, h, depth, ctype, 0, 0, 0)
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IEND", b"")
+
+
+def _broken_pngs():
+    good = io.BytesIO()
+    noise = np.random.default_rng(0).integers(0, 256, (32, 32, 3), dtype=np.uint8)
+    Image.fromarray(noise).save(good, format="PNG")  # incompressible: a cut loses pixels
+    g = good.getvalue()
+    cases = {f"cut{n}": g[:n] for n in (0, 8, 20, 33, 40, 100, len(g) // 2, len(g) - 40)}
+    cases["bomb8"] = _png_claiming(100_000, 100_000)
+    cases["bomb16"] = _png_claiming(100_000, 100_000, depth=16)
+    cases["garbage"] = bytes(range(256))
+    cases["text"] = b"not a png at all\n"
+    return cases
+
+
+BROKEN_PNGS = _broken_pngs()
+
+
+@pytest.mark.parametrize("which", ["mask", "photo"])
+@pytest.mark.parametrize("name", sorted(BROKEN_PNGS))
+def test_generic_broken_png(generic_template, tmp_path, name, which):
+    d = tmp_path / "g"
+    shutil.copytree(generic_template, d)
+    spec = json.loads((d / "capture.json").read_text())
+    target = "mask.png" if which == "mask" else spec["images"][-1]
+    if which == "mask":
+        spec["mask"] = "mask.png"
+        (d / "capture.json").write_text(json.dumps(spec))
+    (d / target).write_bytes(BROKEN_PNGS[name])
+    with pytest.raises(CaptureError) as e:
+        load_capture(d)
+    assert e.value.path.name == target
+
+
+@pytest.mark.parametrize("name", sorted(BROKEN_PNGS))
+def test_read_png_broken(tmp_path, name):
+    p = tmp_path / f"{name}.png"
+    p.write_bytes(BROKEN_PNGS[name])
+    with pytest.raises(PNGError, match=re.escape(str(p))):
+        read_png(p)
+
+
+def _uw_folder(tmp_path, lights: bytes, listing: str | None = None):
+    obj = tmp_path / "obj"
+    obj.mkdir()
+    for i in range(3):
+        Image.fromarray(np.full((4, 4), 100, np.uint8)).save(obj / f"obj.{i}.tga")
+    Image.fromarray(np.full((4, 4), 255, np.uint8)).save(obj / "obj.mask.tga")
+    (obj / "lights.txt").write_bytes(lights)
+    if listing is not None:
+        (tmp_path / "obj.txt").write_text(listing)  # the UW listing sits beside the folder
+    return obj
+
+
+@pytest.mark.parametrize(
+    "raw", [b"\xff\xfe3\n", b"3\n0 0 1\n\x80\x81 0 1\n", "3\n0 0 1\n".encode("utf-16")]
+)
+def test_uw_lights_not_utf8(tmp_path, raw):
+    obj = _uw_folder(tmp_path, raw)
+    with pytest.raises(ps.PSInputError, match="not a UTF-8 text file") as e:
+        ps.load_uw(obj)
+    assert e.value.where.endswith("lights.txt")
+
+
+def test_uw_empty_image_list(tmp_path):
+    obj = _uw_folder(tmp_path, b"3\n0 0 1\n0.6 0 0.8\n0 0.6 0.8\n", listing="0\n")
+    with pytest.raises(ps.PSInputError, match="lists no images") as e:
+        ps.load_uw(obj)
+    assert e.value.where == str(obj)
+
+
+def test_photos_empty_list(tmp_path):
+    with pytest.raises(CaptureError, match="lists no photos") as e:
+        Photos([], "linear", tmp_path / "capture.json")
+    assert e.value.path.name == "capture.json"
+
+
+@pytest.mark.parametrize("resolution", [0, -1, -32, 2.5, "32"])
+def test_load_capture_resolution(generic_template, resolution):
+    with pytest.raises(CaptureError) as e:
+        load_capture(generic_template, resolution=resolution)
+    assert e.value.field == "resolution"
+
+
+CLI_CASES = [
+    (cmd, opt, v)
+    for cmd, opts in (
+        ("fit", ("--resolution", "--downsample", "--tile-pixels", "--max-photos")),
+        ("sample", ("--steps", "--walkers", "--chains", "--samples", "--downsample")),
+    )
+    for opt in opts
+    for v in ("0", "-1", "-100", "x", "1.5")
+]
+
+
+@pytest.mark.parametrize(("cmd", "opt", "value"), CLI_CASES)
+def test_cli_count_options(tmp_path, capsys, cmd, opt, value):
+    from jaxrefl.cli import main
+
+    with pytest.raises(SystemExit) as e:
+        main([cmd, str(tmp_path), "--out", str(tmp_path / "out"), opt, value])
+    assert e.value.code == 2
+    err = capsys.readouterr().err
+    assert f"argument {opt}:" in err and (">= 1" in err)

@@ -20,6 +20,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from ._main import positive_int
+
 HELP = "fit a capture: per-pixel maps, uncertainty, held-out error"
 
 
@@ -47,10 +49,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="photos to leave out, e.g. 0,4; 'all': leave-one-out over every photo against "
         "Lambert, then the maps from all photos",
     )
-    p.add_argument("--tile-pixels", type=int, default=4096, help="pixels per tile")
-    p.add_argument("--resolution", type=int, default=None, help="image folder to read")
-    p.add_argument("--downsample", type=int, default=1, help="box-filter factor before fitting")
-    p.add_argument("--max-photos", type=int, default=None, help="read at most this many photos")
+    p.add_argument("--tile-pixels", type=positive_int, default=4096, help="pixels per tile")
+    p.add_argument("--resolution", type=positive_int, default=None, help="image folder to read")
+    p.add_argument(
+        "--downsample", type=positive_int, default=1, help="box-filter factor before fitting"
+    )
+    p.add_argument(
+        "--max-photos", type=positive_int, default=None, help="read at most this many photos"
+    )
     p.add_argument("--backend", default="lean", choices=("lean", "optimistix", "jaxopt"))
     p.add_argument("--dtype", default="float32", choices=("float32", "float64"))
     p.add_argument("--noise", default="gaussian", choices=("gaussian", "shot"))

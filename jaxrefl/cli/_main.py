@@ -7,7 +7,19 @@ import importlib
 import sys
 from collections.abc import Sequence
 
-__all__ = ["main"]
+__all__ = ["main", "positive_int"]
+
+
+def positive_int(text: str) -> int:
+    """An argparse type: an integer >= 1 (a count, a size or a factor)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 1, not {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
+
 
 # Command name -> module defining HELP, add_arguments(parser) and run(args) -> int.
 _COMMANDS = {

@@ -33,6 +33,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from ._main import positive_int
+
 _EMCEE_KEYS = ("tau", "burn", "thin", "tau_reliable", "n_steps", "n_walkers")
 HELP = "posterior sampling: uncertainty maps with diagnostics (capture or BRDF file)"
 
@@ -57,13 +59,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("path", type=Path, help="capture folder, or a measured BRDF file")
     p.add_argument("--out", type=Path, required=True, help="output folder")
     p.add_argument("--pixels", type=_crop, default=None, help="crop ROW0:ROW1,COL0:COL1")
-    p.add_argument("--downsample", type=int, default=1, help="box-filter factor first")
+    p.add_argument("--downsample", type=positive_int, default=1, help="box-filter factor first")
     p.add_argument("--model", default="ggx", choices=sorted(CAPTURE_MODELS), help="capture model")
     p.add_argument("--mcmc", default="flagged", choices=("flagged", "all", "none"))
     p.add_argument("--audit", type=float, default=0.02, help="fraction of reliable pixels audited")
     p.add_argument("--warmup", type=int, default=300, help="HMC warm-up steps per chain")
-    p.add_argument("--samples", type=int, default=500, help="HMC draws per chain")
-    p.add_argument("--chains", type=int, default=4, help="chains per pixel")
+    p.add_argument("--samples", type=positive_int, default=500, help="HMC draws per chain")
+    p.add_argument("--chains", type=positive_int, default=4, help="chains per pixel")
     p.add_argument(
         "--rerun-rhat",
         type=float,
@@ -72,8 +74,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--brdf-model", default="cook_torrance_ggx", help="model for a BRDF file")
     p.add_argument("--sampler", default="emcee", choices=("emcee", "hmc"), help="for a BRDF file")
-    p.add_argument("--steps", type=int, default=3000, help="emcee steps")
-    p.add_argument("--walkers", type=int, default=None, help="emcee walkers")
+    p.add_argument("--steps", type=positive_int, default=3000, help="emcee steps")
+    p.add_argument("--walkers", type=positive_int, default=None, help="emcee walkers")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 

@@ -531,6 +531,12 @@ def load_capture(
             where = path.parent
     if max_photos is not None and max_photos < 1:
         raise ValueError(f"max_photos must be >= 1, got {max_photos}")
+    if resolution is not None and not (isinstance(resolution, int) and resolution >= 1):
+        raise CaptureError(
+            path,
+            f"must be a photo width in pixels (an integer >= 1), got {resolution!r}",
+            "resolution",
+        )
     if layout == "svbrdf-diff-renderer":
         newer = not (where / "parameters.json").is_file() and (where / "optim.json").is_file()
         cap = _load_svbrdf(

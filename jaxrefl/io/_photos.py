@@ -197,6 +197,20 @@ def read_png(path: str | Path) -> tuple[np.ndarray, int]:
     hdr = png_header(path)
     if hdr is not None and hdr["bit_depth"] == 16 and hdr["color_type"] in (2, 4, 6):
         return _decode(path)
+    try:
+        return _read_png_pillow(path)
+    except (OSError, _bomb_error()) as e:  # truncated, not an image, too many pixels
+        raise PNGError(f"{path}: cannot read image: {e}") from None
+
+
+def _bomb_error() -> type[Exception]:
+    """Pillow's error for an image whose header claims more pixels than its limit."""
+    from PIL import Image
+
+    return Image.DecompressionBombError
+
+
+def _read_png_pillow(path: Path) -> tuple[np.ndarray, int]:
     from PIL import Image
 
     with Image.open(path) as im:
@@ -335,7 +349,7 @@ def read_pixels(path: Path) -> tuple[np.ndarray, np.ndarray | None, int, bool]:
             a, depth = read_png(path)
         else:
             a, depth = _read_pillow(path)
-    except (PNGError, OSError) as e:
+    except (PNGError, OSError, _bomb_error()) as e:
         raise CaptureError(path, f"cannot read image: {e}") from None
     alpha = None
     if a.shape[-1] in (2, 4):
@@ -363,6 +377,8 @@ class Photos:
 
     def __init__(self, files: list[Path], transfer: Any, spec_path: Path, saturation=None):
         response, self.transfer = response_for(transfer, spec_path)
+        if not files:
+            raise CaptureError(spec_path, "lists no photos; a capture needs at least one")
         first = None
         for k, f in enumerate(files):
             a, alpha, depth, is_float = read_pixels(f)

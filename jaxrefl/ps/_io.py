@@ -43,6 +43,16 @@ from ._mat import read_mat, write_mat
 __all__ = ["load_capture", "load_diligent", "load_uw", "save_diligent"]
 
 
+def _read_text(path: Path) -> str:
+    """The text of a UTF-8 listing or lights file; other bytes are refused, file named."""
+    try:
+        return path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as e:
+        raise PSInputError(
+            path, f"not a UTF-8 text file ({e.reason} at byte {e.start}); expected numbers"
+        ) from None
+
+
 def _read_8bit(path: Path) -> np.ndarray:
     from PIL import Image
 
@@ -54,7 +64,7 @@ def _read_8bit(path: Path) -> np.ndarray:
             if im.mode not in ("L", "RGB", "RGBA", "LA", "P"):
                 raise PSInputError(path, f"image mode {im.mode} is not an 8-bit grey/RGB image")
             a = np.asarray(im.convert("RGB") if im.mode == "P" else im)
-    except OSError as e:
+    except (OSError, Image.DecompressionBombError) as e:
         raise PSInputError(path, f"cannot read image: {e}") from None
     a = a[..., None] if a.ndim == 2 else a
     return a[..., :3] if a.shape[-1] in (3, 4) else a[..., :1]
@@ -72,7 +82,7 @@ def _check_size(path: Path, a: np.ndarray, first: tuple[Path, tuple[int, ...]] |
 def _read_lights_uw(path: Path) -> np.ndarray:
     if not path.is_file():
         raise FileNotFoundError(f"{path}: lights file not found")
-    rows = [ln.split() for ln in path.read_text().splitlines() if ln.strip()]
+    rows = [ln.split() for ln in _read_text(path).splitlines() if ln.strip()]
     try:
         count = int(rows[0][0])
         d = np.array([[float(x) for x in r] for r in rows[1:]])
@@ -90,7 +100,7 @@ def _uw_files(obj: Path) -> tuple[list[Path], Path]:
     name = obj.name
     listing = obj.parent / f"{name}.txt"
     if listing.is_file():
-        lines = [ln.strip() for ln in listing.read_text().splitlines() if ln.strip()]
+        lines = [ln.strip() for ln in _read_text(listing).splitlines() if ln.strip()]
         try:
             count = int(lines[0])
         except (ValueError, IndexError):
@@ -117,6 +127,8 @@ def load_uw(obj_dir: str | Path, lights: str | Path | None = None) -> PSCapture:
     if not obj.is_dir():
         raise FileNotFoundError(f"{obj}: capture folder not found")
     files, mask_path = _uw_files(obj)
+    if not files:
+        raise PSInputError(obj, "lists no images; photometric stereo needs at least 3")
     if lights is None:
         cands = [obj / "lights.txt", obj.parent / "lights.txt"]
         lights = next((c for c in cands if c.is_file()), cands[0])
@@ -183,7 +195,7 @@ def load_diligent(root: str | Path, require_16bit: bool = True) -> PSCapture:
     listing = root / "filenames.txt"
     if not listing.is_file():
         raise FileNotFoundError(f"{listing}: not found (DiLiGenT layout)")
-    files = [root / ln.strip() for ln in listing.read_text().splitlines() if ln.strip()]
+    files = [root / ln.strip() for ln in _read_text(listing).splitlines() if ln.strip()]
     if not files:
         raise PSInputError(listing, "lists no images")
     dirs = _read_table(root / "light_directions.txt", 3)
