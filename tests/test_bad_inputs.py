@@ -13,7 +13,11 @@ lets it through). Families:
   non-finite intensities, negative weights, mismatched shapes (parametrised and
   property-based);
 * ``fit.pixel_data`` / ``fit.ParamSpace`` / ``fit.fit_pixels``: non-finite ``scale``,
-  non-unit ``wi``/``wo``, arguments that do not broadcast, non-finite ``fixed`` values.
+  non-unit ``wi``/``wo``, arguments that do not broadcast, non-finite ``fixed`` values;
+* files a library would crash on: truncated, garbage or oversized (decompression-bomb)
+  PNGs as photos and masks, non-UTF-8 ``lights.txt``, empty image lists, a resolution
+  below 1, CLI counts and sizes below 1 (argparse names the option);
+* Cornell (ASTM E1392) and CURET geometry files with a non-finite angle or index.
 
 Validation fails before any compilation, so the module stays fast.
 """
@@ -36,8 +40,10 @@ from hypothesis import strategies as st
 from PIL import Image
 
 from jaxrefl import brdf, fit, ps
+from jaxrefl.io import MeasuredDataError, read_cornell
 from jaxrefl.io._capture import Capture, CaptureError
 from jaxrefl.io._capture_layouts import load_capture, save_generic_capture
+from jaxrefl.io._curet import read_curet_geometry
 from jaxrefl.io._photos import Photos, PNGError, read_png, write_png
 from jaxrefl.scene import planar_points
 
@@ -479,3 +485,45 @@ def test_cli_count_options(tmp_path, capsys, cmd, opt, value):
     assert e.value.code == 2
     err = capsys.readouterr().err
     assert f"argument {opt}:" in err and (">= 1" in err)
+
+
+# ----------------------------------------------------------------------------- measured files
+CORNELL_ROWS = 3
+CORNELL_CASES = [
+    (tok, i, j)
+    for tok in BAD_NUMBERS
+    for i in range(CORNELL_ROWS)
+    for j in range(4)
+    if (i, j) != (0, 0)  # a first line starting with a letter reads as a header line
+]
+
+
+@pytest.mark.parametrize(("token", "row", "col"), CORNELL_CASES)
+def test_cornell_non_finite_angle(tmp_path, token, row, col):
+    rows = [["0.1", "0.2", "0.3", "0.4", "0.5", "0.6"] for _ in range(CORNELL_ROWS)]
+    rows[row][col] = token
+    p = tmp_path / "bad.astm"
+    p.write_text(
+        f"SAMPLE_NAME bad\nNUM_POINTS {CORNELL_ROWS}\nVARS theta_i,phi_i,theta_s,phi_s,R,G\n"
+        + "".join(",".join(r) + "\n" for r in rows)
+    )
+    name = ("theta_i", "phi_i", "theta_s", "phi_s")[col]
+    with pytest.raises(MeasuredDataError, match=rf"angle '{name}' is .*finite") as e:
+        read_cornell(p)
+    assert e.value.path == p and e.value.line == 4 + row
+
+
+CURET_CASES = [(tok, i, j) for tok in BAD_NUMBERS for i in range(3) for j in range(5)]
+
+
+@pytest.mark.parametrize(("token", "row", "col"), CURET_CASES)
+def test_curet_non_finite_geometry(tmp_path, token, row, col):
+    rows = [[str(k + 1), "0.1", "0.2", "0.3", "0.4"] for k in range(3)]
+    rows[row][col] = token
+    p = tmp_path / "table.txt"
+    p.write_text("".join(" ".join(r) + "\n" for r in rows))
+    angles = ("theta_v", "phi_v", "theta_i", "phi_i")
+    what = "geometry index" if col == 0 else f"angle {angles[col - 1]}"
+    with pytest.raises(MeasuredDataError, match=what) as e:
+        read_curet_geometry(p)
+    assert e.value.path == p and e.value.line == row + 1
