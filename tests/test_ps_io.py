@@ -97,6 +97,21 @@ def test_bad_input_names_the_file(diligent, tmp_path):
     np.savetxt(d / "light_directions.txt", bad)
     with pytest.raises(ValueError, match=r"light 4 \(line 5\).*below the horizon"):
         ps.load_diligent(d)
+    # A negative intensity is reported against the intensities file.
+    d = _copy(root, tmp_path / "ints")
+    ints = np.loadtxt(d / "light_intensities.txt", ndmin=2)
+    ints[3, 1] = -1.0
+    np.savetxt(d / "light_intensities.txt", ints)
+    with pytest.raises(ps.PSInputError, match=r"light_intensities\.txt: light 3 \(line 4\)"):
+        ps.load_diligent(d)
+    # A truncated mask and a non-UTF-8 listing.
+    d = _copy(root, tmp_path / "cut")
+    (d / "mask.png").write_bytes((d / "mask.png").read_bytes()[:40])
+    with pytest.raises(ValueError, match=r"mask\.png: cannot read image"):
+        ps.load_diligent(d)
+    (d / "filenames.txt").write_bytes(b"\xff\xfe001.png\n")
+    with pytest.raises(ps.PSInputError, match=r"filenames\.txt: not a UTF-8 text file"):
+        ps.load_diligent(d)
     # Empty mask.
     d = _copy(root, tmp_path / "mask")
     write_png(d / "mask.png", np.zeros(m.shape, np.uint8))

@@ -48,8 +48,12 @@ def check_lights(
     n_images: int,
     channels: int,
     where: str | Path | None = None,
+    intensities_where: str | Path | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Validate light directions (K, 3) and intensities (K, C) or (K,) against K images.
+
+    Errors in the directions name ``where``; errors in the intensities name
+    ``intensities_where`` (default ``where``): the file each was read from.
 
     Returns (unit directions float64 (K, 3), intensities float64 (K, C)). Raises
     :class:`PSInputError` for a count that does not match the images, a zero-length or
@@ -80,6 +84,7 @@ def check_lights(
     if intensities is None:
         e = np.ones((n_images, channels))
     else:
+        where = where if intensities_where is None else intensities_where
         e = np.asarray(intensities, np.float64)
         if e.ndim == 1:
             e = e[:, None]

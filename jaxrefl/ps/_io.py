@@ -232,7 +232,14 @@ def load_diligent(root: str | Path, require_16bit: bool = True) -> PSCapture:
     mask = np.any(m[..., : min(3, m.shape[-1])] > 0, axis=-1)
     if not mask.any():
         raise PSInputError(mpath, "the mask is empty (every pixel 0)")
-    d, e = check_lights(dirs, ints, raw.shape[0], raw.shape[-1], root / "light_directions.txt")
+    d, e = check_lights(
+        dirs,
+        ints,
+        raw.shape[0],
+        raw.shape[-1],
+        root / "light_directions.txt",
+        root / "light_intensities.txt",
+    )
     usable = (raw > 0) & (raw < top) & mask[None, ..., None]
     gt = _read_normals_gt(root, raw.shape[1:3])
     images = (raw / float(top)).astype(np.float32)
