@@ -267,3 +267,22 @@ def test_calibrated_methods_refuse_bad_lights_and_shapes(method, kind):
     with pytest.raises(ps.PSInputError, match=rf"^{arg}: ") as err:
         getattr(ps, method)(obs, lights, e, w)
     assert err.value.where == arg
+
+
+def test_uncalibrated_and_shading_lights_refuse_degenerate_input():
+    rng = np.random.default_rng(0)
+    flat = np.tile([0.0, 0.0, 1.0], (10, 1))
+    with pytest.raises(ps.PSInputError, match=r"^normals: image 0: .*coplanar"):
+        ps.lights_from_shading(np.ones((3, 10)), flat)
+    with pytest.raises(ps.PSInputError, match=r"^values: holds NaN"):
+        ps.lights_from_shading(np.full((3, 10), np.nan), flat)
+    m = rng.uniform(0.1, 1.0, (20, 6))
+    use, calib = np.ones(20, bool), np.arange(20) < 5
+    with pytest.raises(ps.PSInputError, match=r"^calib_normals: .*singular"):
+        ps.uncalibrated(m, use, calib, np.tile([0.0, 0.0, 1.0], (5, 1)))
+    for cn in (np.full((5, 3), np.nan), np.ones((4, 3))):
+        with pytest.raises(ps.PSInputError, match=r"^calib_normals: must be \(5, 3\)"):
+            ps.uncalibrated(m, use, calib, cn)
+    m[3, 2] = np.nan
+    with pytest.raises(ps.PSInputError, match=r"^m: holds NaN"):
+        ps.uncalibrated(m, use, calib, rng.normal(size=(5, 3)))

@@ -151,6 +151,9 @@ def lights_from_shading(
         raise PSInputError(None, f"normals are {n.shape}, expected ({m}, 3) for {m} points")
     if m < 4:
         raise PSInputError(None, f"{m} points of known normal; need >= 4 to calibrate lights")
+    for name, x in (("values", v), ("normals", n)):
+        if not np.all(np.isfinite(x)):
+            raise PSInputError(name, "holds NaN or Inf; every value must be finite")
     g = v.mean(axis=-1)
     dirs, covs, ints = [], [], []
     for j in range(k):
@@ -163,6 +166,12 @@ def lights_from_shading(
             sol, *_ = np.linalg.lstsq(a, g[j][lit], rcond=None)
             lit = lit & (n @ sol > 0)
         a = n[lit]
+        if lit.sum() < 3 or np.linalg.matrix_rank(a) < 3 or not np.linalg.norm(sol) > 0:
+            raise PSInputError(
+                "normals",
+                f"image {j}: the normals of its lit points are coplanar (or too few), so they "
+                "do not determine a light; use points with normals spanning 3 directions",
+            )
         res = g[j][lit] - a @ sol
         dof = max(int(lit.sum()) - 3, 1)
         cov_l = float(res @ res) / dof * np.linalg.inv(a.T @ a)

@@ -72,6 +72,8 @@ def factorize(m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     if m.ndim != 2 or min(m.shape) < 3:
         msg = f"rank-3 factorisation needs >= 3 pixels and images, got {m.shape}"
         raise PSInputError(None, msg)
+    if not np.all(np.isfinite(m)):
+        raise PSInputError("m", "holds NaN or Inf; leave such pixels out of the SVD (use)")
     u, w, vt = np.linalg.svd(m, full_matrices=False)
     r = np.sqrt(w[:3])
     return u[:, :3] * r, vt[:3].T * r, w
@@ -136,8 +138,24 @@ def uncalibrated(
     m = np.asarray(m, np.float64)
     use = np.asarray(use, bool)
     calib = np.asarray(calib, bool)
+    if use.shape != m.shape[:1] or calib.shape != m.shape[:1]:
+        raise PSInputError(
+            "use" if use.shape != m.shape[:1] else "calib",
+            f"must be (N,) = ({m.shape[0]},) booleans, got {use.shape} and {calib.shape}",
+        )
     if np.any(calib & ~use):
         raise PSInputError(None, "calibration pixels must be among the pixels used in the SVD")
+    cn = np.asarray(calib_normals, np.float64)
+    if cn.shape != (int(calib.sum()), 3) or not np.all(np.isfinite(cn)):
+        raise PSInputError(
+            "calib_normals",
+            f"must be ({int(calib.sum())}, 3) finite normals, one per calibration pixel; "
+            f"got shape {cn.shape}",
+        )
+    if not np.all(np.isfinite(m[~use])):
+        raise PSInputError(
+            "m", "holds NaN or Inf outside the pixels used; every value must be finite"
+        )
     s_use, l_hat, w = factorize(m[use])
     # S^ for every pixel: least-squares projection of its row onto L^ (exact for rows in use).
     s_all = np.linalg.lstsq(l_hat, m.T, rcond=None)[0].T
@@ -146,6 +164,12 @@ def uncalibrated(
     b = s_all @ a
     rho = np.linalg.norm(b, axis=1)
     normals = b / np.where(rho > 0, rho, 1.0)[:, None]
+    if not np.all(np.isfinite(a)) or np.linalg.cond(a) > 1e12:
+        raise PSInputError(
+            "calib_normals",
+            "the known normals do not determine the 3 x 3 ambiguity (the system is singular); "
+            "give >= 4 calibration pixels whose normals are not coplanar",
+        )
     lights = l_hat @ np.linalg.inv(a).T
     e = np.linalg.norm(lights, axis=1)
     return UncalibratedResult(normals, rho, lights / e[:, None], e, a, w)
