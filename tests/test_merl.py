@@ -258,3 +258,9 @@ def test_errors_name_the_file(lambert_file, tmp_path):
         MERL(jnp.zeros((3, 90, 90, 90)))
     with pytest.raises(ValueError, match="interpolation"):
         MERL(jnp.zeros(MERL_SHAPE), interpolation="cubic")
+
+
+@pytest.mark.parametrize("n", [0, -5, 2.5, True, "100"])
+def test_merl_to_measured_refuses_bad_sample_counts(lobe, n):
+    with pytest.raises(ValueError, match=r"n \(merl_samples\) must be a whole number >= 1"):
+        merl_to_measured(lobe, n=n)

@@ -96,6 +96,8 @@ def merl_to_measured(
     index of each sample, ``meta["n_missing_cells"]`` how many cells were skipped.
     Directions are computed in JAX's default dtype, then stored as float64.
     """
+    if n is not None and (isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1):
+        raise ValueError(f"n (merl_samples) must be a whole number >= 1 or None (all), got {n!r}")
     table = np.asarray(merl.table, dtype=np.float64)
     wi_cells, wo_cells = MERL.cell_directions()
     wi = np.asarray(wi_cells, dtype=np.float64)
