@@ -323,3 +323,14 @@ def test_atomic_write(tmp_path, monkeypatch):
     im = read_exr(path)
     assert list(im.channels) == ["b"] and im.metadata == {"run": 3}
     assert sorted(tmp_path.iterdir()) == [path] and (path.stat().st_mode & 0o777) == 0o640
+
+
+def test_unwritable_folder_names_the_target(tmp_path, monkeypatch):
+    def refuse(path, *args, **kwargs):
+        raise PermissionError(13, "Permission denied", str(path))
+
+    monkeypatch.setattr(_exr.os, "open", refuse)  # a read-only folder (root ignores modes)
+    target = tmp_path / "out.exr"
+    with pytest.raises(PermissionError, match=r"cannot write out\.exr in .*Permission denied") as e:
+        write_exr(target, {"Y": np.zeros((2, 2), np.float32)})
+    assert e.value.filename == str(target) and ".tmp" not in str(e.value)

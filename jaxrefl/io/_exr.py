@@ -390,7 +390,12 @@ def _atomic_write(exr_file: OpenEXR.File, path: Path) -> None:
     if not path.parent.is_dir():
         raise FileNotFoundError(2, f"no directory {path.parent} to write {path.name} in", str(path))
     tmp = path.parent / f".{path.name}.{os.getpid()}-{secrets.token_hex(4)}.tmp"
-    os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))  # umask applies
+    try:
+        os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))  # umask applies
+    except OSError as e:  # the error names the file asked for, not the temporary one
+        raise type(e)(
+            e.errno, f"cannot write {path.name} in {path.parent}: {e.strerror}", str(path)
+        ) from None
     try:
         if path.exists():
             os.chmod(tmp, stat.S_IMODE(path.stat().st_mode))
