@@ -9,9 +9,9 @@ lets it through). Families:
   ``image_size.txt``) holding a non-finite number at every line and column;
 * a :class:`~jaxrefl.io.Capture` built in Python with a non-finite or invalid field;
 * generic ``capture.json`` holding booleans or non-finite numbers where numbers belong;
-* ``ps.woodham`` / ``ps.robust``: non-finite, non-unit or below-horizon lights, negative or
-  non-finite intensities, negative weights, mismatched shapes (parametrised and
-  property-based);
+* ``ps.woodham`` / ``ps.robust`` / ``ps.fit_normal_brdf``: non-finite, non-unit or
+  below-horizon lights, negative or non-finite intensities, negative weights, mismatched
+  shapes (parametrised and property-based);
 * ``fit.pixel_data`` / ``fit.ParamSpace`` / ``fit.fit_pixels``: non-finite ``scale``,
   non-unit ``wi``/``wo``, arguments that do not broadcast, non-finite ``fixed`` values;
 * files a library would crash on: truncated, garbage or oversized (decompression-bomb)
@@ -240,7 +240,7 @@ def _apply_ps(case):
     return obs, lights, e, w
 
 
-@pytest.mark.parametrize("method", ["woodham", "robust"])
+@pytest.mark.parametrize("method", ["woodham", "robust", "fit_normal_brdf"])
 @pytest.mark.parametrize(("arg", "case"), _ps_cases(), ids=str)
 def test_ps_calibrated(method, arg, case):
     obs, lights, e, w = _apply_ps(case)
@@ -256,7 +256,7 @@ def test_ps_calibrated(method, arg, case):
 
 @HYP
 @given(
-    method=st.sampled_from(["woodham", "robust"]),
+    method=st.sampled_from(["woodham", "robust", "fit_normal_brdf"]),
     k=st.integers(0, NK - 1),
     what=st.sampled_from(["below", "scale", "intensity"]),
     x=st.floats(0.0, 1.0),
@@ -527,3 +527,10 @@ def test_curet_non_finite_geometry(tmp_path, token, row, col):
     with pytest.raises(MeasuredDataError, match=what) as e:
         read_curet_geometry(p)
     assert e.value.path == p and e.value.line == row + 1
+
+
+@pytest.mark.parametrize("shape", [(NN, NK, 1), (NN, NK), (NN + 1, NK, NC)])
+def test_fit_normal_brdf_saturated_shape(shape):
+    obs, lights, e, w = _ps_ok()
+    with pytest.raises(ps.PSInputError, match=r"^saturated: must have the shape of obs"):
+        ps.fit_normal_brdf(obs, lights, e, w, np.zeros(shape, bool))

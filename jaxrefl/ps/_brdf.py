@@ -43,6 +43,7 @@ from jaxrefl.brdf import get as get_brdf
 from jaxrefl.brdf._frame import safe_normalize
 from jaxrefl.scene import orthonormal_basis
 
+from ._capture import PSInputError
 from ._robust import robust
 from ._woodham import PSResult, prepare_inputs
 
@@ -144,6 +145,11 @@ def fit_normal_brdf(
     """
     obs, lights, e, w = prepare_inputs(obs, lights, intensities, weight)
     n, k, c = obs.shape
+    if saturated is not None and tuple(jnp.shape(saturated)) != (n, k, c):
+        raise PSInputError(
+            "saturated",
+            f"must have the shape of obs (N, K, C) = ({n}, {k}, {c}); got {jnp.shape(saturated)}",
+        )
     sat = jnp.zeros((n, k, c), bool) if saturated is None else jnp.asarray(saturated, bool)
     size = min(int(batch), max(256, 1 << max(n - 1, 0).bit_length()))
     pad = -n % size
