@@ -204,3 +204,45 @@ def _value_and_grad_jit(m, p, wi, wo):
 
         _JIT_CACHE[m] = jax.jit(value_and_grad)
     return _JIT_CACHE[m](p, wi, wo)
+
+
+# ----------------------------------------------------------------------------- validation
+@pytest.fixture
+def validating():
+    before = jaxrefl.brdf.set_validation(True)
+    yield
+    jaxrefl.brdf.set_validation(before)
+
+
+def test_check_params_refuses_out_of_range_and_non_finite():
+    for name in jaxrefl.brdf.available():
+        m = jaxrefl.brdf.get(name)
+        m.check_params(m.default_params())  # every default is in range
+    ward = jaxrefl.brdf.get("ward")
+    bad = {**ward.default_params(), "alpha": 0.0}
+    with pytest.raises(
+        ValueError, match=r"Ward parameter 'alpha' = 0\.0 is outside .*\[0\.0001, 1\]"
+    ):
+        ward.check_params(bad)
+    ct = jaxrefl.brdf.get("cook_torrance", fresnel="dielectric")
+    bad = {**ct.default_params(), "eta": jnp.zeros(3)}
+    with pytest.raises(ValueError, match=r"parameter 'eta' .* outside its range \[1, 4\]"):
+        ct.check_params(bad)
+    with pytest.raises(ValueError, match=r"'alpha' = nan is not finite"):
+        ward.check_params({**ward.default_params(), "alpha": jnp.nan})
+
+
+def test_eval_validates_only_when_asked(validating):
+    m = jaxrefl.brdf.get("blinn_phong")
+    wi, wo = jnp.asarray([0.0, 0.6, 0.8]), jnp.asarray([0.0, -0.6, 0.8])
+    p = m.default_params()
+    assert np.all(np.isfinite(m.eval(p, wi, wo)))
+    with pytest.raises(ValueError, match=r"wi must be unit vectors.*length 0\.001"):
+        m.eval(p, 1e-3 * wi, wo)
+    with pytest.raises(ValueError, match=r"'exponent'"):
+        m.eval({**p, "exponent": -1.0}, wi, wo)
+    # Inside jit the inputs are traced: no check, no error.
+    f = jax.jit(m.eval)(p, 1e-3 * wi, wo)
+    assert f.shape == (3,)
+    jaxrefl.brdf.set_validation(False)
+    m.eval(p, 1e-3 * wi, wo)  # off: evaluated as given

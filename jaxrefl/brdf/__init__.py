@@ -7,6 +7,8 @@ Every model follows the contract of :class:`BRDF` (see ``jaxrefl/brdf/_base.py``
 from ._base import BRDF as BRDF
 from ._base import Param as Param
 from ._base import Params as Params
+from ._base import check_directions as check_directions
+from ._base import set_validation as set_validation
 from ._convert import alpha_to_phong_exponent as alpha_to_phong_exponent
 from ._convert import alpha_to_roughness as alpha_to_roughness
 from ._convert import metallic_to_specular as metallic_to_specular

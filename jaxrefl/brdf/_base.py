@@ -18,22 +18,64 @@
   :meth:`BRDF.eval` swaps such directions for the normal *before* evaluating (gradient-safe
   guard), then zeroes the result.
 * The dtype of the result is the dtype of ``wi``; parameters are cast to it.
+
+Validation: :meth:`BRDF.check_params` refuses a non-finite parameter or one outside its
+documented range ``[lower, upper]`` (Ward with alpha = 0, a dielectric with eta = 0), and
+:func:`check_directions` refuses finite directions that are not unit vectors; both raise
+a ValueError naming the parameter or argument. :meth:`BRDF.eval` applies both to concrete
+(not traced) inputs while validation is on: ``set_validation(True)`` or the environment
+variable ``JAXREFL_VALIDATE=1``. It is off by default (inside fits the inputs are traced
+and already checked at the boundary: ``jaxrefl.fit.pixel_data``, ``ParamSpace``).
 """
 
 from __future__ import annotations
 
 import abc
+import os
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Literal
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from ._frame import cos_theta, upper_hemisphere
 
-__all__ = ["BRDF", "Param", "Params"]
+__all__ = ["BRDF", "Param", "Params", "check_directions", "set_validation"]
+
+# Largest accepted | |w| - 1 | of a direction under validation.
+_UNIT_TOL = 1e-3
+_VALIDATE = [os.environ.get("JAXREFL_VALIDATE", "") == "1"]
+
+
+def set_validation(on: bool) -> bool:
+    """Turn :meth:`BRDF.eval`'s input checks on or off; returns the previous setting."""
+    before = _VALIDATE[0]
+    _VALIDATE[0] = bool(on)
+    return before
+
+
+def _concrete(*arrays) -> bool:
+    return not any(isinstance(a, jax.core.Tracer) for a in arrays)
+
+
+def check_directions(wi: ArrayLike, wo: ArrayLike) -> None:
+    """Refuse finite ``wi``/``wo`` that are not unit vectors (within 1e-3), naming the
+    argument and its worst length. Non-finite directions are left to the caller."""
+    for name, w in (("wi", wi), ("wo", wo)):
+        w = np.asarray(w, np.float64)
+        norm = np.sqrt(np.sum(w * w, axis=-1))
+        off = np.where(np.isfinite(norm), np.abs(norm - 1.0), 0.0)
+        if off.size and np.max(off) > _UNIT_TOL:
+            i = np.unravel_index(int(np.argmax(off)), off.shape)
+            raise ValueError(
+                f"{name} must be unit vectors (|{name}| = 1 within {_UNIT_TOL:g}); the worst, "
+                f"at index {tuple(int(j) for j in i)}, has length {float(norm[i]):.6g}"
+            )
+
 
 Params = Mapping[str, ArrayLike]
 ParamKind = Literal["scalar", "color", "lobes"]
@@ -106,6 +148,28 @@ class BRDF(eqx.Module):
             f"{type(self).__name__} has no parameter {name!r}; it has {self.param_names}"
         )
 
+    def check_params(self, params: Params) -> None:
+        """Refuse a parameter that is missing, non-finite or outside ``[lower, upper]``
+        (:class:`Param`), naming it and its range. Lafortune lobes are checked for
+        finiteness only (their rows mix coefficients and exponents)."""
+        for q in self.params:
+            if q.name not in params:
+                raise KeyError(f"{type(self).__name__}: missing parameter {q.name!r}")
+            v = params[q.name]
+            if not _concrete(v):
+                continue
+            v = np.asarray(v, np.float64)
+            if not np.all(np.isfinite(v)):
+                raise ValueError(
+                    f"{type(self).__name__} parameter {q.name!r} = {v.tolist()} is not finite; "
+                    f"give a value in [{q.lower:g}, {q.upper:g}]"
+                )
+            if q.kind != "lobes" and (np.any(v < q.lower) or np.any(v > q.upper)):
+                raise ValueError(
+                    f"{type(self).__name__} parameter {q.name!r} = {v.tolist()} is outside its "
+                    f"range [{q.lower:g}, {q.upper:g}] ({q.doc})"
+                )
+
     def default_params(self, dtype=jnp.float32) -> dict[str, Array]:
         """A dict of typical parameter values (colour parameters as RGB, shape (3,))."""
         out = {}
@@ -132,6 +196,9 @@ class BRDF(eqx.Module):
             raise ValueError(
                 f"wi and wo must have a trailing axis of length 3, got {wi.shape} and {wo.shape}"
             )
+        if _VALIDATE[0] and _concrete(wi, wo, *jax.tree.leaves(dict(params))):
+            self.check_params(params)
+            check_directions(wi, wo)
         p = self._prepare(params, wi.dtype)
         p, wi, wo = self._align_ranks(p, wi, wo)
         ok = upper_hemisphere(wi, wo)
