@@ -17,7 +17,9 @@ lets it through). Families:
 * files a library would crash on: truncated, garbage or oversized (decompression-bomb)
   PNGs as photos and masks, non-UTF-8 ``lights.txt``, empty image lists, a resolution
   below 1, CLI counts and sizes below 1 (argparse names the option);
-* Cornell (ASTM E1392) and CURET geometry files with a non-finite angle or index.
+* Cornell (ASTM E1392) and CURET geometry files with a non-finite angle or index;
+* BRDF parameters that are non-finite or outside their documented range
+  (``BRDF.check_params``) and non-unit directions under ``brdf.set_validation(True)``.
 
 Validation fails before any compilation, so the module stays fast.
 """
@@ -534,3 +536,49 @@ def test_fit_normal_brdf_saturated_shape(shape):
     obs, lights, e, w = _ps_ok()
     with pytest.raises(ps.PSInputError, match=r"^saturated: must have the shape of obs"):
         ps.fit_normal_brdf(obs, lights, e, w, np.zeros(shape, bool))
+
+
+# ----------------------------------------------------------------------------- BRDF parameters
+def _brdf_cases():
+    cases = []
+    for name in brdf.available():
+        m = brdf.get(name)
+        for q in m.params:
+            values = [np.nan, np.inf, -np.inf]
+            if q.kind != "lobes":
+                if np.isfinite(q.lower):
+                    values.append(q.lower - max(1e-3, 1e-3 * abs(q.lower)))
+                if np.isfinite(q.upper):
+                    values.append(q.upper + max(1e-3, 1e-3 * abs(q.upper)))
+            cases += [(name, q.name, v) for v in values]
+    return cases
+
+
+@pytest.mark.parametrize(("model", "param", "value"), _brdf_cases(), ids=str)
+def test_brdf_check_params(model, param, value):
+    m = brdf.get(model)
+    p = m.default_params(np.float64)
+    bad = np.array(p[param], np.float64)
+    bad.flat[-1] = value
+    with pytest.raises(
+        ValueError, match=rf"parameter '{param}' = .*(not finite|outside its range)"
+    ):
+        m.check_params({**p, param: bad})
+
+
+@HYP
+@given(
+    arg=st.sampled_from(["wi", "wo"]),
+    f=st.one_of(st.floats(1e-6, 0.995), st.floats(1.005, 1e4)),
+    model=st.sampled_from(["lambert", "blinn_phong", "ward", "cook_torrance"]),
+)
+def test_brdf_eval_directions_property(arg, f, model):
+    m = brdf.get(model)
+    d = {"wi": np.array([0.0, 0.6, 0.8]), "wo": np.array([0.6, 0.0, 0.8])}
+    d[arg] = d[arg] * f
+    before = brdf.set_validation(True)
+    try:
+        with pytest.raises(ValueError, match=rf"{arg} must be unit vectors.*length"):
+            m.eval(m.default_params(np.float64), d["wi"], d["wo"])
+    finally:
+        brdf.set_validation(before)
