@@ -60,7 +60,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--backend", default="lean", choices=("lean", "optimistix", "jaxopt"))
     p.add_argument("--dtype", default="float32", choices=("float32", "float64"))
     p.add_argument("--noise", default="gaussian", choices=("gaussian", "shot"))
-    p.add_argument("--loss", default="l2", choices=("l2", "huber", "cauchy"))
+    p.add_argument(
+        "--loss",
+        default=None,
+        choices=("l2", "huber", "cauchy"),
+        help="default: huber for pooled (robust to glints), l2 for the others",
+    )
     p.add_argument(
         "--alpha-min",
         type=float,

@@ -22,6 +22,7 @@ from ._data import pixel_block as pixel_block
 from ._data import resolvable_alpha as resolvable_alpha
 from ._holdout import LeaveOneOut as LeaveOneOut
 from ._holdout import leave_one_out as leave_one_out
+from ._job import DEFAULT_LOSS as DEFAULT_LOSS
 from ._job import CaptureFit as CaptureFit
 from ._job import FitJob as FitJob
 from ._job import fit_capture as fit_capture
