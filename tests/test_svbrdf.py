@@ -425,8 +425,19 @@ def test_interrupted_run_resumes_without_recomputing(tmp_path):
     (tmp_path / "tiles" / "tile_00001.npz").write_bytes(b"truncated")
     again = svbrdf.fit_capture(cap, job, tmp_path)
     assert again.tiles_computed == 1
+    # A tile file of another size (a copy of another tile's arrays, cut) is recomputed too.
+    with np.load(tmp_path / "tiles" / "tile_00002.npz") as z:
+        cut = {k: z[k][:3] for k in z.files}
+    np.savez(tmp_path / "tiles" / "tile_00002.npz", **cut)
+    again = svbrdf.fit_capture(cap, job, tmp_path)
+    assert again.tiles_computed == 1
+    np.testing.assert_array_equal(again.maps["alpha"], full.maps["alpha"])
     with pytest.raises(ValueError, match="different fit"):
         svbrdf.fit_capture(cap, svbrdf.FitJob(tile_pixels=_TILE, model="lambert"), tmp_path)
+    # A corrupt manifest is named as such, with the way out.
+    (tmp_path / "tiles" / "manifest.json").write_text('{"job": ')
+    with pytest.raises(ValueError, match=r"manifest\.json: unreadable resume manifest.*--restart"):
+        svbrdf.fit_capture(cap, job, tmp_path)
     assert svbrdf.fit_capture(cap, replace(job, model="lambert"), tmp_path, restart=True)
 
 

@@ -176,12 +176,34 @@ def _atomic_savez(path: Path, **arrays) -> None:
     os.replace(tmp, path)
 
 
-def _load_tile(path: Path) -> dict[str, np.ndarray] | None:
+_TILE_KEYS = (
+    "theta",
+    "status",
+    "cost",
+    "iterations",
+    "n_used",
+    "std",
+    "corr",
+    "noise_var",
+    "flag",
+    "sse",
+    "cnt",
+)
+
+
+def _load_tile(path: Path, n: int) -> dict[str, np.ndarray] | None:
+    """A saved tile of ``n`` pixels, or None where the file is truncated, corrupt, or holds
+    another number of pixels or other arrays (then the tile is recomputed)."""
     try:
         with np.load(path) as z:
-            return {k: z[k] for k in z.files}
+            tile = {k: z[k] for k in z.files}
     except Exception:  # truncated or corrupt: recompute it
         return None
+    if any(k not in tile for k in _TILE_KEYS) or any(
+        v.ndim == 0 or v.shape[0] != n for v in tile.values()
+    ):
+        return None
+    return tile
 
 
 class _TileFitter:
@@ -410,10 +432,13 @@ def _prepare_dir(out_dir: Path, manifest: dict[str, Any], restart: bool) -> Path
     if mpath.exists() and not restart:
         try:
             old = json.loads(mpath.read_text())
-        except json.JSONDecodeError:
-            old = None
+        except (json.JSONDecodeError, UnicodeDecodeError, OSError) as e:
+            raise ValueError(
+                f"{mpath}: unreadable resume manifest ({e}); the tiles beside it cannot be "
+                "matched to this fit: use --restart (or another --out folder)"
+            ) from None
         new = json.loads(json.dumps(manifest))  # as it reads back (tuples become lists)
-        same = old is not None and all(old.get(k) == new[k] for k in ("job", "capture"))
+        same = isinstance(old, dict) and all(old.get(k) == new[k] for k in ("job", "capture"))
         if not same:
             raise ValueError(
                 f"{mpath}: the tiles in {tiles} belong to a different fit (another model, "
@@ -459,7 +484,8 @@ def fit_capture(
         for i in range(len(tiles)):
             p = tdir / f"tile_{i:05d}.npz"
             if p.exists():
-                results[i] = _load_tile(p)
+                s_i, e_i = tiles[i]
+                results[i] = _load_tile(p, e_i - s_i)
                 loaded += results[i] is not None
     todo = [i for i, r in enumerate(results) if r is None]
 
