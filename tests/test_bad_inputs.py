@@ -582,3 +582,30 @@ def test_brdf_eval_directions_property(arg, f, model):
             m.eval(m.default_params(np.float64), d["wi"], d["wo"])
     finally:
         brdf.set_validation(before)
+
+
+@pytest.mark.parametrize(
+    ("kw", "name"),
+    [
+        ({"alpha_min": float("nan")}, "alpha_min"),
+        ({"alpha_min": 0.0}, "alpha_min"),
+        ({"alpha_min": 1.5}, "alpha_min"),
+        ({"sigma": float("nan")}, "sigma"),
+        ({"sigma": -0.01}, "sigma"),
+        ({"sigma": 0.0}, "sigma"),
+        ({"read": float("inf")}, "read"),
+        ({"gain": -1.0}, "gain"),
+    ],
+)
+def test_fit_job_refuses_bad_numbers(kw, name):
+    from jaxrefl.svbrdf import FitJob
+
+    with pytest.raises(ValueError, match=name):
+        FitJob(**kw)
+
+
+def test_cli_refuses_a_nan_alpha_min(tmp_path, capsys):
+    from jaxrefl.cli import main
+
+    assert main(["fit", str(tmp_path), "--out", str(tmp_path / "o"), "--alpha-min", "nan"]) == 1
+    assert "alpha_min" in capsys.readouterr().err

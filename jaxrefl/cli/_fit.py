@@ -91,9 +91,6 @@ def run(args: argparse.Namespace) -> int:
         import jax
 
         jax.config.update("jax_enable_x64", True)
-    capture = load_capture(args.capture, resolution=args.resolution, max_photos=args.max_photos)
-    if args.downsample > 1:
-        capture = capture.downsample(args.downsample)
     loo_all = args.holdout == "all"
     job = FitJob(
         model=args.model,
@@ -105,7 +102,10 @@ def run(args: argparse.Namespace) -> int:
         loss=args.loss,
         alpha_min=args.alpha_min,
         tilt_std=args.tilt_std,
-    )
+    )  # options are checked before any file is read
+    capture = load_capture(args.capture, resolution=args.resolution, max_photos=args.max_photos)
+    if args.downsample > 1:
+        capture = capture.downsample(args.downsample)
     print(f"{capture}")
     loo = None
     if loo_all:

@@ -55,11 +55,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not getattr(args, "command", None):
         parser.print_help()
         return 2
+    from jaxrefl import brdf
+
+    # At the command line every concrete BRDF evaluation checks its parameters' ranges and
+    # its directions (brdf.set_validation): a bad value is refused by name, not rendered.
+    before = brdf.set_validation(True)
     try:
         return int(args._run(args) or 0)
     except (ValueError, FileNotFoundError, KeyError) as exc:
         print(f"jaxrefl {args.command}: error: {exc}", file=sys.stderr)
         return 1
+    finally:
+        brdf.set_validation(before)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -38,7 +38,7 @@ from jaxrefl import brdf, fit
 from jaxrefl.fit import Status
 
 from ._data import pixel_block, resolvable_alpha
-from ._models import TWO_STAGE, capture_model
+from ._models import ALPHA_RANGE, TWO_STAGE, capture_model
 from ._pooled import PoolChoice, choose_pooled
 
 __all__ = ["DEFAULT_LOSS", "CaptureFit", "FitJob", "fit_capture"]
@@ -105,6 +105,15 @@ class FitJob:
             raise ValueError(f"tile_pixels must be positive, got {self.tile_pixels}")
         if not self.tilt_std > 0:
             raise ValueError(f"tilt_std must be positive, got {self.tilt_std}")
+        lo, hi = ALPHA_RANGE
+        if self.alpha_min is not None and not lo <= self.alpha_min <= hi:
+            raise ValueError(f"alpha_min must be in [{lo:g}, {hi:g}], got {self.alpha_min}")
+        if self.sigma is not None and not (np.isfinite(self.sigma) and self.sigma > 0):
+            raise ValueError(f"sigma must be a positive number, got {self.sigma}")
+        for name in ("read", "gain"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v >= 0):
+                raise ValueError(f"{name} must be a finite number >= 0, got {v}")
         object.__setattr__(self, "holdout", tuple(sorted({int(i) for i in self.holdout})))
 
 
