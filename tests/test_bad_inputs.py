@@ -609,3 +609,15 @@ def test_cli_refuses_a_nan_alpha_min(tmp_path, capsys):
 
     assert main(["fit", str(tmp_path), "--out", str(tmp_path / "o"), "--alpha-min", "nan"]) == 1
     assert "alpha_min" in capsys.readouterr().err
+
+
+def test_every_input_error_is_a_jaxrefl_error():
+    from jaxrefl import JaxreflError
+    from jaxrefl.io._capture import CaptureError
+    from jaxrefl.io._exr import ExrFormatError
+    from jaxrefl.io._measured import MeasuredDataError
+    from jaxrefl.io._photos import PNGError
+    from jaxrefl.ps import PSInputError
+
+    for cls in (CaptureError, ExrFormatError, MeasuredDataError, PNGError, PSInputError):
+        assert issubclass(cls, JaxreflError) and issubclass(cls, ValueError), cls

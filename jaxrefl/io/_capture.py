@@ -62,10 +62,12 @@ from typing import Any
 
 import numpy as np
 
+from jaxrefl._errors import JaxreflError
+
 __all__ = ["OBS_STATUS", "Capture", "CaptureError", "ObsStatus", "geometry_status"]
 
 
-class CaptureError(ValueError):
+class CaptureError(JaxreflError):
     """A capture folder or file is missing, malformed or inconsistent.
 
     The message names the file, the field (a JSON key, a text file's line) and the problem.

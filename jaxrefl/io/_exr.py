@@ -47,6 +47,8 @@ from typing import Any
 import numpy as np
 import OpenEXR
 
+from jaxrefl._errors import JaxreflError
+
 __all__ = ["ExrFormatError", "ExrImage", "read_exr", "write_exr", "write_exr_rgb"]
 
 _META_PREFIX = "jaxrefl/"
@@ -56,7 +58,7 @@ _TYPE_NAMES = {OpenEXR.HALF: "HALF", OpenEXR.FLOAT: "FLOAT", OpenEXR.UINT: "UINT
 _EXR_ERRORS = (RuntimeError, ValueError, TypeError, OpenEXR.error)
 
 
-class ExrFormatError(ValueError):
+class ExrFormatError(JaxreflError):
     """An EXR file (or what would be written to one) is corrupt or has an unsupported layout.
 
     The message names the file, the problem and what to do about it.

@@ -15,10 +15,12 @@ from typing import Any
 
 import numpy as np
 
+from jaxrefl._errors import JaxreflError
+
 __all__ = ["MeasuredBRDF", "MeasuredDataError", "directions_from_angles"]
 
 
-class MeasuredDataError(ValueError):
+class MeasuredDataError(JaxreflError):
     """A measured-data file is corrupt, truncated or not in the expected format.
 
     The message names the file and the problem (and the line where there is one).

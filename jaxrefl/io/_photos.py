@@ -39,6 +39,8 @@ from typing import Any
 
 import numpy as np
 
+from jaxrefl._errors import JaxreflError
+
 from ._capture import CaptureError, ObsStatus
 
 __all__ = [
@@ -59,7 +61,7 @@ _SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _CHANNELS = {0: 1, 2: 3, 4: 2, 6: 4}
 
 
-class PNGError(ValueError):
+class PNGError(JaxreflError):
     """A PNG file this module cannot read (corrupt, or a variant it does not handle)."""
 
 

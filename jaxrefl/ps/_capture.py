@@ -26,6 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxrefl._errors import JaxreflError
+
 __all__ = ["PSCapture", "PSInputError", "check_lights"]
 
 # A light whose direction is within this angle of the horizon (z = 0) is rejected: it
@@ -33,7 +35,7 @@ __all__ = ["PSCapture", "PSInputError", "check_lights"]
 _MIN_ELEVATION_DEG = 1e-3
 
 
-class PSInputError(ValueError):
+class PSInputError(JaxreflError):
     """Bad photometric-stereo input; the message names the file (or argument) and the fix."""
 
     def __init__(self, where: str | Path | None, problem: str):
