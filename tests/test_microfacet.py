@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from scipy.special import erf
 
+from jaxrefl import brdf
 from jaxrefl.brdf._microfacet import (
     ALPHA_MIN,
     GGX,
@@ -172,3 +173,26 @@ def test_values_and_gradients_finite_at_edges(dtype):
     # Below the floor alpha is held at 1e-4 (documented), so D stops growing.
     d0 = GGX().D({"alpha": jnp.asarray([0.0], dtype)}, jnp.asarray([[0, 0, 1]], dtype))
     assert float(d0[0]) == float(d[0])
+
+
+@pytest.mark.parametrize("shadowing", ["smith_height_correlated", "smith_separable"])
+def test_both_cosines_at_the_horizon_give_finite_gradients(shadowing):
+    """wi = wo within 1e-298 of the horizon with a narrow anisotropic Beckmann lobe: D = 0
+    and 1/den overflows in the gradient unless den is floored (hypothesis found it)."""
+    m = brdf.get(
+        "cook_torrance",
+        distribution="beckmann",
+        anisotropic=True,
+        shadowing=shadowing,
+        fresnel="schlick",
+    )
+    p = {
+        "specular": jnp.asarray([0.97, 0.32, 0.66]),
+        "alpha_u": jnp.asarray(2.1e-4),
+        "alpha_v": jnp.asarray(0.04),
+    }
+    wi = jnp.asarray([1.0, 0.0, 1.0180281434065522e-298])
+    for name in ("alpha_u", "alpha_v", "specular"):
+        g = jax.grad(lambda x, n=name: jnp.sum(m.eval({**p, n: x}, wi, wi)))(p[name])
+        assert np.all(np.isfinite(np.asarray(g))), (name, g)
+    assert np.all(np.isfinite(np.asarray(m.eval(p, wi, wi))))

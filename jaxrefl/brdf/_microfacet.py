@@ -215,6 +215,19 @@ def _cosines(wi: Array, wo: Array, wh: Array) -> tuple[Array, Array, Array, Arra
     return ci, co, d, ok
 
 
+def _reciprocal(den: Array, ok: Array) -> Array:
+    """1 / den where ``ok`` and den > 0, else 0; den is floored at sqrt(tiny) of its dtype.
+
+    Clamp: the derivative of 1/den is -1/den^2, which overflows for den below sqrt(tiny)
+    (1.5e-154 in float64, 1.1e-19 in float32): both cosines within that of the horizon. There
+    D(h) is usually 0, and inf * 0 would make the gradient NaN. The floor caps V at
+    1/sqrt(tiny) with a zero gradient below it, so values and gradients stay finite."""
+    ok = ok & (den > 0)
+    floor = jnp.sqrt(jnp.finfo(den.dtype).tiny)
+    d = jnp.where(ok, jnp.where(den >= floor, den, floor), 1.0)
+    return jnp.where(ok, 1.0 / d, 0.0)
+
+
 class Shadowing(eqx.Module):
     """A shadowing-masking term, returned as V = G / (4 cos_i cos_o) (dimensionless)."""
 
@@ -251,8 +264,7 @@ class SmithHeightCorrelated(Shadowing):
         ci, co, _, ok = _cosines(wi, wo, wh)
         # 4 c_i c_o (1 + L_i + L_o) = 4 (c_i c_o + c_o (c_i L_i) + c_i (c_o L_o)).
         den = 4.0 * (ci * co + co * dist.cos_lambda(p, wi) + ci * dist.cos_lambda(p, wo))
-        ok = ok & (den > 0)
-        return jnp.where(ok, 1.0 / jnp.where(ok, den, 1.0), 0.0)
+        return _reciprocal(den, ok)
 
 
 class SmithSeparable(Shadowing):
@@ -265,8 +277,7 @@ class SmithSeparable(Shadowing):
     ) -> Array:
         ci, co, _, ok = _cosines(wi, wo, wh)
         den = 4.0 * (ci + dist.cos_lambda(p, wi)) * (co + dist.cos_lambda(p, wo))
-        ok = ok & (den > 0)
-        return jnp.where(ok, 1.0 / jnp.where(ok, den, 1.0), 0.0)
+        return _reciprocal(den, ok)
 
 
 class VGroove(Shadowing):
