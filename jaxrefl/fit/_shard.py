@@ -10,14 +10,12 @@ so the results equal those of one device *up to rounding*, not bit for bit: XLA 
 each batch shape on its own, and its fusion choices, hence how the sums over a pixel's
 observations are rounded, depend on the shape (on the CPU the starting points of 33 and of
 65 pixels (``_init``) compile to 44 and 57 fused kernels and differ in the last bit; the LM
-and the Laplace step on equal inputs differ likewise for other shapes). Measured on 1,328
-noisy Blinn-Phong pixels (float64) on 2 and 3 host devices against one: the statuses and the
-Laplace flags agree everywhere, every decision sitting far above the rounding (the status
-thresholds; the Laplace step's condition test, ``_laplace``); CONVERGED and ILL_CONDITIONED
-pixels agree to 4e-9 relative in theta and 2e-15 in cost. An iterate that has not converged
-carries the rounding of its path further: a pixel stopped by the iteration limit
-(MAX_ITERATIONS, or AT_BOUND, which takes precedence) differs by up to 1e-2 relative in a
-poorly determined parameter, at costs equal to 1e-7.
+and the Laplace step on equal inputs differ likewise for other shapes). Statuses
+and Laplace flags are decided far above that rounding (the status thresholds; the Laplace
+step's condition test, ``_laplace``), so they agree between layouts, and converged pixels
+agree to rounding in theta and cost. An iterate that has not converged carries the rounding
+of its path further: a pixel stopped by the iteration limit (MAX_ITERATIONS, or AT_BOUND,
+which takes precedence) can differ visibly in a poorly determined parameter at equal cost.
 
 On the CPU, ``XLA_FLAGS=--xla_force_host_platform_device_count=2`` (set before JAX starts)
 gives two host devices: that is how the tests check it.
