@@ -16,18 +16,19 @@ problems", Alg. 3.16; Nielsen's damping update):
     accept if cost_t < cost:   lam *= max(1/3, 1 - (2 rho - 1)^3),  nu = 2
     otherwise reject:          lam *= nu,  nu *= 2
 
-Design decisions, from measurements (``MEASUREMENTS.md``):
+Design decisions:
 
-* Damping is plain lam * I (isotropic), *not* Marquardt's diag(J^T J) scaling: with the
-  latter and a small start 8-22% of GGX pixels fell into the "alpha -> 0, highlight missed"
-  local minimum; lam * I reached the optimum on 99.6%. The start is relative,
-  lam0 * mean(diag(J^T J(theta0))), so the same option works whatever the units of the data
-  (radiance, f_r, whitened residuals); Madsen & Nielsen use tau * max(diag). Default
-  lam0 = 0.01, measured on 20k-50k GGX + Lambert pixels (``benchmarks/fit_throughput.py``
-  data): from the automatic start the mean number of steps falls from 5.7 (lam0 = 1) to
-  2.8 with every pixel's final cost within 0.1% of lam0 = 1's; from the model defaults
-  (a poor start) 0.2-0.3% of pixels end > 1% worse and as many > 1% better, a wash, while
-  lam0 = 1e-3 ends worse twice as often as better.
+* Damping is plain lam * I (isotropic), *not* Marquardt's diag(J^T J) scaling. Marquardt's
+  scaling damps each parameter in proportion to its own curvature, so a parameter the data
+  barely constrain yet (alpha, before a GGX pixel's highlight is matched) is barely damped;
+  from a small start more GGX pixels then fall into the "alpha -> 0, highlight missed"
+  local minimum than with lam * I. The start is relative, lam0 * mean(diag(J^T J(theta0))),
+  so the same option works whatever the units of the data (radiance, f_r, whitened
+  residuals); Madsen & Nielsen use tau * max(diag). The default lam0 = 0.01 is chosen for the
+  automatic start (:func:`~jaxrefl.fit.initial_theta`), which is usually close to the
+  optimum: there a small damping takes Gauss-Newton steps at once and needs about half the
+  steps of lam0 = 1 for the same final costs; from a poor start (the model defaults) the
+  two end equally often better and worse, while a smaller lam0 ends worse more often.
 * The number of iterations is fixed (``lax.scan``, no ``while_loop`` under ``vmap``, which
   would run every pixel until the slowest stops). Converged pixels are frozen (their state
   stops changing), so a pixel takes the same steps whatever batch it is in (up to the
@@ -109,19 +110,18 @@ class LMOptions(eqx.Module):
     unroll_max: largest P for the unrolled Cholesky (else jnp.linalg.cholesky).
     max_step:   cap on |delta|_inf per step (4: alpha x e^4 = 55, a logit 0.5 -> 0.98).
     compact_after, compact_stages, chunk: how :func:`batched_lm` organises the work
-                (results per pixel do not depend on them). The default stages follow the
-                measured convergence of GGX + Lambert pixels from the automatic start
-                (``benchmarks/fit_throughput.py`` data, lam0 = 0.01: 43% still iterating
-                after 2 steps, 25% (at most 28% of a block) after 3, 1.5% (3.5%) after
-                8, 0.1% after 15), with caps
-                well above those shares: a stage whose unconverged pixels overflow its
-                cap by one runs a second, almost empty round (measured: caps at the
-                expected share cost 2x). Against one stage (10 steps for all, then
-                1/8 of a block), about 5 slot-steps per pixel instead of 13.75 and 1.6-2x
-                the pixels/s (``benchmarks/fit_throughput.py``, row "one stage"). Stages
-                narrower than 64 slots merge into the one before, and blocks under 512
-                pixels take one plain loop of steps that stops once all have converged
-                (fewer compiled copies of the step).
+                (results per pixel do not depend on them). The default stages follow how
+                GGX + Lambert pixels converge from the automatic start with lam0 = 0.01
+                (about a quarter of a block still iterating after 3 steps, a few percent
+                after 8, almost none after 15; ``benchmarks/fit_throughput.py`` fits such
+                pixels), with caps well above those shares: a stage whose unconverged
+                pixels overflow its cap by one runs a second, almost empty round that
+                costs as much as the first. The default takes about 5 slot-steps per
+                pixel, against 13.75 for one stage of 10 steps for all and then 1/8 of
+                a block (that benchmark times both). Stages narrower than 64 slots merge
+                into the one before, and blocks under 512 pixels take one plain loop of
+                steps that stops once all have converged (fewer compiled copies of the
+                step).
     """
 
     max_iters: int = eqx.field(default=40, static=True)
@@ -261,7 +261,7 @@ def _linearise(residual_fn: ResidualFn, theta, data):
     jac, r = jax.jacfwd(f, has_aux=True)(theta)
     cost = 0.5 * jnp.sum(r * r)
     # Products written as broadcast-multiply-sum: under vmap a batched (P x M)(M x P) matmul
-    # is a slow small-matrix kernel on CPU, the elementwise form fuses (2.4x faster, P = 7).
+    # is a slow small-matrix kernel on CPU, the elementwise form fuses into one loop.
     jtj = jnp.sum(jac[:, :, None] * jac[:, None, :], axis=0)
     grad = jnp.sum(jac * r[:, None], axis=0)
     # Rows that take part in the fit at theta: a satisfied censored observation (and a
