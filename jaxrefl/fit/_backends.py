@@ -11,10 +11,11 @@ with per-pixel :class:`~jaxrefl.fit.Status` codes, iteration counts and final co
   to our codes (successful -> CONVERGED, max steps -> MAX_ITERATIONS, nonfinite ->
   NONFINITE_INPUT, any other failure -> ILL_CONDITIONED).
 * ``"jaxopt"``: ``jaxopt.LevenbergMarquardt`` under ``vmap`` with ``damping_parameter=1``
-  and ``solver="cholesky"`` (MEASUREMENTS.md: its default damping of 1e-6 x max diag(J^T J)
-  lands in the "highlight missed" local minimum on ~9% of GGX pixels), Madsen-Nielsen stop
-  test. jaxopt is no longer maintained: it is imported only when asked for, its import-time
-  warnings are silenced, and a missing install raises an ImportError saying what to do.
+  and ``solver="cholesky"`` (with its default damping of 1e-6 x max diag(J^T J), nearly
+  undamped Gauss-Newton steps send more GGX pixels into the "highlight missed" local
+  minimum; see :mod:`jaxrefl.fit._lm` on damping), Madsen-Nielsen stop test. jaxopt is no
+  longer maintained: it is imported only when asked for, its import-time warnings are
+  silenced, and a missing install raises an ImportError saying what to do.
 
 Whatever the backend, the status is then completed the same way (``_status.classify``): the
 AT_BOUND test with ``space``, MASKED with ``n_usable``, ILL_CONDITIONED from J^T J at the

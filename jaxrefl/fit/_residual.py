@@ -68,7 +68,8 @@ class PixelData(eqx.Module):
     censored: (K, C) int8; 0 none, +1 saturated (true >= obs), -1 dark-clipped (true <= obs)
     colocated: static flag, True when wo == wi for every observation (a flash capture with
               the light at the camera). The residual then evaluates ``model.eval(p, wi, wi)``
-              so the compiler can share the wi and wo halves of the BRDF (about 2x faster).
+              so the compiler can share the wi and wo halves of the BRDF (each
+              direction-dependent term is computed once).
     """
 
     obs: Float[Array, "*n K C"]
@@ -203,8 +204,8 @@ class GaussianNoise(NoiseModel):
 
     ``sigma=None`` means unknown: the fit uses sigma = 1 (the optimum of an L2 fit does not
     depend on a common sigma) and sigma can be estimated afterwards from the residuals
-    (``jaxrefl.infer``). Robust-loss thresholds are in units of sigma, so give sigma when
-    using Huber or Cauchy.
+    (:func:`jaxrefl.fit.laplace` with ``noise="estimate"``). Robust-loss thresholds are in
+    units of sigma, so give sigma when using Huber or Cauchy.
     """
 
     sigma: float | Array | None = None

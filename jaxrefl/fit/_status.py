@@ -123,8 +123,9 @@ def ill_conditioned(jtj: Float[Array, "*b P P"], cond_max: float) -> Bool[Array,
     """``equilibrated_condition(jtj) > cond_max``, decided without an eigensolver.
 
     For P <= ``_eig.MAX_P`` by definiteness tests (:mod:`jaxrefl.fit._eig`: exact up to a
-    relative threshold shift of (P - 1) 2^-12, 1e-3 for P = 5), about 10x cheaper than
-    the batched LAPACK eigensolver on the CPU; beyond, by the eigenvalues.
+    relative threshold shift of (P - 1) 2^-12, 1e-3 for P = 5), elementwise arithmetic
+    that vectorises over the batch instead of one LAPACK eigensolver call per matrix;
+    beyond, by the eigenvalues.
     """
     if jtj.shape[-1] > _eig.MAX_P:
         return equilibrated_condition(jtj) > cond_max
