@@ -9,9 +9,11 @@ surfaces"; Heitz 2014, "Understanding the masking-shadowing function"). In the l
 
 both normalised so that the projected microfacet area is the macro-surface area,
 int D(h) h_z dw_h = 1 over the hemisphere. The GGX form is the cancellation-free
-"alpha^2 cos^2 + sin^2" denominator (MEASUREMENTS.md: the usual (alpha^2 - 1) cos^2 + 1 form
-loses 1-13% at grazing in float32). Isotropic: a_x = a_y = ``alpha``; anisotropic: a_x =
-``alpha_u`` along the tangent x, a_y = ``alpha_v`` along y. alpha is the distribution's own
+"alpha^2 cos^2 + sin^2" denominator, sin^2 taken as h_x^2 + h_y^2: the usual
+(alpha^2 - 1) cos^2 + 1 form computes sin^2 as 1 - cos^2, which cancels near the normal,
+where a narrow lobe peaks, and loses relative precision in float32. Isotropic:
+a_x = a_y = ``alpha``; anisotropic: a_x = ``alpha_u`` along the tangent x, a_y = ``alpha_v``
+along y. alpha is the distribution's own
 width (Beckmann: RMS slope), in [1e-4, 1], dimensionless.
 
 Smith Lambda, exact for each distribution (Heitz 2014, sec. 5.3; Walter 2007, eqs. 25-27),

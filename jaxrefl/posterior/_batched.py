@@ -8,9 +8,10 @@ steps.
 
 Kernel: fixed-length HMC (``num_integration_steps`` leapfrog steps, default 16) by
 default. Under ``vmap`` every lane of a batch runs the same instructions, so NUTS runs
-every step at the deepest tree of the batch; fixed-length HMC has no such coupling
-(measured in ``../shared/MEASUREMENTS.md``: ~4,600 vs ~1,100 ESS/s per pixel). ``kernel="nuts"``
-is available for small batches.
+every step at the deepest tree of the batch; fixed-length HMC has no such coupling, and
+gives more effective samples per second per pixel on large batches
+(``benchmarks/posterior_speed.py`` measures the batched sampler). ``kernel="nuts"`` is
+available for small batches.
 
 Adaptation (:func:`_one_chain`: dual averaging of the step size to ``target_accept`` with
 BlackJAX's ``dual_averaging_adaptation``, a mass matrix from the warm-up draws, in the same
