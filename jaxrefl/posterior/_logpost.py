@@ -39,8 +39,7 @@ Cost: log Phi (``log_ndtr``, an erfc with an asymptotic branch) is most of a gra
 cost where it is evaluated on every observation. The censored terms go through one log Phi
 on a selected argument (not one per side), and :meth:`LogPosterior.for_data` gives the
 samplers a copy without the censored branch for data that have no censored observation
-(K = 32, GGX + Lambert RGB, one gradient with and without the branch: 20.5 / 10.0 us in
-float64, 9.1 / 3.7 us in float32, ``benchmarks/posterior_speed.py --only-gradient``).
+(``benchmarks/posterior_speed.py --only-gradient`` times one gradient with and without it).
 """
 
 from __future__ import annotations
