@@ -74,10 +74,9 @@ class HMCOptions:
     init_jitter: float = 0.5
     step_jitter: float = 0.2
     # 0.75, not Stan's 0.9: more of the warm-up is left to re-tune the step size after
-    # the metric update. Measured (benchmarks/posterior_speed.py --only-window, 100 pixels,
-    # same gradients): 5% quantile of the min bulk ESS 14 -> 28, median 298 -> 295, tail
-    # ESS 5% 20 -> 21 but median 325 -> 270; acceptance 0.95 -> 0.93, both still above the
-    # 0.8 target (the averaged step size of dual averaging ends small).
+    # the metric update. For the same gradients this lifts the worst pixels' min bulk ESS
+    # and keeps the acceptance above the 0.8 target, at some cost in median tail ESS
+    # (``benchmarks/posterior_speed.py --only-window`` compares the two windows).
     metric_window_end: float = 0.75
     # Coordinates the chains move in (:mod:`jaxrefl.posterior._reparam`): "albedo", the
     # diffuse albedo non-centred on its conditional given the other parameters; "none",
