@@ -247,11 +247,9 @@ def map_run(args, cap, name):
         theta,
         std / np.abs(dn),
         flag,
-        options=jp.MAP_OPTIONS,
+        jp.AdaptiveOptions(hmc=jp.MAP_OPTIONS, chunk=args.map_chunk, keep_samples=False),
         noise_scale=np.where(noise0 > 0, noise0, 1e-2),
-        chunk=args.map_chunk,
         progress=True,
-        keep_samples=False,
     )
     t_post = time.perf_counter() - t1
     m = u.report()

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import math
 import warnings
+from dataclasses import FrozenInstanceError, replace
 
 import jax
 import numpy as np
@@ -84,7 +85,8 @@ def test_adaptive_method_map_and_exr(lambert, tmp_path):
     theta_std = np.asarray(lap.theta_std)
     flag = np.asarray(lap.flag)
     assert flag[0] & fit.LaplaceFlag.AT_BOUND
-    u = jp.adaptive_uncertainty(lp, data, np.asarray(r.theta), theta_std, flag, mcmc="none")
+    none = jp.AdaptiveOptions(mcmc="none")
+    u = jp.adaptive_uncertainty(lp, data, np.asarray(r.theta), theta_std, flag, none)
     assert np.all(u.method == 1)
     assert np.all(u.q05 <= u.mean) and np.all(u.mean <= u.q95)
     np.testing.assert_allclose(u.std, np.asarray(lap.std), rtol=1e-8)
@@ -170,8 +172,8 @@ def test_adaptive_chunks_have_one_shape_and_map_back(lambert, monkeypatch):
     th, sd, flag = np.asarray(r.theta), np.asarray(lap.theta_std), np.asarray(lap.flag)
     th = th.copy()
     th[5] = np.nan
-    kw = dict(mcmc="all", options=opts, chunk=4, seed=7)
-    u = jp.adaptive_uncertainty(lp, data, th, sd, flag, **kw)
+    o = jp.AdaptiveOptions(mcmc="all", hmc=opts, chunk=4, seed=7)
+    u = jp.adaptive_uncertainty(lp, data, th, sd, flag, o)
     assert [c[0] for c in calls] == [(3, 6, 3), (3, 6, 3)] and [c[2] for c in calls] == [7, 8]
     np.testing.assert_array_equal(calls[1][1], np.asarray(lp.init_theta(th[[3, 4, 3]])))
     np.testing.assert_allclose(u.mean[:5], th[:5], atol=2e-3)  # each pixel its own draws
@@ -180,11 +182,11 @@ def test_adaptive_chunks_have_one_shape_and_map_back(lambert, monkeypatch):
     assert u.timings["mcmc_chunks"] == 2 and u.timings["mcmc_s"] == 2.0
     assert u.timings["mcmc_chunk_size"] == 3
     assert np.all(np.isfinite(u.rhat[:5])) and np.all(np.isin(u.method[:5], (2, 3)))
-    lean = jp.adaptive_uncertainty(lp, data, th, sd, flag, keep_samples=False, **kw)
+    lean = jp.adaptive_uncertainty(lp, data, th, sd, flag, replace(o, keep_samples=False))
     assert lean.samples is None
     np.testing.assert_array_equal(lean.std, u.std)
     with pytest.raises(ValueError, match="chunk"):
-        jp.adaptive_uncertainty(lp, data, th, sd, flag, mcmc="all", chunk=0)
+        jp.AdaptiveOptions(mcmc="all", chunk=0)
 
 
 def test_second_pass_reruns_the_pixels_whose_chains_disagree(lambert, monkeypatch):
@@ -220,8 +222,9 @@ def test_second_pass_reruns_the_pixels_whose_chains_disagree(lambert, monkeypatc
 
     monkeypatch.setattr(_adaptive, "sample_pixels", fake)
     opts = jp.HMCOptions(num_warmup=5, num_samples=30, num_chains=2)
-    kw = dict(mcmc="all", options=opts, chunk=4, seed=7)
-    u = jp.adaptive_uncertainty(lp, data, th, sd, flag, **kw)
+    o = jp.AdaptiveOptions(mcmc="all", hmc=opts, chunk=4, seed=7)
+    assert o.second_pass == jp.longer_options(opts)
+    u = jp.adaptive_uncertainty(lp, data, th, sd, flag, o)
     assert len(calls) == 3  # two first-pass chunks (6 pixels), one second-pass chunk
     x0, sd0, o2 = calls[2]
     assert (o2.num_warmup, o2.thin, o2.init_jitter) == (10, 4, 0.0)
@@ -241,14 +244,43 @@ def test_second_pass_reruns_the_pixels_whose_chains_disagree(lambert, monkeypatc
     assert sp["max_rhat_before"]["min"] > 1.5 and sp["max_rhat_after"]["max"] < 1.1
     ch = jp.uncertainty_channels(u, 2, 3)["mcmc_pass"].reshape(-1)
     np.testing.assert_array_equal(ch, [1, 2, 1, 1, 2, 1])
-    lean = jp.adaptive_uncertainty(lp, data, th, sd, flag, keep_samples=False, **kw)
+    lean = jp.adaptive_uncertainty(lp, data, th, sd, flag, replace(o, keep_samples=False))
     np.testing.assert_array_equal(lean.std, u.std)  # the same without keeping the draws
     calls.clear()
-    off = jp.adaptive_uncertainty(lp, data, th, sd, flag, rerun_rhat=None, **kw)
+    off = jp.adaptive_uncertainty(lp, data, th, sd, flag, replace(o, rerun_rhat=None))
     assert len(calls) == 2 and not off.rerun.any() and np.all(off.rhat[apart] > 1.5)
+    assert replace(o, rerun_rhat=None).second_pass is None
     with pytest.raises(ValueError, match="num_chains and num_samples"):
         bad = jp.HMCOptions(num_warmup=5, num_samples=30, num_chains=4)
-        jp.adaptive_uncertainty(lp, data, th, sd, flag, rerun_options=bad, **kw)
+        replace(o, rerun_hmc=bad)
+
+
+def test_adaptive_options_are_one_checked_immutable_object():
+    """AdaptiveOptions: defaults as documented, strings become MCMCPixels, out-of-range
+    settings are refused when the object is built, and it cannot be changed in place."""
+    o = jp.AdaptiveOptions()
+    assert (o.mcmc, o.audit, o.hmc, o.rerun_rhat, o.chunk, o.seed) == (
+        jp.MCMCPixels.FLAGGED,
+        0.02,
+        jp.HMCOptions(),
+        1.1,
+        2048,
+        0,
+    )
+    assert o.keep_samples and o.second_pass == jp.longer_options(jp.HMCOptions())
+    assert jp.AdaptiveOptions(mcmc="all").mcmc is jp.MCMCPixels.ALL
+    for bad, match in (
+        (dict(mcmc="some"), "mcmc must be one of"),
+        (dict(audit=1.5), "audit"),
+        (dict(audit=-0.1), "audit"),
+        (dict(rerun_rhat=0.0), "rerun_rhat"),
+        (dict(rerun_rhat=math.nan), "rerun_rhat"),
+        (dict(chunk=0), "chunk"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            jp.AdaptiveOptions(**bad)
+    with pytest.raises(FrozenInstanceError):
+        o.seed = 1  # type: ignore[misc]
 
 
 def test_vectorised_diagnostics_match_arviz():

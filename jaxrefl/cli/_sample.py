@@ -160,19 +160,14 @@ def _run_capture(args, path: Path, opts) -> dict:
     noise0 = cf.maps["noise_std"].reshape(-1)
     noise0 = np.where(np.isfinite(noise0) & (noise0 > 0), noise0, 1e-2)
     t1 = time.perf_counter()
-    umap = jp.adaptive_uncertainty(
-        lp,
-        data,
-        theta,
-        theta_std,
-        flag,
-        audit=args.audit,
+    aopts = jp.AdaptiveOptions(
         mcmc=args.mcmc,
-        options=opts,
-        noise_scale=noise0,
-        seed=args.seed,
+        audit=args.audit,
+        hmc=opts,
         rerun_rhat=args.rerun_rhat if args.rerun_rhat > 0 else None,
+        seed=args.seed,
     )
+    umap = jp.adaptive_uncertainty(lp, data, theta, theta_std, flag, aopts, noise_scale=noise0)
     t_post = time.perf_counter() - t1
     files = ["uncertainty.exr"]
     jp.write_uncertainty_exr(

@@ -9,7 +9,8 @@ Quick use::
     lp = jp.log_posterior(model, space, fit.GaussianNoise(0.01))   # priors: jp.default_priors
     s = jp.sample_pixels(lp, data, lp.init_theta(result.theta))    # vmapped HMC, (N, K, C)
     jp.diagnostics(s)["max_rhat"], jp.to_inference_data(s, data).to_netcdf("post.nc")
-    umap = jp.adaptive_uncertainty(lp, data, result.theta, theta_std, lap.flag)
+    opts = jp.AdaptiveOptions(mcmc="flagged", hmc=jp.MAP_OPTIONS)          # one option object
+    umap = jp.adaptive_uncertainty(lp, data, result.theta, lap.theta_std, lap.flag, opts)
     jp.write_uncertainty_exr("uncertainty.exr", umap, h, w)
 
 Parts: :mod:`._priors` (priors in natural units), :mod:`._sphere` (light direction on the
@@ -23,6 +24,8 @@ calibration), :mod:`._maps` (EXR uncertainty channels).
 
 from ._adaptive import MAP_OPTIONS as MAP_OPTIONS
 from ._adaptive import METHODS as METHODS
+from ._adaptive import AdaptiveOptions as AdaptiveOptions
+from ._adaptive import MCMCPixels as MCMCPixels
 from ._adaptive import UncertaintyMap as UncertaintyMap
 from ._adaptive import adaptive_uncertainty as adaptive_uncertainty
 from ._adaptive import laplace_summary as laplace_summary

@@ -24,37 +24,41 @@ delta-method std theta_std |g'(theta*)|, and the quantiles g(theta* + z_q theta_
 (exact quantiles of the pushed-forward Gaussian, since g is monotone per entry).
 MCMC summaries are the draws' mean, std and empirical 5% / 95% quantiles.
 
+Every setting is one immutable :class:`AdaptiveOptions`: which pixels are sampled
+(``mcmc``, ``audit``), the sampler (``hmc``, an :class:`HMCOptions`), the second pass
+(``rerun_rhat``, ``rerun_hmc``), the chunk size, the seed and whether draws are kept.
+
 Large maps: the MCMC pixels run in chunks of at most ``chunk`` pixels, of one balanced
 size (:func:`_chunk_size`; the last one padded by repeating pixels, whose results are
-dropped), so the sampler compiles once for the whole
-map whatever the number of flagged pixels (twice where some have censored observations and
-some none: pixels without any go first and skip the censored likelihood branch, see
-:meth:`LogPosterior.for_data`), memory stays bounded, and ``progress`` shows a
-bar over the chunks. :data:`MAP_OPTIONS` is a cheaper sampler setting for maps, whose
+dropped), so the sampler compiles once for the whole map whatever the number of flagged
+pixels (twice where some have censored observations and some none: pixels without any go
+first and skip the censored likelihood branch, see :meth:`LogPosterior.for_data`), and
+memory stays bounded. :data:`MAP_OPTIONS` is a cheaper sampler setting for maps, whose
 targets are a std and 5% / 95% quantiles rather than tail probabilities: 2 chains of 100
 warm-up and 100 kept steps of 32 leapfrog steps (1/4 of the gradients of the default
 :class:`HMCOptions`), adaptation still per chain and per pixel (the Laplace std is the
 initial metric), in the non-centred coordinates of :mod:`jaxrefl.posterior._reparam`
-(``reparam="auto"``). The flagged pixels are mostly those where no highlight was seen,
-whose posterior is a long curved ridge: in the fit's coordinates no setting tried mixed
-there (max R-hat median 1.31 even at 32 leapfrog steps); non-centred, 8 leapfrog steps
-give 1.12 and 32 give 1.04 (q90 1.11) on 256 flagged demo pixels
-(``benchmarks/posterior_speed.py --only-mixing`` has the full table).
+(``reparam="auto"``): the flagged pixels are mostly those where no highlight was seen,
+whose posterior is a long curved ridge that chains in the fit's coordinates do not cross
+(``benchmarks/posterior_speed.py --only-mixing`` compares the settings).
 ``keep_samples=False`` keeps only the summaries (a 256 x 256 map's draws are ~1 GB).
 
 Second pass: a pixel whose first-pass chains disagree (max split R-hat above
-``rerun_rhat``, 1.1 by default) runs again under :func:`longer_options` (twice the warm-up,
-four times the steps between kept draws). Its chains start from draws of the first pass, chain c
-from first-pass chain c mod C, so they begin apart and on the posterior's ridge, with the
-first pass's draw std as the initial metric. The second pass's summaries and draws replace
-the first's (``rerun`` marks those pixels and ``rhat_first`` keeps the first pass's
-R-hat, so ``report()`` shows what it changed). Pixels still above the threshold after it
-stay marked by their ``rhat``: read their std as a lower bound.
+``rerun_rhat``, 1.1 by default) runs again under ``rerun_hmc`` (default
+:func:`longer_options`: twice the warm-up, four times the steps between kept draws). Its
+chains start from draws of the first pass, chain c from first-pass chain c mod C, so they
+begin apart and on the posterior's ridge, with the first pass's draw std as the initial
+metric. The second pass's summaries and draws replace the first's (``rerun`` marks those
+pixels and ``rhat_first`` keeps the first pass's R-hat, so ``report()`` shows what it
+changed). Pixels still above the threshold after it stay marked by their ``rhat``: read
+their std as a lower bound.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import enum
+import math
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -72,6 +76,8 @@ from ._logpost import LogPosterior
 __all__ = [
     "MAP_OPTIONS",
     "METHODS",
+    "AdaptiveOptions",
+    "MCMCPixels",
     "UncertaintyMap",
     "adaptive_uncertainty",
     "laplace_summary",
@@ -91,14 +97,79 @@ def longer_options(opts: HMCOptions) -> HMCOptions:
     """The second pass's settings from the first's: twice the warm-up and thin=4 (four
     times the steps for the same kept draws), no start jitter (the starts are first-pass
     draws, already apart). On MAP_OPTIONS (100 + 100 steps) a pixel costs 3x its first
-    pass (200 + 4 x 100 steps).
-
-    Measured on the 137 of 512 flagged demo pixels above R-hat 1.1 after MAP_OPTIONS
-    (``benchmarks/posterior_speed.py --only-mixing``): share below 1.1 after the second
-    pass 0.82 restarting from the LM optimum with thin 2, 0.89 from first-pass draws with
-    thin 2, 0.96 from draws with thin 4 (these settings).
+    pass (200 + 4 x 100 steps). ``benchmarks/posterior_speed.py --only-mixing`` compares
+    it with restarts from the LM optimum and with thin 2.
     """
     return dataclasses.replace(opts, num_warmup=2 * opts.num_warmup, thin=4, init_jitter=0.0)
+
+
+class MCMCPixels(enum.StrEnum):
+    """Which pixels :func:`adaptive_uncertainty` samples (:attr:`AdaptiveOptions.mcmc`)."""
+
+    FLAGGED = "flagged"  # the pixels Laplace flags, and an audit sample of the others
+    ALL = "all"  # every pixel with an estimate
+    NONE = "none"  # none: Laplace summaries only
+
+
+@dataclass(frozen=True)
+class AdaptiveOptions:
+    """Settings of :func:`adaptive_uncertainty` (module docstring), immutable; derive
+    variants with :func:`dataclasses.replace`.
+
+    mcmc:        which pixels are sampled (:class:`MCMCPixels`, or its value as a string):
+                 ``flagged`` (default), ``all`` or ``none``
+    audit:       with ``flagged``, the fraction in [0, 1] of the reliable pixels (flag 0)
+                 also sampled, ceil(audit x count), drawn at random (method 3)
+    hmc:         the sampler's settings (:class:`HMCOptions`; :data:`MAP_OPTIONS` is the
+                 cheaper one for whole maps)
+    rerun_rhat:  pixels whose first-pass max split R-hat exceeds it (or is NaN) run a
+                 second, longer pass; None: no second pass
+    rerun_hmc:   the second pass's settings; None: :func:`longer_options` of ``hmc``. It
+                 keeps ``hmc``'s ``num_chains`` and ``num_samples`` (its draws replace the
+                 first pass's); lengthen it with ``num_warmup`` and ``thin``
+    chunk:       MCMC pixels per compiled sampler call (>= 1)
+    seed:        chooses the audit pixels and seeds the chains (chunk i: ``seed + i``)
+    keep_samples: keep the draws in :attr:`UncertaintyMap.samples` (False: summaries only)
+    """
+
+    mcmc: MCMCPixels = MCMCPixels.FLAGGED
+    audit: float = 0.02
+    hmc: HMCOptions = field(default_factory=HMCOptions)
+    rerun_rhat: float | None = 1.1
+    rerun_hmc: HMCOptions | None = None
+    chunk: int = 2048
+    seed: int = 0
+    keep_samples: bool = True
+
+    def __post_init__(self) -> None:
+        try:
+            object.__setattr__(self, "mcmc", MCMCPixels(self.mcmc))
+        except ValueError:
+            names = ", ".join(repr(m.value) for m in MCMCPixels)
+            raise ValueError(f"mcmc must be one of {names}, not {self.mcmc!r}") from None
+        if not 0.0 <= self.audit <= 1.0:
+            raise ValueError(f"audit must be a fraction in [0, 1], got {self.audit}")
+        if self.rerun_rhat is not None and not (
+            math.isfinite(self.rerun_rhat) and self.rerun_rhat > 0
+        ):
+            raise ValueError(f"rerun_rhat must be a positive number or None, got {self.rerun_rhat}")
+        if self.chunk < 1:
+            raise ValueError(f"chunk must be >= 1, got {self.chunk}")
+        second = self.rerun_hmc
+        if second is not None and (
+            second.num_chains != self.hmc.num_chains or second.num_samples != self.hmc.num_samples
+        ):
+            raise ValueError(
+                "rerun_hmc must keep the first pass's num_chains and num_samples (the "
+                "draws replace the first pass's); lengthen it with num_warmup and thin"
+            )
+
+    @property
+    def second_pass(self) -> HMCOptions | None:
+        """The second pass's sampler settings; None when there is no second pass."""
+        if self.rerun_rhat is None:
+            return None
+        return longer_options(self.hmc) if self.rerun_hmc is None else self.rerun_hmc
 
 
 @dataclass
@@ -210,34 +281,21 @@ def adaptive_uncertainty(
     theta_hat: np.ndarray,
     theta_std: np.ndarray,
     flag: np.ndarray,
+    options: AdaptiveOptions | None = None,
     *,
-    audit: float = 0.02,
-    mcmc: str = "flagged",
-    options: HMCOptions | None = None,
     noise_scale: np.ndarray | None = None,
     normals: np.ndarray | None = None,
-    seed: int = 0,
-    chunk: int = 2048,
     progress: bool = False,
-    keep_samples: bool = True,
-    rerun_rhat: float | None = 1.1,
-    rerun_options: HMCOptions | None = None,
 ) -> UncertaintyMap:
     """Laplace on every pixel, MCMC on the flagged ones and an audit sample (module doc).
 
     theta_hat: (N, P) the LM optimum (NaN: no estimate); theta_std: (N, P) Laplace
-    theta-space std; flag: (N,) Laplace flags. ``mcmc``: ``"flagged"`` (default),
-    ``"all"`` (every pixel with an estimate) or ``"none"`` (Laplace only).
-    noise_scale: (N,) starting noise scale when ``lp`` samples it (e.g. the Laplace
-    residual std); normals when ``lp`` samples a light. chunk: MCMC pixels per compiled
-    call (module docstring); progress: a tqdm bar over the chunks; keep_samples: keep the
-    draws in :attr:`UncertaintyMap.samples` (False: summaries only). rerun_rhat: pixels
-    whose max R-hat exceeds it run a second, longer pass (module docstring; None: no
-    second pass); rerun_options: its sampler settings (default :func:`longer_options`
-    of ``options``; the same chains and kept draws, so the draws replace the first's).
+    theta-space std; flag: (N,) Laplace flags (:class:`jaxrefl.fit.LaplaceFlag`);
+    options: :class:`AdaptiveOptions` (None: its defaults). noise_scale: (N,) starting
+    noise scale when ``lp`` samples it (e.g. the Laplace residual std); normals: (N, 3)
+    when ``lp`` samples a light. progress: a tqdm bar over the chunks.
     """
-    if chunk < 1:
-        raise ValueError(f"chunk must be >= 1, got {chunk}")
+    o = AdaptiveOptions() if options is None else options
     theta_hat = np.asarray(theta_hat, dtype=np.float64)
     theta_std = np.asarray(theta_std, dtype=np.float64)
     flag = np.asarray(flag).astype(np.int64)
@@ -246,19 +304,8 @@ def adaptive_uncertainty(
     t0 = time.perf_counter()
     mean, std, q05, q95 = laplace_summary(lp, theta_hat, theta_std)
     lap_std = std.copy()
-    method = np.where(has, 1, 0).astype(np.uint8)
-    rng = np.random.default_rng(seed)
-    if mcmc == "flagged":
-        chosen = has & (flag != 0)
-        reliable = np.flatnonzero(has & (flag == 0))
-        n_audit = int(np.ceil(audit * reliable.size)) if audit > 0 and reliable.size else 0
-        audit_idx = rng.choice(reliable, size=n_audit, replace=False) if n_audit else []
-        method[chosen] = 2
-        method[np.asarray(audit_idx, dtype=int)] = 3
-    elif mcmc == "all":
-        method[has] = np.where(flag[has] == 0, 3, 2)
-    elif mcmc != "none":
-        raise ValueError(f"mcmc must be 'flagged', 'all' or 'none', not {mcmc!r}")
+    rng = np.random.default_rng(o.seed)
+    method = _choose_methods(has, flag, o, rng)
     t_lap = time.perf_counter() - t0
     idx = np.flatnonzero(np.isin(method, (2, 3)))
     # Pixels without censored observations first: their chunks run the cheaper posterior
@@ -282,15 +329,7 @@ def adaptive_uncertainty(
     rerun = np.zeros(n, bool)
     rhat_first = np.full(n, np.nan)
     if idx.size:
-        opts = HMCOptions() if options is None else options
-        second = None if rerun_rhat is None else (rerun_options or longer_options(opts))
-        if second is not None and (
-            second.num_chains != opts.num_chains or second.num_samples != opts.num_samples
-        ):
-            raise ValueError(
-                "rerun_options must keep the first pass's num_chains and num_samples (the "
-                "draws replace the first pass's); lengthen it with num_warmup and thin"
-            )
+        opts, second, rerun_rhat = o.hmc, o.second_pass, o.rerun_rhat
         s0_all = None if noise_scale is None else np.asarray(noise_scale)
 
         def first_starts(rows):
@@ -302,7 +341,7 @@ def adaptive_uncertainty(
         restart: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         parts, run_s = [], []
         for real, cut, rs in _chunks(
-            lp, data, idx, first_starts, normals, opts, seed, chunk, progress, "MCMC pixels"
+            lp, data, idx, first_starts, normals, opts, o.seed, o.chunk, progress, "MCMC pixels"
         ):
             run_s.append(rs)
             out.store(real, cut)
@@ -311,17 +350,17 @@ def adaptive_uncertainty(
                 stuck = ~(rhat[real] <= rerun_rhat) & ~cut.extra["no_estimate"]
                 for j in np.flatnonzero(stuck):
                     restart[int(real[j])] = _restarts(cut, j, second.num_chains, rng)
-            if keep_samples:
+            if o.keep_samples:
                 parts.append(cut)
         timings["mcmc_s"] = float(np.sum(run_s))
         timings["mcmc_pixels"] = int(idx.size)
         timings["mcmc_chunks"] = len(run_s)
-        timings["mcmc_chunk_size"] = _chunk_size(int(idx.size), chunk, opts.batch_size)
+        timings["mcmc_chunk_size"] = _chunk_size(int(idx.size), o.chunk, opts.batch_size)
         if len(run_s) > 1:
             # the first chunk compiles; the others reuse it
             timings["mcmc_compile_s"] = max(0.0, run_s[0] - float(np.median(run_s[1:])))
             timings["mcmc_chunk_s_median"] = float(np.median(run_s[1:]))
-        if keep_samples:
+        if o.keep_samples:
             samples = _concat(parts)
         if restart:
             # Second pass (module docstring): the pixels whose chains disagree run again.
@@ -333,17 +372,10 @@ def adaptive_uncertainty(
 
             run2 = []
             at = {int(i): k for k, i in enumerate(idx)}
+            seed2 = o.seed + _RERUN_SEED
+            desc = "MCMC second pass"
             for real, cut, rs in _chunks(
-                lp,
-                data,
-                again,
-                second_starts,
-                normals,
-                second,
-                seed + _RERUN_SEED,
-                chunk,
-                progress,
-                "MCMC second pass",
+                lp, data, again, second_starts, normals, second, seed2, o.chunk, progress, desc
             ):
                 run2.append(rs)
                 out.store(real, cut)
@@ -370,6 +402,22 @@ def adaptive_uncertainty(
         rerun=rerun,
         rhat_first=rhat_first,
     )
+
+
+def _choose_methods(has: np.ndarray, flag: np.ndarray, o: AdaptiveOptions, rng) -> np.ndarray:
+    """(N,) uint8 method codes (:data:`METHODS`): 0 without an estimate, else 1 (Laplace),
+    2 (MCMC, flagged) or 3 (MCMC audit of a reliable pixel) as ``o.mcmc`` and ``o.audit``
+    choose; the audit pixels are drawn with ``rng``."""
+    method = np.where(has, 1, 0).astype(np.uint8)
+    if o.mcmc == MCMCPixels.FLAGGED:
+        reliable = np.flatnonzero(has & (flag == 0))
+        n_audit = int(np.ceil(o.audit * reliable.size)) if o.audit > 0 and reliable.size else 0
+        audit_idx = rng.choice(reliable, size=n_audit, replace=False) if n_audit else []
+        method[has & (flag != 0)] = 2
+        method[np.asarray(audit_idx, dtype=int)] = 3
+    elif o.mcmc == MCMCPixels.ALL:
+        method[has] = np.where(flag[has] == 0, 3, 2)
+    return method
 
 
 @dataclass
