@@ -1,4 +1,17 @@
-"""jaxrefl: probabilistic reflectance estimation in JAX."""
+"""jaxrefl: probabilistic reflectance estimation in JAX.
+
+``import jaxrefl`` gives every subpackage: ``brdf``, ``fit``, ``io``, ``scene`` and
+``spectral`` are imported with it; ``measured``, ``posterior``, ``ps``, ``svbrdf``, ``cli``,
+``demo`` and ``plot`` on first attribute access (module ``__getattr__``, PEP 562), because
+they bring in BlackJAX, emcee, SciPy or Matplotlib, which ``jaxrefl --help`` and the light
+subpackages do not need.
+"""
+
+from __future__ import annotations
+
+import importlib
+from types import ModuleType
+from typing import TYPE_CHECKING
 
 from . import brdf as brdf
 from . import fit as fit
@@ -7,4 +20,28 @@ from . import scene as scene
 from . import spectral as spectral
 from ._errors import JaxreflError as JaxreflError
 
+if TYPE_CHECKING:
+    from . import cli as cli
+    from . import demo as demo
+    from . import measured as measured
+    from . import plot as plot
+    from . import posterior as posterior
+    from . import ps as ps
+    from . import svbrdf as svbrdf
+
 __version__ = "0.1.0"
+
+#: Imported on first access: ``jaxrefl.svbrdf.fit_capture`` works after ``import jaxrefl``.
+_LAZY = ("cli", "demo", "measured", "plot", "posterior", "ps", "svbrdf")
+
+
+def __getattr__(name: str) -> ModuleType:
+    if name in _LAZY:
+        # import_module also binds the module as an attribute of this package, so this
+        # hook runs once per name.
+        return importlib.import_module(f"{__name__}.{name}")
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY))
