@@ -54,6 +54,7 @@ from ._residual import ShotNoise as ShotNoise
 from ._residual import gaussian_prior as gaussian_prior
 from ._residual import make_residual as make_residual
 from ._residual import pixel_data as pixel_data
+from ._residual import replace_params as replace_params
 from ._status import STATUS_MEANINGS as STATUS_MEANINGS
 from ._status import Status as Status
 from ._status import classify as classify

@@ -38,9 +38,8 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from jaxrefl import fit as jf
-from jaxrefl.brdf import BRDF
+from jaxrefl.brdf import BRDF, safe_normalize
 from jaxrefl.brdf import get as get_brdf
-from jaxrefl.brdf._frame import safe_normalize
 from jaxrefl.scene import orthonormal_basis
 
 from ._capture import PSInputError

@@ -1,0 +1,100 @@
+"""The documentation: README.md and docs/*.md stay user documentation.
+
+The README stays short, no page narrates how the work went, every relative link points to a
+file (and heading) that exists, the README's quick start is what CI runs, and the README's
+results table quotes docs/benchmarks.md, which the benchmark scripts write.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+README = ROOT / "README.md"
+DOCS = sorted((ROOT / "docs").glob("*.md"))
+PAGES = [README, *DOCS]
+
+# Phrases of a lab notebook, not of documentation (compared case-insensitively).
+WORK_HISTORY = ("stop 1", "scratch run", "used to be", "this stop", "old default")
+
+_LINK = re.compile(r"\[[^\]]*\]\(([^)\s]+)(?:\s+\"[^\"]*\")?\)")
+_FENCE = re.compile(r"^```.*?^```", re.S | re.M)
+
+
+def _rel(path: Path) -> str:
+    return str(path.relative_to(ROOT))
+
+
+def _slug(heading: str) -> str:
+    """GitHub's anchor of a Markdown heading."""
+    s = heading.strip().lower()
+    s = re.sub(r"[^\w\- ]", "", s)
+    return s.replace(" ", "-")
+
+
+def _anchors(path: Path) -> set[str]:
+    text = _FENCE.sub("", path.read_text())
+    return {_slug(m.group(1)) for m in re.finditer(r"^#{1,6}\s+(.+?)\s*#*\s*$", text, re.M)}
+
+
+def test_readme_under_200_lines():
+    n = len(README.read_text().splitlines())
+    assert n < 200, f"README.md has {n} lines; keep it under 200 (details go to docs/)"
+
+
+@pytest.mark.parametrize("page", PAGES, ids=_rel)
+def test_no_work_history(page):
+    text = page.read_text().lower()
+    found = [p for p in WORK_HISTORY if p in text]
+    assert not found, f"{_rel(page)} narrates work history: {found}"
+
+
+@pytest.mark.parametrize("page", PAGES, ids=_rel)
+def test_relative_links_resolve(page):
+    text = _FENCE.sub("", page.read_text())
+    bad = []
+    for target in _LINK.findall(text):
+        if re.match(r"^[a-z][a-z0-9+.-]*:", target):  # http:, https:, mailto:
+            continue
+        file_part, _, anchor = target.partition("#")
+        dest = page if not file_part else (page.parent / file_part).resolve()
+        if not dest.exists():
+            bad.append(f"{target} (no such file)")
+        elif anchor and dest.suffix == ".md" and anchor not in _anchors(dest):
+            bad.append(f"{target} (no such heading)")
+    assert not bad, f"{_rel(page)}: broken links: {bad}"
+
+
+def test_docs_pages_exist():
+    for name in ("architecture.md", "glossary.md", "benchmarks.md"):
+        assert (ROOT / "docs" / name).is_file(), name
+
+
+def test_quick_start_is_what_ci_runs():
+    """The two quick-start commands of the README are the two commands .ci/run runs."""
+    readme = README.read_text()
+    block = re.search(r"## Install and quick start.*?```bash\n(.*?)```", readme, re.S)
+    assert block, "README.md: no bash block under '## Install and quick start'"
+    commands = [ln.strip() for ln in block.group(1).splitlines() if ln.strip()]
+    ci = [
+        ln.strip()
+        for ln in (ROOT / ".ci" / "run").read_text().splitlines()
+        if ln.strip().startswith("python3.11 -m pip install")
+    ]
+    assert commands == ci, f"README quick start {commands} != .ci/run {ci}"
+
+
+def test_results_table_quotes_benchmarks_md():
+    """Every number in the README's results table appears in docs/benchmarks.md."""
+    readme = README.read_text()
+    section = re.search(r"^## Results\n(.*?)(?=^## )", readme, re.S | re.M)
+    assert section, "README.md: no '## Results' section"
+    rows = [ln for ln in section.group(1).splitlines() if ln.startswith("|")]
+    numbers = [n for ln in rows for n in re.findall(r"\b\d+\.\d+\b", ln)]
+    assert numbers, "README.md: the results table has no numbers"
+    bench = (ROOT / "docs" / "benchmarks.md").read_text()
+    missing = [n for n in numbers if not re.search(rf"(?<![\d.]){re.escape(n)}(?![\d])", bench)]
+    assert not missing, f"README results not in docs/benchmarks.md: {missing}"
