@@ -6,6 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from _helpers import hemisphere_quadrature
 
 import jaxrefl
 from jaxrefl.brdf._cook_torrance import CookTorrance
@@ -15,21 +16,6 @@ from jaxrefl.brdf._microfacet import GGX, SmithSeparable
 
 SHADOWING = ("smith_height_correlated", "smith_separable", "vgroove")
 FRESNEL = ("schlick", "dielectric", "conductor", "none")
-
-
-def hemisphere_quadrature(alpha, n_theta=128, n_phi=64):
-    """Nodes h (M, 3), weights (M,) for int dw_h over the hemisphere, dense near theta ~ alpha
-    (tan theta = alpha tan(pi v / 2), Gauss-Legendre in v, midpoint rule in phi)."""
-    x, w = np.polynomial.legendre.leggauss(n_theta)
-    v, wv = 0.5 * (x + 1), 0.5 * w
-    t = alpha * np.tan(0.5 * np.pi * v)
-    theta = np.arctan(t)
-    dtheta = alpha * 0.5 * np.pi / np.cos(0.5 * np.pi * v) ** 2 / (1 + t * t)
-    phi = (np.arange(n_phi) + 0.5) * 2 * np.pi / n_phi
-    T, P = np.meshgrid(theta, phi, indexing="ij")
-    W = (wv * dtheta)[:, None] * np.sin(T) * (2 * np.pi / n_phi)
-    h = np.stack([np.sin(T) * np.cos(P), np.sin(T) * np.sin(P), np.cos(T)], -1)
-    return h.reshape(-1, 3), W.reshape(-1)
 
 
 def directional_albedo(model, params, theta_o, alpha):

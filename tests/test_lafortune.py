@@ -4,67 +4,14 @@ central differences, and finite values/gradients at the edges."""
 
 from __future__ import annotations
 
-import itertools
-
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from _helpers import albedo_on_grid, assert_finite_edges, fd_check, sph, unit
 
 from jaxrefl.brdf._lafortune import Lafortune, default_lobes
 from jaxrefl.brdf._phong import Phong
-
-
-def _unit(v):
-    v = np.asarray(v, dtype=np.float64)
-    return v / np.linalg.norm(v, axis=-1, keepdims=True)
-
-
-def _sph(theta_deg, phi_deg=0.0):
-    t, p = np.deg2rad(theta_deg), np.deg2rad(phi_deg)
-    return np.array([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)])
-
-
-# ----------------------------------------------------------------------------- quadrature
-def _lobe_grid(axis, width, n_gl=32, n_phi=256, n_panels=6):
-    """Directions and solid-angle weights on a sphere grid centred on ``axis``: Gauss-Legendre
-    panels in the polar angle, the first of ``width`` and the rest growing geometrically,
-    midpoint rule in azimuth. Centred on the normal it stops at the horizon (a panel edge).
-    The grid size does not depend on ``width`` so that one compiled evaluation serves all."""
-    a = _unit(axis)
-    t = np.array([1.0, 0, 0]) if abs(a[0]) < 0.9 else np.array([0, 1.0, 0])
-    t1 = _unit(t - a * (t @ a))
-    t2 = np.cross(a, t1)
-    tmax = np.pi / 2 if a[2] > 1 - 1e-12 else np.pi
-    edges = np.concatenate([[0.0], np.geomspace(min(width, tmax / 2), tmax, n_panels)])
-    x, wt = np.polynomial.legendre.leggauss(n_gl)
-    th = np.concatenate([(lo + hi) / 2 + (hi - lo) / 2 * x for lo, hi in itertools.pairwise(edges)])
-    tw = np.concatenate([(hi - lo) / 2 * wt for lo, hi in itertools.pairwise(edges)])
-    ph = (np.arange(n_phi) + 0.5) * 2 * np.pi / n_phi
-    T, P = np.meshgrid(th, ph, indexing="ij")
-    W = np.sin(T) * tw[:, None] * (2 * np.pi / n_phi)
-    d = (
-        (np.sin(T) * np.cos(P))[..., None] * t1
-        + (np.sin(T) * np.sin(P))[..., None] * t2
-        + np.cos(T)[..., None] * a
-    )
-    return d.reshape(-1, 3), W.reshape(-1)
-
-
-_JIT = {}
-
-
-def _albedo(m, p, wi, axis, width, **kw):
-    """rho(wi) = ∫ f(wi, wo) cos(theta_o) dω_o, by quadrature on a grid centred on ``axis``."""
-    d, W = _lobe_grid(axis, width, **kw)
-    ev = _JIT.setdefault(m, jax.jit(m.eval))
-    p = {k: jnp.asarray(v, dtype=jnp.float64) for k, v in p.items()}
-    f = np.asarray(ev(p, jnp.asarray(np.broadcast_to(wi, d.shape)), jnp.asarray(d)))
-    return np.sum(f * (W * np.maximum(d[:, 2], 0.0))[:, None], axis=0)
-
-
-def _mirror(w):
-    return np.array([-w[0], -w[1], w[2]])
 
 
 # ----------------------------------------------------------------------------- values
@@ -91,9 +38,9 @@ def test_reference_values():
     m = Lafortune(num_lobes=4)
     albedo = np.array([0.1, 0.4, 0.8])
     pairs = [
-        (_unit([0.3, 0.2, 0.9]), _unit([-0.4, -0.1, 0.8])),
-        (_unit([0.7, -0.1, 0.3]), _unit([0.1, 0.5, 0.6])),
-        (_unit([0.6, 0.3, 0.4]), _unit([0.5, 0.35, 0.45])),  # near retro
+        (unit([0.3, 0.2, 0.9]), unit([-0.4, -0.1, 0.8])),
+        (unit([0.7, -0.1, 0.3]), unit([0.1, 0.5, 0.6])),
+        (unit([0.6, 0.3, 0.4]), unit([0.5, 0.35, 0.45])),  # near retro
     ]
     for wi, wo in pairs:
         got = np.asarray(m.eval({"albedo": albedo, "lobes": LOBES}, wi, wo))
@@ -110,8 +57,8 @@ def test_one_lobe_equals_normalized_phong():
     lobe: Lafortune with that lobe equals Phong(normalized) with specular = 2 pi/(n + 2); with
     C scaled by k the lobe is scaled by k^n."""
     rng = np.random.default_rng(0)
-    wi = _unit(rng.normal(size=(64, 3)) * [1, 1, 0.4] + [0, 0, 1])
-    wo = _unit(rng.normal(size=(64, 3)) * [1, 1, 0.4] + [0, 0, 1])
+    wi = unit(rng.normal(size=(64, 3)) * [1, 1, 0.4] + [0, 0, 1])
+    wo = unit(rng.normal(size=(64, 3)) * [1, 1, 0.4] + [0, 0, 1])
     wo[:8] = wi[:8] * [-1, -1, 1]  # exact mirror pairs
     lafortune, phong = Lafortune(), Phong(normalized=True)
     for n, k in [(0.5, 1.0), (7.0, 1.0), (150.0, 0.98)]:
@@ -129,7 +76,7 @@ def test_one_lobe_equals_normalized_phong():
 def test_retro_reflective_lobe_peaks_at_wo_equal_wi():
     m = Lafortune()
     lobe = np.array([[0.8, 0.8, 0.8, 20.0]])
-    wi = _unit([0.5, 0.2, 0.6])
+    wi = unit([0.5, 0.2, 0.6])
     th, ph = np.meshgrid(np.linspace(0, 1.5, 151), np.linspace(0, 2 * np.pi, 360, endpoint=False))
     wo = np.stack([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)], -1).reshape(-1, 3)
     wo = np.concatenate([wo, wi[None]])
@@ -148,8 +95,8 @@ def test_anisotropic_lobe_differs_between_x_and_y():
     lobe = np.array([[-1.0, -0.6, 1.0, 10.0]])
     t = np.deg2rad(50.0)
     s2, c2 = np.sin(t) ** 2, np.cos(t) ** 2
-    wi_x, wo_x = _sph(50, 0), _sph(50, 180)
-    wi_y, wo_y = _sph(50, 90), _sph(50, 270)
+    wi_x, wo_x = sph(50, 0), sph(50, 180)
+    wi_y, wo_y = sph(50, 90), sph(50, 270)
     fx = float(m.eval({"albedo": 0.0, "lobes": lobe}, wi_x, wo_x)[0])
     fy = float(m.eval({"albedo": 0.0, "lobes": lobe}, wi_y, wo_y)[0])
     np.testing.assert_allclose(fx, (1.0 * s2 + c2) ** 10, rtol=1e-12)
@@ -166,7 +113,7 @@ def test_off_specular_lobe_peaks_beyond_the_mirror_direction():
     wo = np.stack([-np.sin(th), 0 * th, np.cos(th)], -1)
     for cz, peak in [(0.5, np.rad2deg(np.arctan(2 * np.tan(np.deg2rad(30))))), (1.0, 30.0)]:
         lobe = np.array([[-1.0, -1.0, cz, 8.0]])
-        f = np.asarray(m.eval({"albedo": 0.0, "lobes": lobe}, _sph(30), wo))[:, 0]
+        f = np.asarray(m.eval({"albedo": 0.0, "lobes": lobe}, sph(30), wo))[:, 0]
         np.testing.assert_allclose(np.rad2deg(th[np.argmax(f)]), peak, atol=0.1)
 
 
@@ -174,8 +121,8 @@ def test_reciprocity_non_negativity_and_batching():
     m = Lafortune(num_lobes=3)
     rng = np.random.default_rng(4)
     N = 400
-    wi = _unit(rng.normal(size=(N, 3)) + np.array([0, 0, 0.5]))
-    wo = _unit(rng.normal(size=(N, 3)) + np.array([0, 0, 0.5]))
+    wi = unit(rng.normal(size=(N, 3)) + np.array([0, 0, 0.5]))
+    wo = unit(rng.normal(size=(N, 3)) + np.array([0, 0, 0.5]))
     lobes = np.concatenate(
         [rng.uniform(-1.2, 1.2, (N, 3, 3)), np.exp(rng.uniform(0, np.log(1e5), (N, 3, 1)))], -1
     )
@@ -204,76 +151,27 @@ def test_lobe_energy_matches_phong_closed_form():
     m = Lafortune()
     for n, c in [(1.0, 0.9), (40.0, 0.99), (2000.0, 1.0)]:
         p = {"albedo": 0.0, "lobes": [[-c, -c, c, n]]}
-        rho = _albedo(m, p, _sph(0), [0, 0, 1], min(np.pi / 2, 3 / np.sqrt(n + 1)))[0]
+        rho = albedo_on_grid(m, p, sph(0), [0, 0, 1], min(np.pi / 2, 3 / np.sqrt(n + 1)))[0]
         np.testing.assert_allclose(rho, c**n * 2 * np.pi / (n + 2), rtol=1e-6)
     m3 = Lafortune(num_lobes=3)
     p = {"albedo": 0.0, "lobes": default_lobes(3)}
-    rho = _albedo(m3, p, _sph(0), [0, 0, 1], 0.1)[0]
+    rho = albedo_on_grid(m3, p, sph(0), [0, 0, 1], 0.1)[0]
     np.testing.assert_allclose(rho, 0.5, rtol=1e-5)
 
 
 # ----------------------------------------------------------------------------- gradients
-def _fd_check(m, p, wi, wo, rtol=1e-6, atol=1e-9):
-    """jax.grad against a central difference for every element of every parameter."""
-    fn = jax.jit(lambda q: jnp.sum(m.eval(q, wi, wo) * jnp.arange(1.0, 4.0)[None, :]))
-    g = jax.grad(fn)(p)
-    for name, x in p.items():
-        x = np.asarray(x, dtype=np.float64)
-        num = np.zeros_like(x)
-        for idx in np.ndindex(x.shape):
-            h = 1e-6 * max(1.0, abs(x[idx]))
-            xp, xm = x.copy(), x.copy()
-            xp[idx] += h
-            xm[idx] -= h
-            num[idx] = (fn({**p, name: jnp.asarray(xp)}) - fn({**p, name: jnp.asarray(xm)})) / (
-                2 * h
-            )
-        np.testing.assert_allclose(np.asarray(g[name]), num, rtol=rtol, atol=atol, err_msg=name)
-        assert np.any(np.abs(num) > 1e-6), name  # the check must be able to fail
 
 
 def test_gradients_match_finite_differences():
     m = Lafortune(num_lobes=4)
-    wi = jnp.asarray(_unit([[0.3, 0.2, 0.9], [0.6, 0.3, 0.4]]))
-    wo = jnp.asarray(_unit([[-0.4, -0.1, 0.8], [0.5, 0.35, 0.45]]))
+    wi = jnp.asarray(unit([[0.3, 0.2, 0.9], [0.6, 0.3, 0.4]]))
+    wo = jnp.asarray(unit([[-0.4, -0.1, 0.8], [0.5, 0.35, 0.45]]))
     lobes = jnp.asarray(LOBES).at[:, 3].set(jnp.array([5.0, 3.0, 2.0, 6.0]))
     p = {"albedo": jnp.array([0.2, 0.5, 0.8]), "lobes": lobes}
-    _fd_check(m, p, wi, wo, rtol=1e-6)
+    fd_check(m, p, wi, wo, rtol=1e-6)
 
 
 # ----------------------------------------------------------------------------- edges
-_G = 1e-6
-_S = np.sqrt(1 - _G * _G)
-_C = np.sqrt(0.5)
-EDGE_WI = np.array(
-    [[0, 0, 1], [_C, 0, _C], [0.8660254037844386, 0, 0.5], [_S, 0, _G], [0, 0, 1],
-     [_S, 0, _G], [_S, 0, _G], [1, 0, 1e-30], [1, 0, 1e-30], [1, 0, 0], [0.6, 0, -0.8],
-     [_S, 0, _G]]
-)  # fmt: skip
-EDGE_WO = np.array(
-    [[0, 0, 1], [_C, 0, _C], [-0.8660254037844386, 0, 0.5], [0, 0, 1], [0, _S, _G],
-     [-_S, 0, _G], [_S, 0, _G], [-1, 0, 1e-30], [0, 0, 1], [0, 0, 1], [0, 0, 1],
-     [-_S, 0, 0]]
-)  # fmt: skip
-# normal (wi = wo, wh = n); wi = wo at 45; mirror pair (wh = n); grazing wi; grazing wo;
-# grazing mirror pair; wi = wo grazing; mirror pair and one direction at cos = 1e-30 (below
-# every floor); wi on the horizon; wi below; wo exactly at cos 0.
-
-
-def _assert_finite_edges(m, p, dtype):
-    wi = jnp.asarray(EDGE_WI, dtype=dtype)
-    wo = jnp.asarray(EDGE_WO, dtype=dtype)
-    p = {k: jnp.asarray(v, dtype=dtype) for k, v in p.items()}
-    ev = _JIT.setdefault(m, jax.jit(m.eval))
-    gr = _JIT.setdefault(
-        ("grad", m),
-        jax.jit(jax.grad(lambda q, a, b: jnp.sum(m.eval(q, a, b)), argnums=(0, 1, 2))),
-    )
-    f = ev(p, wi, wo)
-    assert f.dtype == dtype and np.all(np.isfinite(np.asarray(f))), f
-    assert np.all(np.asarray(f)[-3:] == 0.0)  # cos = 0 and below the horizon are exactly 0
-    for leaf in jax.tree_util.tree_leaves(gr(p, wi, wo)):
-        assert np.all(np.isfinite(np.asarray(leaf))), (p, leaf)
 
 
 @pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64], ids=["f32", "f64"])
@@ -282,13 +180,13 @@ def test_finite_values_and_gradients_at_edges(dtype):
     for n in (0.0, 0.5, 1e4, 1e5):
         for c in ([-1.0, -1.0, 1.0], [1.0, 1.0, 1.0], [-1.1, -1.1, 0.0], [-3.0, -0.2, 2.0]):
             lobes = [[*c, n], [-1.0, -1.0, 1.0, 1e5]]
-            _assert_finite_edges(m, {"albedo": [1.0, 0.0, 0.5], "lobes": lobes}, dtype)
+            assert_finite_edges(m, {"albedo": [1.0, 0.0, 0.5], "lobes": lobes}, dtype)
 
 
 def test_huge_lobe_is_capped_not_infinite():
     """|C| > 1 with n = 1e5 would overflow; the value is capped at exp(60) with finite grads."""
     m = Lafortune()
-    wi, wo = _sph(60), _sph(60, 180)
+    wi, wo = sph(60), sph(60, 180)
     for dtype in (jnp.float32, jnp.float64):
         p = {"albedo": jnp.zeros(1, dtype), "lobes": jnp.asarray([[-1.5, -1.5, 1.5, 1e5]], dtype)}
         f = m.eval(p, jnp.asarray(wi, dtype), jnp.asarray(wo, dtype))

@@ -4,6 +4,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from _helpers import hemisphere_quadrature
 from scipy.special import erf
 
 from jaxrefl import brdf
@@ -17,21 +18,6 @@ from jaxrefl.brdf._microfacet import (
 )
 
 DISTS = [GGX(), Beckmann(), GGX(anisotropic=True), Beckmann(anisotropic=True)]
-
-
-def hemisphere_quadrature(alpha, n_theta=128, n_phi=64):
-    """Nodes h (M, 3) and weights (M,) for int over the hemisphere dw, adapted to a lobe of
-    width alpha: tan(theta) = alpha tan(pi v / 2), Gauss-Legendre in v, midpoint in phi."""
-    x, w = np.polynomial.legendre.leggauss(n_theta)
-    v, wv = 0.5 * (x + 1), 0.5 * w
-    t = alpha * np.tan(0.5 * np.pi * v)
-    theta = np.arctan(t)
-    dtheta = alpha * 0.5 * np.pi / np.cos(0.5 * np.pi * v) ** 2 / (1 + t * t)
-    phi = (np.arange(n_phi) + 0.5) * 2 * np.pi / n_phi
-    T, P = np.meshgrid(theta, phi, indexing="ij")
-    W = (wv * dtheta)[:, None] * np.sin(T) * (2 * np.pi / n_phi)
-    h = np.stack([np.sin(T) * np.cos(P), np.sin(T) * np.sin(P), np.cos(T)], -1)
-    return jnp.asarray(h.reshape(-1, 3)), jnp.asarray(W.reshape(-1))
 
 
 def params_for(dist, alpha, ratio=0.25):
@@ -52,7 +38,7 @@ def test_projected_area_normalisation_and_smith_identity(dist):
     distribution, int G1(wo, h) max(0, wo.h) D(h) dw_h = cos(theta_o) (Heitz 2014 eq. 2)."""
     for alpha in (0.01, 0.05, 0.3, 1.0):
         p, width = params_for(dist, alpha)
-        h, W = hemisphere_quadrature(width)
+        h, W = (jnp.asarray(a) for a in hemisphere_quadrature(width))
         d = dist.D(p, h)
         assert float(jnp.sum(d * h[:, 2] * W)) == pytest.approx(1.0, abs=1e-6)
         for theta in (0.0, 0.7, 1.3, 1.5):
@@ -65,7 +51,7 @@ def test_smith_identity_fails_with_the_wrong_lambda():
     """Negative control: Beckmann D with the GGX Lambda violates Heitz eq. 2 by >1%, so the
     identity test above can tell a wrong Lambda from the right one."""
     p, _ = params_for(Beckmann(), 0.5)
-    h, W = hemisphere_quadrature(0.5)
+    h, W = (jnp.asarray(a) for a in hemisphere_quadrature(0.5))
     wo = jnp.broadcast_to(direction(1.3), h.shape)
     d = Beckmann().D(p, h)
     proj = jnp.sum(jnp.maximum(jnp.sum(h * wo, -1), 0.0) * GGX().G1(p, wo, h) * d * W)

@@ -8,6 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from _helpers import central_difference
 from hypothesis import given
 from hypothesis import strategies as st
 
@@ -147,16 +148,7 @@ def test_gradients_match_finite_differences(entry):
 
     g = jax.grad(fn)(p)
     for name in m.param_names:
-        x = np.asarray(p[name], dtype=np.float64)
-        num = np.zeros_like(x)
-        for idx in np.ndindex(x.shape):
-            h = 1e-6 * max(1.0, abs(x[idx]))
-            xp, xm = x.copy(), x.copy()
-            xp[idx] += h
-            xm[idx] -= h
-            num[idx] = (fn({**p, name: jnp.asarray(xp)}) - fn({**p, name: jnp.asarray(xm)})) / (
-                2 * h
-            )
+        num = central_difference(fn, p, name)
         np.testing.assert_allclose(np.asarray(g[name]), num, rtol=1e-5, atol=1e-7, err_msg=name)
 
 

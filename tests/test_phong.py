@@ -4,12 +4,11 @@ against central differences, and finite values/gradients at the edges."""
 
 from __future__ import annotations
 
-import itertools
-
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from _helpers import albedo_on_grid, assert_finite_edges, fd_check, mirror, sph, unit
 
 import jaxrefl
 from jaxrefl.brdf._phong import BlinnPhong, Phong, cos_power
@@ -21,58 +20,6 @@ VARIANTS = [
     ("blinn_phong", True),
 ]
 IDS = [f"{n}{'_normalized' if z else ''}" for n, z in VARIANTS]
-
-
-def _unit(v):
-    v = np.asarray(v, dtype=np.float64)
-    return v / np.linalg.norm(v, axis=-1, keepdims=True)
-
-
-def _sph(theta_deg, phi_deg=0.0):
-    t, p = np.deg2rad(theta_deg), np.deg2rad(phi_deg)
-    return np.array([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)])
-
-
-# ----------------------------------------------------------------------------- quadrature
-def _lobe_grid(axis, width, n_gl=32, n_phi=256, n_panels=6):
-    """Directions and solid-angle weights on a sphere grid centred on ``axis``: Gauss-Legendre
-    panels in the polar angle, the first of ``width`` and the rest growing geometrically,
-    midpoint rule in azimuth. Centred on the normal it stops at the horizon (a panel edge).
-    The grid size does not depend on ``width`` so that one compiled evaluation serves all."""
-    a = _unit(axis)
-    t = np.array([1.0, 0, 0]) if abs(a[0]) < 0.9 else np.array([0, 1.0, 0])
-    t1 = _unit(t - a * (t @ a))
-    t2 = np.cross(a, t1)
-    tmax = np.pi / 2 if a[2] > 1 - 1e-12 else np.pi
-    edges = np.concatenate([[0.0], np.geomspace(min(width, tmax / 2), tmax, n_panels)])
-    x, wt = np.polynomial.legendre.leggauss(n_gl)
-    th = np.concatenate([(lo + hi) / 2 + (hi - lo) / 2 * x for lo, hi in itertools.pairwise(edges)])
-    tw = np.concatenate([(hi - lo) / 2 * wt for lo, hi in itertools.pairwise(edges)])
-    ph = (np.arange(n_phi) + 0.5) * 2 * np.pi / n_phi
-    T, P = np.meshgrid(th, ph, indexing="ij")
-    W = np.sin(T) * tw[:, None] * (2 * np.pi / n_phi)
-    d = (
-        (np.sin(T) * np.cos(P))[..., None] * t1
-        + (np.sin(T) * np.sin(P))[..., None] * t2
-        + np.cos(T)[..., None] * a
-    )
-    return d.reshape(-1, 3), W.reshape(-1)
-
-
-_JIT = {}
-
-
-def _albedo(m, p, wi, axis, width, **kw):
-    """rho(wi) = ∫ f(wi, wo) cos(theta_o) dω_o, by quadrature on a grid centred on ``axis``."""
-    d, W = _lobe_grid(axis, width, **kw)
-    ev = _JIT.setdefault(m, jax.jit(m.eval))
-    p = {k: jnp.asarray(v, dtype=jnp.float64) for k, v in p.items()}
-    f = np.asarray(ev(p, jnp.asarray(np.broadcast_to(wi, d.shape)), jnp.asarray(d)))
-    return np.sum(f * (W * np.maximum(d[:, 2], 0.0))[:, None], axis=0)
-
-
-def _mirror(w):
-    return np.array([-w[0], -w[1], w[2]])
 
 
 # ----------------------------------------------------------------------------- values
@@ -97,9 +44,9 @@ def test_reference_values(name, normalized):
     albedo = np.array([0.2, 0.5, 0.9])
     spec = np.array([0.3, 0.1, 0.7])
     cases = [
-        (_unit([0.3, 0.2, 0.9]), _unit([-0.4, -0.1, 0.8]), 20.0),  # near the mirror direction
-        (_unit([0.7, -0.1, 0.3]), _unit([0.1, 0.5, 0.6]), 3.5),  # far from it, low exponent
-        (_sph(60), _sph(60, 180), 1e5),  # exact mirror (wh = n) with n = 1e5
+        (unit([0.3, 0.2, 0.9]), unit([-0.4, -0.1, 0.8]), 20.0),  # near the mirror direction
+        (unit([0.7, -0.1, 0.3]), unit([0.1, 0.5, 0.6]), 3.5),  # far from it, low exponent
+        (sph(60), sph(60, 180), 1e5),  # exact mirror (wh = n) with n = 1e5
     ]
     for wi, wo, n in cases:
         p = {"albedo": albedo, "specular": spec, "exponent": n}
@@ -115,8 +62,8 @@ def test_mirror_peak_with_huge_exponent_float32():
     """At the exact mirror direction the normalised Phong lobe is (n + 2)/(2 pi) ~ 1.6e4 for
     n = 1e5: huge but finite, also in float32."""
     m = Phong(normalized=True)
-    wi = jnp.asarray(_sph(60), dtype=jnp.float32)
-    wo = jnp.asarray(_sph(60, 180), dtype=jnp.float32)
+    wi = jnp.asarray(sph(60), dtype=jnp.float32)
+    wo = jnp.asarray(sph(60, 180), dtype=jnp.float32)
     p = {"albedo": 0.0, "specular": 1.0, "exponent": 1e5}
     f = m.eval(p, wi, wo)
     assert f.dtype == jnp.float32
@@ -137,7 +84,7 @@ def test_cos_power_guard():
 def test_classic_forms_are_not_reciprocal():
     """The classic forms divide by cos(theta_i) only: swapping wi and wo scales the lobe by
     exactly cos_i/cos_o. The normalised forms are symmetric."""
-    wi, wo = _unit([0.5, 0.1, 0.6]), _unit([-0.3, -0.05, 0.9])
+    wi, wo = unit([0.5, 0.1, 0.6]), unit([-0.3, -0.05, 0.9])
     p = {"albedo": 0.0, "specular": 1.0, "exponent": 5.0}
     for cls in (Phong, BlinnPhong):
         classic = cls(normalized=False)
@@ -155,8 +102,8 @@ def test_classic_forms_are_not_reciprocal():
 def test_reciprocity_and_non_negativity(name, normalized):
     m = jaxrefl.brdf.get(name, normalized=normalized)
     rng = np.random.default_rng(3)
-    wi = _unit(rng.normal(size=(500, 3)) * [1, 1, 0.5] + [0, 0, 0.6])
-    wo = _unit(rng.normal(size=(500, 3)) * [1, 1, 0.5] + [0, 0, 0.6])
+    wi = unit(rng.normal(size=(500, 3)) * [1, 1, 0.5] + [0, 0, 0.6])
+    wo = unit(rng.normal(size=(500, 3)) * [1, 1, 0.5] + [0, 0, 0.6])
     p = {
         "albedo": rng.uniform(0, 1, (500, 3)),
         "specular": rng.uniform(0, 1, (500, 3)),
@@ -178,7 +125,7 @@ def test_normalized_phong_energy_with_albedo_plus_specular_one():
     for n in (0.0, 1.0, 20.0, 1e3):
         p = {"albedo": 0.3, "specular": 0.7, "exponent": n}
         width = min(np.pi / 2, 3.0 / np.sqrt(n + 1.0))
-        rho = [_albedo(m, p, _sph(t), _mirror(_sph(t)), width)[0] for t in (0, 30, 60, 85, 89)]
+        rho = [albedo_on_grid(m, p, sph(t), mirror(sph(t)), width)[0] for t in (0, 30, 60, 85, 89)]
         assert max(rho) <= 1.0 + 1e-6, (n, rho)
         np.testing.assert_allclose(rho[0], 1.0, atol=1e-6)
         assert rho[-1] < 0.9
@@ -194,82 +141,33 @@ def test_normalized_blinn_phong_energy_is_approximate():
     for n in (0.0, 2.0, 9.0, 100.0, 1e4):
         p = {"albedo": 0.0, "specular": 1.0, "exponent": n}
         width = min(np.pi / 2, 3.0 / np.sqrt(n + 1.0))
-        rho0 = _albedo(m, p, _sph(0), [0, 0, 1], width)[0]
+        rho0 = albedo_on_grid(m, p, sph(0), [0, 0, 1], width)[0]
         exact = (n + 8) * (n + 2 ** (-n / 2)) / ((n + 2) * (n + 4))
         np.testing.assert_allclose(rho0, exact, rtol=1e-6)
         peak = max(peak, rho0)
-        rho85 = _albedo(m, p, _sph(85), _mirror(_sph(85)), width)[0]
+        rho85 = albedo_on_grid(m, p, sph(85), mirror(sph(85)), width)[0]
         assert rho85 < 0.7 or n == 0.0
     np.testing.assert_allclose(peak, 1.0752, atol=1e-4)
     assert BlinnPhong(normalized=True).energy_conserving is False
 
 
 # ----------------------------------------------------------------------------- gradients
-def _fd_check(m, p, wi, wo, rtol=1e-6, atol=1e-9):
-    """jax.grad against a central difference for every element of every parameter."""
-    fn = jax.jit(lambda q: jnp.sum(m.eval(q, wi, wo) * jnp.arange(1.0, 4.0)[None, :]))
-    g = jax.grad(fn)(p)
-    for name, x in p.items():
-        x = np.asarray(x, dtype=np.float64)
-        num = np.zeros_like(x)
-        for idx in np.ndindex(x.shape):
-            h = 1e-6 * max(1.0, abs(x[idx]))
-            xp, xm = x.copy(), x.copy()
-            xp[idx] += h
-            xm[idx] -= h
-            num[idx] = (fn({**p, name: jnp.asarray(xp)}) - fn({**p, name: jnp.asarray(xm)})) / (
-                2 * h
-            )
-        np.testing.assert_allclose(np.asarray(g[name]), num, rtol=rtol, atol=atol, err_msg=name)
-        assert np.any(np.abs(num) > 1e-6), name  # the check must be able to fail
 
 
 @pytest.mark.parametrize(("name", "normalized"), VARIANTS, ids=IDS)
 def test_gradients_match_finite_differences(name, normalized):
     m = jaxrefl.brdf.get(name, normalized=normalized)
-    wi = jnp.asarray(_unit([[0.3, 0.2, 0.9], [0.5, -0.1, 0.6]]))
-    wo = jnp.asarray(_unit([[-0.35, -0.1, 0.85], [-0.4, 0.2, 0.7]]))
+    wi = jnp.asarray(unit([[0.3, 0.2, 0.9], [0.5, -0.1, 0.6]]))
+    wo = jnp.asarray(unit([[-0.35, -0.1, 0.85], [-0.4, 0.2, 0.7]]))
     p = {
         "albedo": jnp.array([0.2, 0.5, 0.8]),
         "specular": jnp.array([0.3, 0.6, 0.9]),
         "exponent": jnp.asarray(12.0),
     }
-    _fd_check(m, p, wi, wo)
+    fd_check(m, p, wi, wo)
 
 
 # ----------------------------------------------------------------------------- edges
-_G = 1e-6
-_S = np.sqrt(1 - _G * _G)
-_C = np.sqrt(0.5)
-EDGE_WI = np.array(
-    [[0, 0, 1], [_C, 0, _C], [0.8660254037844386, 0, 0.5], [_S, 0, _G], [0, 0, 1],
-     [_S, 0, _G], [_S, 0, _G], [1, 0, 1e-30], [1, 0, 1e-30], [1, 0, 0], [0.6, 0, -0.8],
-     [_S, 0, _G]]
-)  # fmt: skip
-EDGE_WO = np.array(
-    [[0, 0, 1], [_C, 0, _C], [-0.8660254037844386, 0, 0.5], [0, 0, 1], [0, _S, _G],
-     [-_S, 0, _G], [_S, 0, _G], [-1, 0, 1e-30], [0, 0, 1], [0, 0, 1], [0, 0, 1],
-     [-_S, 0, 0]]
-)  # fmt: skip
-# normal (wi = wo, wh = n); wi = wo at 45; mirror pair (wh = n); grazing wi; grazing wo;
-# grazing mirror pair; wi = wo grazing; mirror pair and one direction at cos = 1e-30 (below
-# every floor); wi on the horizon; wi below; wo exactly at cos 0.
-
-
-def _assert_finite_edges(m, p, dtype):
-    wi = jnp.asarray(EDGE_WI, dtype=dtype)
-    wo = jnp.asarray(EDGE_WO, dtype=dtype)
-    p = {k: jnp.asarray(v, dtype=dtype) for k, v in p.items()}
-    ev = _JIT.setdefault(m, jax.jit(m.eval))
-    gr = _JIT.setdefault(
-        ("grad", m),
-        jax.jit(jax.grad(lambda q, a, b: jnp.sum(m.eval(q, a, b)), argnums=(0, 1, 2))),
-    )
-    f = ev(p, wi, wo)
-    assert f.dtype == dtype and np.all(np.isfinite(np.asarray(f))), f
-    assert np.all(np.asarray(f)[-3:] == 0.0)  # cos = 0 and below the horizon are exactly 0
-    for leaf in jax.tree_util.tree_leaves(gr(p, wi, wo)):
-        assert np.all(np.isfinite(np.asarray(leaf))), (p, leaf)
 
 
 @pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64], ids=["f32", "f64"])
@@ -277,7 +175,7 @@ def _assert_finite_edges(m, p, dtype):
 def test_finite_values_and_gradients_at_edges(name, normalized, dtype):
     m = jaxrefl.brdf.get(name, normalized=normalized)
     for n in (0.0, 0.5, 1e4, 1e5):
-        _assert_finite_edges(m, {"albedo": [1.0, 0.0, 0.5], "specular": 1.0, "exponent": n}, dtype)
+        assert_finite_edges(m, {"albedo": [1.0, 0.0, 0.5], "specular": 1.0, "exponent": n}, dtype)
 
 
 # ----------------------------------------------------------------------------- batching
@@ -285,8 +183,8 @@ def test_jit_vmap_and_broadcasting():
     m = Phong(normalized=True)
     rng = np.random.default_rng(5)
     N = 7
-    wi = jnp.asarray(_unit(rng.normal(size=(N, 3)) + np.array([0, 0, 2])))
-    wo = jnp.asarray(_unit(rng.normal(size=(N, 3)) + np.array([0, 0, 2])))
+    wi = jnp.asarray(unit(rng.normal(size=(N, 3)) + np.array([0, 0, 2])))
+    wo = jnp.asarray(unit(rng.normal(size=(N, 3)) + np.array([0, 0, 2])))
     p = {
         "albedo": jnp.asarray(rng.uniform(size=(N, 3))),
         "specular": jnp.asarray(rng.uniform(size=(N, 1))),
