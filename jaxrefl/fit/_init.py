@@ -18,10 +18,10 @@ variable projection (Golub & Pereyra 1973) turns a P-dimensional search into a 1
    solves the colour scales exactly within their bounds for every grid value (a box-
    constrained LS, exact for one or two parameters by enumerating the active sets; more
    than two: unconstrained LS then clipping, not exact), then grids again (8 values)
-   between the neighbours of the best value, and keeps the value of lowest cost. Measured
-   on GGX pixels with 1% noise: 8 coarse values left 1.3% of the pixels in the wrong basin
-   after the fit (rough, strong lobes: their cost minimum in alpha is only a few percent
-   wide), 12 left 0.3%; the fit then needs 6 iterations on average.
+   between the neighbours of the best value, and keeps the value of lowest cost. The
+   coarse grid is that fine because the cost minimum in alpha of a rough, strong lobe is
+   only a few percent wide: a coarser grid starts more GGX pixels in the wrong basin, which
+   the fit then keeps.
 3. Otherwise (a parameter that is neither affine nor a gridable scalar, e.g. ``eta``,
    Lafortune lobes, a non-affine model) falls back to multi-start: the model defaults, with
    the closed-form diffuse albedo where there is one, and a few grid values of the first free
