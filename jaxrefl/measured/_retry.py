@@ -15,15 +15,13 @@ values and gradients finite, but a stiff problem can still defeat it:
   takes one Gauss-Newton step in float64 from the float32 optimum, and when it lowers the
   float64 cost by more than ``GAIN_RTOL`` (0.1%) the fit is redone (by
   :func:`fit_pixels_retry`, which has the data; :func:`float64_reasons` sees only the
-  result and does not apply this test). A fit within 0.1% of an optimum cannot gain that much, so a
-  healthy fit is never sent. Measured on the stiff cases of ``_stiff`` (n = 32, seed 0),
-  step gain of the float32 optima within 1e-3 of the best known cost against those short
-  of it: exponent_1e4 <= 8.4e-4 (15) against 1.1e-3 .. 6.7e-3 (17, all caught);
-  sharp_highlight <= 5.9e-4 (31) against 1.6e-3 (1); grazing_only <= 6.7e-4 (30) against
-  1.8e-3 .. 7.0e-3 (2); float64 optima <= 1e-8. Not caught: the collinear-lights fits that
-  stop short (gain ~0, the step cannot move along the unresolved direction) unless
-  flagged ILL_CONDITIONED. The float32 cost itself is no detector: its mismatch with the
-  float64 cost at the same theta was 0.4-2.8% at the optimum and 0.001-4.5% short of it.
+  result and does not apply this test). A fit within 0.1% of an optimum cannot gain that
+  much, so a healthy fit is never sent. On the stiff cases of ``_stiff`` the threshold
+  separates the float32 fits that reached the optimum (smaller gains) from those that
+  stopped short (larger ones). Not caught: the collinear-lights fits that stop short (the
+  step cannot move along the unresolved direction, so it gains nothing) unless flagged
+  ILL_CONDITIONED. The float32 cost itself is no detector: its round-off at a stiff
+  optimum is as large as the shortfall it would have to reveal.
 
 :func:`float64_reasons` says which of these a result shows (empty: keep it);
 :func:`choose` keeps the float64 redo where it is finite and at least as good (cost
