@@ -424,9 +424,10 @@ def part_mixing(args) -> None:
     sd = np.concatenate([tsd, np.ones((sel.size, 1))], -1)
     m = jp.MAP_OPTIONS
     rep = dataclasses.replace
-    fit8 = rep(m, reparam="none", num_integration_steps=8)  # MAP_OPTIONS until stop 12
+    # The reference variant: the fit's theta and 8 leapfrog steps; the others change one thing.
+    fit8 = rep(m, reparam="none", num_integration_steps=8)
     variants = [
-        ("fit's theta, 8 leapfrog (old MAP_OPTIONS)", theta[sel], fit8),
+        ("fit's theta, 8 leapfrog", theta[sel], fit8),
         ("fit's theta, start clipped to [-4, 4]", np.clip(theta[sel], -4, 4), fit8),
         ("fit's theta, 4 chains", theta[sel], rep(fit8, num_chains=4)),
         ("fit's theta, 300 warm-up steps", theta[sel], rep(fit8, num_warmup=300)),
