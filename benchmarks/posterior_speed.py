@@ -424,7 +424,7 @@ def part_mixing(args) -> None:
     sd = np.concatenate([tsd, np.ones((sel.size, 1))], -1)
     m = jp.MAP_OPTIONS
     rep = dataclasses.replace
-    # The reference variant: the fit's theta and 8 leapfrog steps; the others change one thing.
+    # The reference variant: the fit's theta (no reparametrisation) and 8 leapfrog steps.
     fit8 = rep(m, reparam="none", num_integration_steps=8)
     variants = [
         ("fit's theta, 8 leapfrog", theta[sel], fit8),
