@@ -12,8 +12,7 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
-from .brdf import BRDF, directional_albedo, spherical_direction
-from .brdf._base import Params
+from .brdf import BRDF, Params, directional_albedo, spherical_direction
 
 __all__ = ["albedo_curve", "lobe_slice", "plot_albedo", "plot_lobes", "showcase"]
 

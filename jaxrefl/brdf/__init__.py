@@ -24,6 +24,7 @@ from ._dichromatic import Dichromatic as Dichromatic
 from ._frame import cos_theta as cos_theta
 from ._frame import half_vector as half_vector
 from ._frame import reflect as reflect
+from ._frame import safe_normalize as safe_normalize
 from ._frame import spherical_direction as spherical_direction
 from ._fresnel import ConductorFresnel as ConductorFresnel
 from ._fresnel import DielectricFresnel as DielectricFresnel
@@ -39,6 +40,8 @@ from ._lafortune import Lafortune as Lafortune
 from ._lambert import Lambert as Lambert
 from ._lambert import OrenNayar as OrenNayar
 from ._merl import MERL as MERL
+from ._merl import MERL_SCALE as MERL_SCALE
+from ._merl import MERL_SHAPE as MERL_SHAPE
 from ._microfacet import ALPHA_MIN as ALPHA_MIN
 from ._microfacet import GGX as GGX
 from ._microfacet import Beckmann as Beckmann

@@ -54,6 +54,7 @@ __all__ = [
     "gaussian_prior",
     "make_residual",
     "pixel_data",
+    "replace_params",
 ]
 
 
@@ -343,7 +344,7 @@ def gaussian_prior(space: ParamSpace, priors: dict[str, tuple[float, float]]) ->
 
 
 # ---------------------------------------------------------------------------- residual
-def _replaced(params: dict[str, Array], replace: Mapping[str, Array]) -> dict[str, Array]:
+def replace_params(params: dict[str, Array], replace: Mapping[str, Array]) -> dict[str, Array]:
     """``params`` with the named entries swapped for ``replace``'s (broadcast, same dtype)."""
     out = dict(params)
     for name, v in replace.items():
@@ -404,7 +405,7 @@ class Residual(eqx.Module):
         # without implicit rank promotion.
         params = self.space.to_natural(theta[None, :])
         if replace:
-            params = _replaced(params, replace)
+            params = replace_params(params, replace)
         return self.model.eval(params, wi, wo) * scale
 
     def __call__(self, theta: Float[Array, " P"], data: PixelData) -> Float[Array, " KC"]:

@@ -7,7 +7,7 @@ File layout (little-endian)::
 
 f_r (1/sr) = raw * scale with scale = 1/1500, 1.15/1500, 1.66/1500 for R, G, B
 (``RED_SCALE``... in BRDFRead.cpp). Negative raw values mark missing cells and stay
-negative after scaling (see :class:`jaxrefl.brdf._merl.MERL`). A file is
+negative after scaling (see :class:`jaxrefl.brdf.MERL`). A file is
 12 + 8 * 3 * 90 * 90 * 180 = 34,992,012 bytes.
 """
 
@@ -19,7 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Float
 
-from ..brdf._merl import MERL, MERL_SCALE, MERL_SHAPE
+from ..brdf import MERL, MERL_SCALE, MERL_SHAPE
 from ._measured import MeasuredBRDF, MeasuredDataError
 
 __all__ = ["merl_to_measured", "read_merl", "write_merl"]

@@ -68,8 +68,8 @@ from jaxrefl.fit import (
     ScaledSigmoid,
     Softplus,
     make_residual,
+    replace_params,
 )
-from jaxrefl.fit._residual import _replaced
 
 from ._priors import Jeffreys, Prior, resolve_priors
 from ._sphere import SphereDirection, to_local
@@ -180,7 +180,7 @@ class LogPosterior(eqx.Module):
         scale = jnp.where(ok, data.scale.astype(dtype), 0.0)
         params = self.space.to_natural(tb[None, :])
         if replace:
-            params = _replaced(params, replace)
+            params = replace_params(params, replace)
         return self.model.eval_cos(params, wi, wo) * scale
 
     def log_likelihood(

@@ -31,7 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from ..brdf._frame import safe_normalize
+from ..brdf import safe_normalize
 from ._geometry import _as_float
 
 __all__ = [

@@ -21,7 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from ..brdf._frame import safe_normalize
+from ..brdf import safe_normalize
 
 __all__ = [
     "orthonormal_basis",
