@@ -263,8 +263,3 @@ class BRDF(eqx.Module):
 
         p = {n: pad(v, trailing[kinds[n]]) for n, v in p.items()}
         return p, pad(wi, 1), pad(wo, 1)
-
-
-def scalar(p: Array) -> Array:
-    """Give a scalar parameter a trailing unit axis so it broadcasts against colours."""
-    return p[..., None]

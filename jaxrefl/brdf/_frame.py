@@ -27,7 +27,6 @@ __all__ = [
     "sin2_theta",
     "sin_phi",
     "spherical_direction",
-    "tan2_theta",
     "upper_hemisphere",
 ]
 
@@ -78,11 +77,6 @@ def sin2_theta(w: Float[Array, "*b 3"]) -> Float[Array, " *b"]:
     float32 (the GGX denominator alpha^2 cos^2 + sin^2 needs sin^2 exactly there).
     """
     return w[..., 0] * w[..., 0] + w[..., 1] * w[..., 1]
-
-
-def tan2_theta(w: Float[Array, "*b 3"]) -> Float[Array, " *b"]:
-    """tan^2(theta); +inf is never produced: cos = 0 gives 0 (the caller masks the horizon)."""
-    return safe_div(sin2_theta(w), cos2_theta(w))
 
 
 def cos_phi(w: Float[Array, "*b 3"]) -> Float[Array, " *b"]:

@@ -63,7 +63,6 @@ __all__ = [
     "RetroLobe",
     "core",
     "fit_components",
-    "n_free",
     "param_space",
     "start_from",
 ]
@@ -307,8 +306,3 @@ def fit_components(
     dtype = kw.get("dtype") or data.obs.dtype
     init_j = {k: jnp.asarray(np.nan_to_num(np.asarray(v), nan=0.1), dtype) for k, v in init.items()}
     return fit_pixels(model, data, space=space, init=init_j, **kw)
-
-
-def n_free(spec: Components, channels: int) -> int:
-    """Free parameters of the assembly: C per colour, 1 per scalar."""
-    return sum(channels if q.kind == "color" else 1 for q in spec.build().params)
