@@ -11,7 +11,8 @@ encoded like the real photos: value^(1/2.2), clipped to [0, 1].
 Model: Cook–Torrance with GGX, height-correlated Smith shadowing and Schlick Fresnel on a
 Lambertian base (``jaxrefl.brdf.get("cook_torrance", diffuse="lambert")``); radiance
 = light_power * f_r * cos θ_i / r^2, with no vignetting: the convention of the real flash
-captures (``../shared/data/README.md``), so the written capture reads back like a real one.
+captures (MaterialGAN, Guo et al. 2020; :mod:`jaxrefl.io._capture`), so the written capture
+reads back like a real one.
 """
 
 from __future__ import annotations

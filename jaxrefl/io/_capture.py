@@ -5,7 +5,7 @@ flash close to the sample: a point light; or a distant, directional one) from on
 position, as read by :func:`jaxrefl.io.load_capture` from one of three layouts
 (:mod:`jaxrefl.io._capture_layouts`: svbrdf-diff-renderer, MaterialGAN, generic).
 
-Convention (MaterialGAN, Guo et al. 2020; ``../shared/data/README.md``): the sample is the
+Convention (MaterialGAN, Guo et al. 2020, and its public captures): the sample is the
 square of side S centred at the origin of the plane z = 0, +z its normal, and pixel
 (row i, column j) of an H x W photo lies at
 

@@ -51,8 +51,8 @@ line per photo (``light_power.txt`` may hold one line for all photos, ``image_si
 one number). Without ``light_pos.txt`` the flash is taken to sit at the camera (the
 MaterialGAN tools write ``light_pos.txt`` as a copy of ``camera_pos.txt``); ``meta`` says so.
 
-Both public layouts store 8-bit photos encoded as value^(1/2.2) clipped to [0, 1]
-(``../shared/data/README.md``), decoded here as value^2.2, lengths in cm.
+Both public layouts store 8-bit photos encoded as value^(1/2.2) clipped to [0, 1] (the
+MaterialGAN convention, Guo et al. 2020), decoded here as value^2.2, lengths in cm.
 
 Pixels (:mod:`jaxrefl.io._photos`): 8- and 16-bit PNGs are read at full depth, grey images
 give C = 1, an alpha channel becomes a mask (alpha = 0 -> status ``masked``); the codes of

@@ -6,8 +6,8 @@ x axis is the tangent ``t`` and whose y axis is the bitangent ``b = n x t`` (rig
 and the world; :func:`orthonormal_basis` builds ``(t, b)`` from ``n`` alone and
 :func:`shading_frame` uses a given tangent instead (anisotropic models need one).
 
-Planar samples follow the flash-capture convention of MaterialGAN (Guo et al. 2020), see
-``../shared/data/README.md``: the sample is the square ``[-S/2, S/2]^2`` of the plane z = 0,
+Planar samples follow the flash-capture convention of MaterialGAN (Guo et al. 2020; see
+:mod:`jaxrefl.io._capture`): the sample is the square ``[-S/2, S/2]^2`` of the plane z = 0,
 +z is its normal, and pixel (row i, column j) of an H x W image lies at
 
     x = ((j + 0.5)/W - 0.5) S,     y = -((i + 0.5)/H - 0.5) S,     z = 0,

@@ -224,7 +224,7 @@ def render_planar_sample(
     lies on z = 0 centred at the origin with normal +z, row 0 at +y. ``kwargs`` go to
     :func:`render` (``shadow``, ``response``, ``cos4``, ``normals``, ...). To reproduce the
     MaterialGAN data (radiance = light_power f_r cos(theta_i)/r^2, then value^(1/2.2) clipped;
-    ``../shared/data/README.md``) use ``PointLight(light_pos, light_pow)``,
+    :mod:`jaxrefl.io._capture`) use ``PointLight(light_pos, light_pow)``,
     ``PinholeCamera(camera_pos)``, ``response=GammaResponse(2.2)`` and ``cos4=False``.
     """
     h, w = (image_size, image_size) if isinstance(image_size, int) else image_size
