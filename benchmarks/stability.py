@@ -31,9 +31,9 @@ jax.config.update("jax_enable_x64", True)
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import machine, table  # noqa: E402
+from _stability_sweep import run_stability  # noqa: E402
 
 from jaxrefl.brdf import model_zoo  # noqa: E402
-from jaxrefl.brdf._stability import run_stability  # noqa: E402
 from jaxrefl.measured._stiff import run_stiff  # noqa: E402
 
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import sys
 from dataclasses import asdict
 from pathlib import Path
 
@@ -25,8 +26,10 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from jaxrefl.brdf._stability import run_stability  # noqa: E402
 from jaxrefl.plot import albedo_curve, plot_albedo, plot_lobes, showcase  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+from _stability_sweep import run_stability  # noqa: E402
 
 
 def main() -> None:

@@ -1,13 +1,18 @@
-"""The stability sweep (see ``jaxrefl/brdf/_stability.py``): zero non-finite values or
+"""The stability sweep (see ``benchmarks/_stability_sweep.py``): zero non-finite values or
 gradients over every model, every edge case, float32 and float64."""
 
 from __future__ import annotations
+
+import sys
+from pathlib import Path
 
 import jax.numpy as jnp
 import pytest
 
 from jaxrefl.brdf import model_zoo
-from jaxrefl.brdf._stability import edge_directions, parameter_sets, run_stability
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+from _stability_sweep import edge_directions, parameter_sets, run_stability
 
 ZOO = model_zoo()
 

@@ -15,7 +15,8 @@ inverse (total internal reflection from inside), conductor with k up to 10, and 
 
 A case is *finite* when every value and every gradient component is finite. The sweep is
 used by ``benchmarks/stability.py`` (the printed table), ``paper_figures/`` (the CSV) and
-``tests/test_stability.py`` (which requires zero non-finite cases).
+``tests/test_stability.py`` (which requires zero non-finite cases); it is a harness, not part
+of the library, so it lives here and uses only the public API of ``jaxrefl.brdf``.
 """
 
 from __future__ import annotations
@@ -27,8 +28,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._base import BRDF
-from ._zoo import ZooEntry, model_zoo
+from jaxrefl.brdf import (
+    BRDF,
+    ZooEntry,
+    fresnel_conductor,
+    fresnel_dielectric,
+    fresnel_schlick,
+    model_zoo,
+)
 
 __all__ = ["EDGE_VALUES", "StabilityRow", "edge_directions", "run_stability"]
 
@@ -166,8 +173,6 @@ def _check_model(model: BRDF, dtype) -> tuple[int, int, int, float, float]:
 
 
 def _check_fresnel(dtype) -> list[StabilityRow]:
-    from ._fresnel import fresnel_conductor, fresnel_dielectric, fresnel_schlick
-
     cos = np.array([1.0, 0.5, 1e-3, 1e-6, 0.0, -1e-6, -0.5, -1.0])
     etas = np.array([1.0001, 1.01, 1.5, 2.5, 4.0, 1 / 1.5, 1 / 4.0])
     ks = np.array([0.0, 0.5, 3.0, 10.0])
