@@ -68,6 +68,17 @@ def test_relative_links_resolve(page):
     assert not bad, f"{_rel(page)}: broken links: {bad}"
 
 
+def test_sources_cite_no_missing_files_or_history():
+    """Docstrings and comments explain and cite what is in the repository: no work history,
+    no files that are not here (``MEASUREMENTS.md``) and no modules that do not exist."""
+    phrases = (*WORK_HISTORY, "measurements.md", "jaxrefl.infer")
+    bad = []
+    for path in sorted((ROOT / "jaxrefl").rglob("*.py")):
+        text = path.read_text().lower()
+        bad += [f"{_rel(path)}: {p!r}" for p in phrases if p in text]
+    assert not bad, bad
+
+
 def test_docs_pages_exist():
     for name in ("architecture.md", "glossary.md", "benchmarks.md"):
         assert (ROOT / "docs" / name).is_file(), name
