@@ -111,6 +111,7 @@ def _fit_and_check(out: Path, truth: dict) -> None:
     import numpy as np
 
     from jaxrefl.cli._fit import print_summary
+    from jaxrefl.fit import has_estimate
     from jaxrefl.io import load_capture
     from jaxrefl.svbrdf import FitJob, fit_capture, write_outputs
 
@@ -121,7 +122,7 @@ def _fit_and_check(out: Path, truth: dict) -> None:
     write_outputs(result, capture, out / "fit")
     print_summary(result.report)
     m = result.maps
-    ok = m["status"] < 4  # pixels with an estimate
+    ok = has_estimate(m["status"])
     alb = np.stack([m["albedo.R"], m["albedo.G"], m["albedo.B"]], -1)
     err_alb = np.abs(alb - truth["albedo"])[ok]
     err_spec = np.abs(m["specular"] - truth["specular"][..., 0])[ok]

@@ -26,7 +26,9 @@ from ._init import initial_theta as initial_theta
 from ._init import linear_params as linear_params
 from ._laplace import LaplaceFlag as LaplaceFlag
 from ._laplace import LaplaceResult as LaplaceResult
+from ._laplace import flag_counts as flag_counts
 from ._laplace import laplace as laplace
+from ._laplace import same_residual as same_residual
 from ._lm import LMInfo as LMInfo
 from ._lm import LMOptions as LMOptions
 from ._lm import LMResult as LMResult
@@ -60,7 +62,10 @@ from ._status import Status as Status
 from ._status import classify as classify
 from ._status import describe as describe
 from ._status import equilibrated_condition as equilibrated_condition
+from ._status import has_estimate as has_estimate
 from ._status import ill_conditioned as ill_conditioned
+from ._status import most_severe as most_severe
+from ._status import severity as severity
 from ._transform import Bijection as Bijection
 from ._transform import Exp as Exp
 from ._transform import Identity as Identity

@@ -92,15 +92,18 @@ def _solve_optimistix(residual_fn, theta0, data, n_usable, space, max_iters, rto
     _, _, cond_max = opts.tolerances(theta0.dtype)
 
     def one(t0, d, n):
+        solver: optx.LevenbergMarquardt[Array, Array, None]
         solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
         # A non-finite start is not sent to the solver (its result would be NaN anyway).
         ok0 = jnp.all(jnp.isfinite(t0))
         start = jnp.where(ok0, t0, 0.0)
+        sol: optx.Solution[Array, None]
         sol = optx.least_squares(
             residual_fn, solver, start, args=d, max_steps=max_iters, throw=False
         )
         res = sol.result
-        converged = res == optx.RESULTS.successful
+        # An array at run time; equinox's stubs type the comparison of results as bool.
+        converged = jnp.asarray(res == optx.RESULTS.successful)
         hit_max = res == optx.RESULTS.nonlinear_max_steps_reached
         nonfinite = res == optx.RESULTS.nonfinite
         theta = sol.value
@@ -204,7 +207,7 @@ def solve(
     atol = (1e-6 if single else 1e-8) if atol is None else float(atol)
     steps = 256 if max_iters is None else int(max_iters)
     if backend == "optimistix":
-        if single and jax.config.jax_enable_x64:
+        if single and jax.config.read("jax_enable_x64"):
             # optimistix's LM builds its damping term in the default float (float64 under
             # jax_enable_x64), and lineax then refuses the float32 system ("Vector and operator
             # structures do not match"). Solve in float64 with float32's tolerances and hand

@@ -43,7 +43,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float
 
 from jaxrefl.brdf import BRDF
 
@@ -70,10 +70,10 @@ def grid_values(name: str, space: ParamSpace, size: int = 8) -> np.ndarray:
         g = np.geomspace(1.0, 1e4, size)
     elif name == "sigma":
         g = np.linspace(0.0, 1.2, size)
-    elif float(q.default) > 0:
-        g = float(q.default) * np.geomspace(0.1, 10.0, size)
+    elif float(np.asarray(q.default)) > 0:  # a scalar parameter's default is one number
+        g = float(np.asarray(q.default)) * np.geomspace(0.1, 10.0, size)
     else:
-        g = np.asarray([float(q.default)])
+        g = np.asarray([float(np.asarray(q.default))])
     s = space.index(name)
     lo, hi = float(space.lower[s.start]), float(space.upper[s.start])
     width = hi - lo if math.isfinite(hi - lo) else abs(lo) + 1.0
@@ -108,18 +108,18 @@ def _is_affine(model: BRDF, space: ParamSpace, names: tuple[str, ...]) -> bool:
     m = len(names)
     wi, wo = _test_directions()
     base = {q.name: np.asarray(q.default, dtype=np.float32) for q in model.params}
-    for n, v in space.fixed.items():
-        base[n] = np.asarray(v, dtype=np.float32)
+    for n, fixed in space.fixed.items():
+        base[n] = np.asarray(fixed, dtype=np.float32)
     kinds = {q.name: q.kind for q in model.params}
     nonlin = [b.name for b in space.blocks if b.name not in names and b.kind == "scalar"]
     settings = [dict(base)]
     for n in nonlin:
         for v in grid_values(n, space, 3):
-            settings.append({**base, n: np.float32(v)})
+            settings.append({**base, n: np.asarray(v, np.float32)})
     rng = np.random.default_rng(7)
     xs = np.concatenate([np.zeros((1, m)), np.eye(m), rng.uniform(0.1, 0.9, (2, m))])
     rows = [(s, x) for s in settings for x in xs]
-    p = {}
+    p: dict[str, np.ndarray] = {}
     for k in base:
         vals = [np.asarray(s[k], np.float32) for s, _ in rows]
         v = np.stack(vals)  # (B, ...): colours (B,) or (B, C); scalars (B,); lobes (B, L, 4)
@@ -158,7 +158,7 @@ def _quad(a, b, x):
     return jnp.sum(x * ax, axis=-1) - 2.0 * jnp.sum(b * x, axis=-1)
 
 
-def _box_ls(a: Array, b: Array, lo: np.ndarray, hi: np.ndarray) -> Array:
+def _box_ls(a: Array, b: Array, lo: ArrayLike, hi: ArrayLike) -> Array:
     """argmin x^T A x - 2 b^T x subject to lo <= x <= hi (A PSD (..., m, m), b (..., m)).
 
     m = 1, 2: exact (the optimum is interior or on an edge, where the 1-D problem is solved
@@ -196,10 +196,9 @@ def _box_ls(a: Array, b: Array, lo: np.ndarray, hi: np.ndarray) -> Array:
         for v in (lo[i], hi[i]):
             xj = jnp.where(ajj > tiny, (bj - a12 * v) / jnp.where(ajj > tiny, ajj, 1.0), lo[j])
             xj = jnp.clip(xj, lo[j], hi[j])
-            x = [None, None]
-            x[i] = jnp.broadcast_to(v, xj.shape)
-            x[j] = xj
-            cands.append(jnp.stack(x, axis=-1))
+            pair = [xj, xj]
+            pair[i] = jnp.broadcast_to(v, xj.shape)
+            cands.append(jnp.stack(pair, axis=-1))
             valid.append(jnp.ones_like(inside))
     xs = jnp.stack(cands, axis=-2)  # (..., 5, 2)
     q = jax.vmap(_quad, in_axes=(None, None, -2), out_axes=-1)(a, b, xs)
@@ -209,8 +208,9 @@ def _box_ls(a: Array, b: Array, lo: np.ndarray, hi: np.ndarray) -> Array:
 
 
 # ---------------------------------------------------------------------------- per pixel
-def _fit_weights(res: Residual, d: PixelData) -> Array:
-    """w / std^2 on usable, uncensored observations, 0 elsewhere (K, C)."""
+def _fit_weights(res: Residual, d: PixelData) -> tuple[Float[Array, "K C"], Float[Array, "K C"]]:
+    """w / std^2 on usable, uncensored observations, 0 elsewhere, and the observations with
+    the others set to 0; both (K, C)."""
     ok = res.usable(d) & (d.censored == 0)
     obs = jnp.where(ok, d.obs, 0.0)
     std = res.noise.std(obs)

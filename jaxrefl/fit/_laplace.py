@@ -66,15 +66,15 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, ArrayLike, Float, Int
 
 from ._lm import _linearise as lm_linearise
 from ._lm import cho_solve_unrolled, cholesky_unrolled
 from ._residual import PixelData, Residual
 from ._shard import device_count, map_sharded
-from ._status import Status, ill_conditioned
+from ._status import has_estimate, ill_conditioned
 
-__all__ = ["LaplaceFlag", "LaplaceResult", "laplace"]
+__all__ = ["LaplaceFlag", "LaplaceResult", "flag_counts", "laplace", "same_residual"]
 
 
 class LaplaceFlag(enum.IntFlag):
@@ -85,6 +85,15 @@ class LaplaceFlag(enum.IntFlag):
     AT_BOUND = 4
     NOT_IDENTIFIED = 8
     NONFINITE = 16
+
+
+def flag_counts(flag: ArrayLike) -> dict[str, int]:
+    """Pixels per :class:`LaplaceFlag` bit (a pixel may count under several), plus
+    ``reliable`` (flag 0): ``{"NO_ESTIMATE": 12, ..., "reliable": 9800}``."""
+    f = np.asarray(flag).reshape(-1)
+    out = {b.name or str(b.value): int(np.sum((f & b.value) != 0)) for b in LaplaceFlag}
+    out["reliable"] = int(np.sum(f == 0))
+    return out
 
 
 @dataclass(frozen=True, eq=False)
@@ -115,11 +124,9 @@ class LaplaceResult:
         return self.flag == 0
 
     def flag_counts(self) -> dict[str, int]:
-        """Pixels per flag bit (a pixel may count under several), plus ``reliable``."""
-        f = np.asarray(self.flag)
-        out = {b.name or str(b.value): int(np.sum((f & b.value) != 0)) for b in LaplaceFlag}
-        out["reliable"] = int(np.sum(f == 0))
-        return out
+        """Pixels per flag bit (a pixel may count under several), plus ``reliable``
+        (:func:`flag_counts`)."""
+        return flag_counts(self.flag)
 
     def std_of(self, label: str) -> Array:
         """(N,) std of the entry named ``label`` (e.g. ``"alpha"``, ``"albedo.G"``)."""
@@ -196,7 +203,7 @@ def _laplace_jit(space, res, theta, lin, cost, status, estimate, max_theta_std, 
     std, corr, cov, std_t, s2, formed, ill, dof, ok = jax.vmap(one)(theta, jtj, active, cost)
     at_bound = jnp.any(space.at_bound(jnp.where(ok[:, None], theta, 0.0)), axis=-1)
     identified = std_t <= max_theta_std
-    none = (status >= Status.MASKED) | ~ok
+    none = ~has_estimate(status) | ~ok
     flag = jnp.zeros(theta.shape[:1], jnp.int32)
     flag = flag | jnp.where(none, LaplaceFlag.NO_ESTIMATE, 0)
     flag = flag | jnp.where(~formed & ~ill & ~none, LaplaceFlag.NOT_POSITIVE_DEFINITE, 0)
@@ -247,7 +254,7 @@ def laplace(
     if noise not in ("estimate", "known"):
         raise ValueError(f"noise must be 'estimate' or 'known', not {noise!r}")
     lin = getattr(fit, "linearisation", None)
-    if lin is not None and (residual is None or _same(residual, lin.residual)):
+    if lin is not None and (residual is None or same_residual(residual, lin.residual)):
         # The fit's own J^T J at theta: no Jacobian to compute here.
         res = None
         cost = jnp.where(jnp.isfinite(fit.cost), fit.cost, 0.0).astype(theta.dtype)
@@ -280,6 +287,7 @@ def laplace(
     return LaplaceResult(fit.space.labels, std, corr, cov, std_t, s2, flag, identified)
 
 
-def _same(a: Residual, b: Residual) -> bool:
-    """Whether two residuals are the same function (identical, or equal leaf by leaf)."""
+def same_residual(a: Residual, b: Residual) -> bool:
+    """Whether two residuals are the same function (identical, or equal leaf by leaf): a
+    linearisation taken with one serves the other."""
     return a is b or bool(eqx.tree_equal(a, b))

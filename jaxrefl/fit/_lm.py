@@ -494,7 +494,10 @@ def _solve_block(residual_fn, theta0, data, n_usable, options, space):
             sub = _steps_until_converged(residual_fn, sub, sub_data, options, n_steps)
             return jax.tree.map(lambda x, y: x.at[idx].set(y, mode="drop"), states, sub)
 
-        states = lax.while_loop(lambda s, todo=todo: jnp.any(todo(s)), round_, states)
+        def any_todo(states, todo=todo):
+            return jnp.any(todo(states))
+
+        states = lax.while_loop(any_todo, round_, states)
         done = until
     return jax.vmap(lambda s, t, n: _finish(s, t, options, space, n))(states, theta0, n_usable)
 
@@ -531,5 +534,10 @@ def batched_lm(
         return x.reshape((blocks, chunk, *x.shape[1:]))
 
     args = jax.tree.map(padded, (theta0, data, nu))
-    theta, result = lax.map(lambda a: _solve_block(residual_fn, *a, options, space), args)
+
+    def block(a):
+        theta_b, data_b, nu_b = a
+        return _solve_block(residual_fn, theta_b, data_b, nu_b, options, space)
+
+    theta, result = lax.map(block, args)
     return jax.tree.map(lambda x: x.reshape((blocks * chunk, *x.shape[2:]))[:n], (theta, result))

@@ -45,7 +45,7 @@ from ._residual import (
     pixel_data,
 )
 from ._shard import device_count, map_sharded
-from ._status import Status, describe
+from ._status import Status, describe, has_estimate
 from ._transform import ParamSpace
 
 __all__ = ["FitResult", "Linearisation", "fit_pixels", "fit_samples"]
@@ -104,7 +104,7 @@ class FitResult:
     @property
     def has_estimate(self) -> Array:
         """Where params are defined (not MASKED / NONFINITE_INPUT)."""
-        return self.status < Status.MASKED
+        return has_estimate(self.status)
 
 
 def _theta0(res, data: PixelData, init: Any, dtype) -> Array:
@@ -134,7 +134,7 @@ def _data_checks(res, data):
 def _finalise(theta, status, cost, n_used, nonfinite, p):
     short = n_used < p
     status = jnp.where(short & nonfinite, Status.NONFINITE_INPUT, status).astype(jnp.int32)
-    none = status >= Status.MASKED
+    none = ~has_estimate(status)
     return jnp.where(none[:, None], jnp.nan, theta), status, jnp.where(none, jnp.nan, cost)
 
 

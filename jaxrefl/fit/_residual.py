@@ -176,9 +176,9 @@ def _concrete(a) -> bool:
 
 def _check_unit(name: str, w: Array, weight: Array) -> None:
     """Refuse finite directions off unit length where an observation has weight."""
-    w = np.asarray(w, np.float64)
+    w64 = np.asarray(w, np.float64)
     used = np.any(np.asarray(weight) != 0, axis=-1)  # (*n, K)
-    norm = np.sqrt(np.sum(w * w, axis=-1))
+    norm = np.sqrt(np.sum(w64 * w64, axis=-1))
     off = np.where(used & np.isfinite(norm), np.abs(norm - 1.0), 0.0)
     if off.size and np.max(off) > _UNIT_TOL:
         i = np.unravel_index(int(np.argmax(off)), off.shape)

@@ -3,7 +3,9 @@
 Every solver in :mod:`jaxrefl.fit` returns one integer per problem (pixel), in the spirit of
 optimistix's ``RESULTS``: a batch of a million pixels must finish even when some pixels have
 no data, NaN inputs or an unidentifiable parameter. The codes are ordered by severity; where
-several apply, the most severe (listed first below) wins:
+several apply, the most severe (listed first below) wins. Severity does not follow the
+numbers (AT_BOUND is more severe than ILL_CONDITIONED): compare codes by :func:`severity`,
+never by value; the numbers are stored in EXR maps and report files and do not change.
 
 =================  ====  ==========================================================
 NONFINITE_INPUT     5    non-finite values that could not be masked (a non-finite
@@ -25,8 +27,9 @@ CONVERGED           0    the convergence test passed
 from __future__ import annotations
 
 import enum
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
@@ -43,7 +46,10 @@ __all__ = [
     "classify",
     "describe",
     "equilibrated_condition",
+    "has_estimate",
     "ill_conditioned",
+    "most_severe",
+    "severity",
 ]
 
 
@@ -76,6 +82,43 @@ SEVERITY: tuple[Status, ...] = (
     Status.MAX_ITERATIONS,
     Status.CONVERGED,
 )
+
+# code -> rank: 0 for the least severe (CONVERGED), len(SEVERITY) - 1 for the most severe.
+_RANK = np.zeros(max(Status) + 1, np.int32)
+_RANK[np.array(SEVERITY[::-1])] = np.arange(len(SEVERITY))
+_BY_RANK = np.array(SEVERITY[::-1], np.int32)  # rank -> code
+
+
+def _is_jax(x: object) -> bool:
+    return isinstance(x, jax.Array)
+
+
+def severity(status: ArrayLike) -> Any:
+    """The severity rank of each :class:`Status` code: 0 for ``CONVERGED`` up to 5 for
+    ``NONFINITE_INPUT``, in the order of :data:`SEVERITY` (not the numeric order of the codes).
+
+    A JAX array (or tracer) gives a JAX array; anything else a NumPy array (or scalar).
+    Codes outside the table are clipped to it (below 0 as ``CONVERGED``, above 5 as
+    ``NONFINITE_INPUT``), as a numeric comparison with ``MASKED`` would place them.
+    """
+    if _is_jax(status):
+        return jnp.take(jnp.asarray(_RANK), status, mode="clip")
+    return np.take(_RANK, np.asarray(status, np.int64), mode="clip")
+
+
+def most_severe(a: ArrayLike, b: ArrayLike) -> Any:
+    """Elementwise the more severe of two :class:`Status` codes (by :func:`severity`)."""
+    if _is_jax(a) or _is_jax(b):
+        return jnp.asarray(_BY_RANK)[
+            jnp.maximum(severity(jnp.asarray(a)), severity(jnp.asarray(b)))
+        ]
+    return _BY_RANK[np.maximum(severity(a), severity(b))]
+
+
+def has_estimate(status: ArrayLike) -> Any:
+    """Where a fit gave parameters: the status is less severe than ``MASKED`` (neither
+    ``MASKED`` nor ``NONFINITE_INPUT``). Boolean, JAX or NumPy like :func:`severity`."""
+    return severity(status) < _RANK[Status.MASKED]
 
 
 def describe(status_map: ArrayLike) -> dict[str, int]:

@@ -64,7 +64,7 @@ import numpy as np
 
 from jaxrefl._errors import JaxreflError
 
-__all__ = ["OBS_STATUS", "Capture", "CaptureError", "ObsStatus", "geometry_status"]
+__all__ = ["OBS_STATUS", "Capture", "CaptureError", "ObsStatus", "geometry_status", "obs_severity"]
 
 
 class CaptureError(JaxreflError):
@@ -99,10 +99,27 @@ class ObsStatus(enum.IntEnum):
 OBS_STATUS: dict[int, str] = {int(s): s.name.lower() for s in ObsStatus}
 
 # Codes from least to most severe (module docstring): the most severe one present wins.
-_PRECEDENCE = (0, 2, 1, 8, 7, 6, 5, 4, 3)
+# Severity does not follow the numbers, which are stored and never change.
+_PRECEDENCE = (
+    ObsStatus.OK,
+    ObsStatus.DARK,
+    ObsStatus.SATURATED,
+    ObsStatus.CENSORED_MIXED,
+    ObsStatus.VIEW_BELOW_HORIZON,
+    ObsStatus.LIGHT_BELOW_HORIZON,
+    ObsStatus.MASKED,
+    ObsStatus.NEGATIVE,
+    ObsStatus.NONFINITE,
+)
 _BY_RANK = np.array(_PRECEDENCE, np.uint8)  # rank -> code
 _RANK = np.zeros(256, np.uint8)  # code -> rank
 _RANK[_BY_RANK] = np.arange(len(_PRECEDENCE))
+
+
+def obs_severity(status: np.ndarray) -> np.ndarray:
+    """The precedence rank of each :class:`ObsStatus` code (uint8): 0 for ``ok`` up to 8 for
+    ``nonfinite``, in the order of the module docstring (not the numeric order of the codes)."""
+    return _RANK[np.asarray(status, np.uint8)]
 
 
 def _unit_or_z(d: np.ndarray) -> np.ndarray:
@@ -132,10 +149,15 @@ def geometry_status(
         lz = light_dir[k, 2] if light_pos is None else light_pos[k, 2] - z
         below_l = np.broadcast_to(np.asarray(lz) <= 0.0, z.shape)
         below_v = camera_pos[k, 2] - z <= 0.0
-        for code, below in ((7, below_v), (6, below_l)):
+        for code, below in (
+            (ObsStatus.VIEW_BELOW_HORIZON, below_v),
+            (ObsStatus.LIGHT_BELOW_HORIZON, below_l),
+        ):
             if np.any(below):
                 sk = out[k]
-                sk[below] = np.where(np.isin(sk[below], (3, 4, 5)), sk[below], code)
+                # masked and invalid values (more severe) stay
+                keep = obs_severity(sk[below]) >= _RANK[ObsStatus.MASKED]
+                sk[below] = np.where(keep, sk[below], code)
     return out
 
 
@@ -359,9 +381,13 @@ class Capture:
         st = self.status.reshape(blocks)
         # The most severe code of each block: max of the precedence ranks, mapped back.
         top = _RANK[st].max(axis=(2, 4))
-        censored = (top == _RANK[1]) | (top == _RANK[2])
-        mixed = censored & np.any(st == 1, axis=(2, 4)) & np.any(st == 2, axis=(2, 4))
-        out = np.where(mixed, np.uint8(8), _BY_RANK[top])
+        censored = (top == _RANK[ObsStatus.SATURATED]) | (top == _RANK[ObsStatus.DARK])
+        mixed = (
+            censored
+            & np.any(st == ObsStatus.SATURATED, axis=(2, 4))
+            & np.any(st == ObsStatus.DARK, axis=(2, 4))
+        )
+        out = np.where(mixed, np.uint8(ObsStatus.CENSORED_MIXED), _BY_RANK[top])
         pts = self.points.reshape(h // f, f, w // f, f, 3).mean(axis=(1, 3))
         return replace(self, images=img.astype(np.float32), status=out, points=pts)
 
@@ -379,7 +405,8 @@ class Capture:
                 f"mask of shape {keep.shape} does not fit photos {self.shape}"
             ) from None
         st = self.status.copy()
-        st[drop & ~np.isin(st, (3, 4))] = ObsStatus.MASKED
+        # an invalid value (more severe than masked) keeps its code
+        st[drop & (obs_severity(st) <= _RANK[ObsStatus.MASKED])] = ObsStatus.MASKED
         return replace(self, status=st)
 
     # ------------------------------------------------------------------ geometry

@@ -92,9 +92,9 @@ def read_cornell(path: str | Path) -> MeasuredBRDF:
             rows.append([float(f) for f in fields])
             linenos.append(lineno)
         except ValueError:
-            bad = next(i for i, f in enumerate(fields) if not _parses(f))
+            col = next(i for i, f in enumerate(fields) if not _parses(f))
             raise MeasuredDataError(
-                path, f"non-numeric value {fields[bad].strip()!r} in column {vars_[bad]!r}", lineno
+                path, f"non-numeric value {fields[col].strip()!r} in column {vars_[col]!r}", lineno
             ) from None
 
     if vars_ is None:

@@ -41,7 +41,7 @@ import numpy as np
 
 from jaxrefl._errors import JaxreflError
 
-from ._capture import CaptureError, ObsStatus
+from ._capture import CaptureError, ObsStatus, obs_severity
 
 __all__ = [
     "PNGError",
@@ -405,8 +405,8 @@ class Photos:
             self.images[k], self.status[k] = self._decode(a, response)
             if alpha is not None:  # a transparent pixel is masked whatever its value
                 sk = self.status[k]
-                sk[alpha] = np.where(np.isin(sk[alpha], (3, 4)), sk[alpha], ObsStatus.MASKED)
-        self.bit_depth = first[2]
+                worse = obs_severity(sk[alpha]) > obs_severity(ObsStatus.MASKED)
+                sk[alpha] = np.where(worse, sk[alpha], ObsStatus.MASKED)
 
     def _prepare(self, response, depth, is_float, saturation):
         self.saturation = None if saturation is None else float(saturation)

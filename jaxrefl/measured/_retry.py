@@ -41,7 +41,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxrefl.brdf import BRDF
-from jaxrefl.fit import FitResult, PixelData, Residual, Status, fit_pixels, make_residual
+from jaxrefl.fit import (
+    FitResult,
+    PixelData,
+    Residual,
+    Status,
+    fit_pixels,
+    has_estimate,
+    make_residual,
+)
 
 __all__ = [
     "RetryResult",
@@ -73,7 +81,7 @@ def float64_reasons(result: FitResult) -> list[str]:
     (MASKED) are left out.
     """
     status = np.atleast_1d(np.asarray(result.status))
-    has = status < Status.MASKED
+    has = has_estimate(status)
     out = []
     cost = np.atleast_1d(np.asarray(result.cost))
     if np.any(has & ~np.isfinite(cost)):
@@ -115,7 +123,7 @@ def retry_mask(result: FitResult, data: PixelData | None = None) -> np.ndarray:
     :func:`float64_reasons` would send to float64, and with ``data`` also those whose
     :func:`step_gain` exceeds ``GAIN_RTOL``."""
     status = np.atleast_1d(np.asarray(result.status))
-    has = status < Status.MASKED
+    has = has_estimate(status)
     cost = np.atleast_1d(np.asarray(result.cost))
     theta = np.asarray(result.theta).reshape(status.shape[0], -1)
     bad = has & (~np.isfinite(cost) | ~np.all(np.isfinite(theta), axis=-1))

@@ -37,7 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxrefl.brdf import BRDF, BlinnPhong, CookTorrance
-from jaxrefl.fit import FitResult, PixelData, Status, fit_pixels, pixel_data
+from jaxrefl.fit import FitResult, PixelData, fit_pixels, has_estimate, pixel_data
 
 from ._retry import RetryResult, cost64, fit_pixels_retry, x64
 
@@ -179,7 +179,7 @@ def stiff_problems(
 
 def _score(result: FitResult, c64: np.ndarray, best: np.ndarray) -> tuple[float, float, float]:
     status = np.asarray(result.status)
-    stopped = (np.asarray(result.iterations) < MAX_ITERS) & (status < Status.MASKED)
+    stopped = (np.asarray(result.iterations) < MAX_ITERS) & has_estimate(status)
     finite = np.isfinite(np.asarray(result.cost)) & np.all(
         np.isfinite(np.asarray(result.theta)), axis=-1
     )

@@ -48,6 +48,8 @@ from ._logpost import SharedLight as SharedLight
 from ._logpost import log_posterior as log_posterior
 from ._maps import uncertainty_channels as uncertainty_channels
 from ._maps import write_uncertainty_exr as write_uncertainty_exr
+from ._methods import MCMC_METHODS as MCMC_METHODS
+from ._methods import Method as Method
 from ._priors import HalfCauchy as HalfCauchy
 from ._priors import Jeffreys as Jeffreys
 from ._priors import LogNormal as LogNormal

@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from ._adaptive import METHODS, UncertaintyMap
+from ._methods import MCMC_METHODS
 
 __all__ = ["uncertainty_channels", "write_uncertainty_exr"]
 
@@ -59,7 +60,9 @@ def uncertainty_channels(umap: UncertaintyMap, height: int, width: int) -> dict[
     out["ess_bulk"] = img(umap.ess_bulk).astype(np.float32)
     out["ess_tail"] = img(umap.ess_tail).astype(np.float32)
     out["divergences"] = img(umap.divergences).astype(np.uint32)
-    out["mcmc_pass"] = img(np.where(umap.rerun, 2, np.isin(umap.method, (2, 3)))).astype(np.uint32)
+    sampled = np.isin(umap.method, MCMC_METHODS)
+    rerun = np.zeros(sampled.shape, bool) if umap.rerun is None else umap.rerun
+    out["mcmc_pass"] = img(np.where(rerun, 2, sampled)).astype(np.uint32)
     return out
 
 

@@ -186,7 +186,7 @@ def _fit_batch(
         grey = ("specular",) if "specular" in model.param_names else ()
         space = jf.ParamSpace(model, channels=c, grey=grey)
     start = robust(obs, lights, e, jnp.where(sat, 0.0, w), shadow=shadow)
-    has = start.status < jf.Status.MASKED
+    has = jf.has_estimate(start.status)
     n0 = jnp.where(has[:, None], start.normals, jnp.array([[0.0, 0.0, 1.0]], dt))
     peak_rho = jnp.max(jnp.where(has[:, None], start.albedo, 0.0), axis=-1)
     # Per-pixel scale; a pixel without a start (or black) keeps scale 1.
@@ -225,9 +225,9 @@ def _fit_batch(
         # Keep the lobe only where it explains most of what the Lambertian model cannot.
         keep = info.cost < select * cost_l
         normals = jnp.where(keep[:, None], normals, n0)
-    status = jnp.where(has, info.status, jnp.maximum(start.status, jf.Status.MASKED))
+    status = jnp.where(has, info.status, jf.most_severe(start.status, jf.Status.MASKED))
     status = jnp.where(jnp.all(jnp.isfinite(normals), axis=-1), status, jf.Status.NONFINITE_INPUT)
-    none = status >= jf.Status.MASKED
+    none = ~jf.has_estimate(status)
     rho = params["albedo"] * (s / jnp.pi)[:, None] if "albedo" in params else start.albedo
     ps = PSResult(
         jnp.where(none[:, None], jnp.nan, normals),

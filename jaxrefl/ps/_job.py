@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from jaxrefl._jsonsafe import report_json
-from jaxrefl.fit import Status, describe
+from jaxrefl.fit import Status, describe, has_estimate
 
 from ._brdf import brdf_method
 from ._capture import PSCapture, PSInputError
@@ -137,7 +137,7 @@ def run_ps(
     t = time.perf_counter()
     maps = solve_capture(cap, method)
     timings["solve_s"] = time.perf_counter() - t
-    has = maps["status"] < Status.MASKED
+    has = has_estimate(maps["status"])
     t = time.perf_counter()
     depth = poisson(maps["normals"], has) if has.any() else np.full(cap.shape, np.nan)
     timings["integrate_s"] = time.perf_counter() - t

@@ -31,7 +31,13 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from jaxrefl.fit import Status, cho_solve_unrolled, cholesky_unrolled, equilibrated_condition
+from jaxrefl.fit import (
+    Status,
+    cho_solve_unrolled,
+    cholesky_unrolled,
+    equilibrated_condition,
+    has_estimate,
+)
 
 __all__ = ["PSResult", "woodham"]
 
@@ -95,7 +101,7 @@ def _woodham(obs, lights, intensities, weight):
     finite = finite & good_norm[:, 0] & jnp.all(ok, axis=-1)
     status = jnp.where(finite, status, Status.NONFINITE_INPUT)
     status = jnp.where(jnp.any(per_channel < 3, axis=-1), Status.MASKED, status)
-    none = status >= Status.MASKED
+    none = ~has_estimate(status)
     n = jnp.where(none[:, None], jnp.nan, n)
     rho = jnp.where(none[:, None], jnp.nan, rho)
     return PSResult(n, rho, status.astype(jnp.int32), n_used)

@@ -28,6 +28,7 @@ from __future__ import annotations
 import numpy as np
 
 from jaxrefl.fit import PixelData, pixel_data
+from jaxrefl.io import ObsStatus
 
 __all__ = ["is_colocated", "pixel_block", "resolvable_alpha"]
 
@@ -114,9 +115,9 @@ def pixel_block(
     scale = flat(geo["irradiance"] * geo["cos_i"][..., None])
     wi = flat(geo["wi"])
     wo = flat(geo["wo"])
-    sat = status == 1
-    dark = status == 2
-    weight = ((status == 0) | sat | dark).astype(np.float64)
+    sat = status == ObsStatus.SATURATED
+    dark = status == ObsStatus.DARK
+    weight = ((status == ObsStatus.OK) | sat | dark).astype(np.float64)
     if photos is not None:
         weight = weight * np.asarray(photos, bool)[None, :, None]
     obs = np.where(sat, np.minimum(obs, capture.saturation_level), obs)
