@@ -407,6 +407,7 @@ class Photos:
                 sk = self.status[k]
                 worse = obs_severity(sk[alpha]) > obs_severity(ObsStatus.MASKED)
                 sk[alpha] = np.where(worse, sk[alpha], ObsStatus.MASKED)
+        self.bit_depth = first[2]
 
     def _prepare(self, response, depth, is_float, saturation):
         self.saturation = None if saturation is None else float(saturation)
