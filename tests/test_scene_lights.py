@@ -45,6 +45,26 @@ def test_orthonormal_basis_is_right_handed_everywhere():
     assert np.all(np.isfinite(g))
 
 
+@pytest.mark.parametrize("z", [0.0, -0.0], ids=["+0", "-0"])
+def test_orthonormal_basis_takes_the_sign_of_a_signed_zero(z):
+    """n_z = -0.0 takes s = -1 and +0.0 takes s = +1 (copysign, Duff et al. 2017 listing 3):
+    both frames are right-handed and orthonormal, with finite derivatives. This is the one
+    frame of the package: the posterior's light likelihood uses it too."""
+    nx, ny = 0.6, 0.8
+    n = jnp.array([nx, ny, z])
+    t, b = scene.orthonormal_basis(n)
+    s = float(np.copysign(1.0, z))
+    a = -1.0 / s  # -1/(s + n_z)
+    np.testing.assert_allclose(t, [1 + s * nx * nx * a, s * nx * ny * a, -s * nx], atol=1e-15)
+    np.testing.assert_allclose(b, [nx * ny * a, s + ny * ny * a, -ny], atol=1e-15)
+    m = jnp.stack([t, b, n])
+    np.testing.assert_allclose(m @ m.T, np.eye(3), atol=2e-15)
+    np.testing.assert_allclose(jnp.cross(t, b), n, atol=2e-15)
+    g = jax.jacfwd(lambda v: jnp.concatenate(scene.orthonormal_basis(v)))(n)
+    assert np.all(np.isfinite(g))
+    assert not hasattr(jaxrefl.posterior, "onb") and not hasattr(jaxrefl.posterior, "to_local")
+
+
 def test_local_world_round_trip_and_tangent_projection():
     n = jnp.array([[0.0, 0.6, 0.8], [0.0, 0.0, 1.0]])
     tangent = jnp.array([[1.0, 1.0, 0.0], [0.0, 0.0, 1.0]])  # second: parallel to n

@@ -72,5 +72,3 @@ from ._sphere import SphereDirection as SphereDirection
 from ._sphere import angle_deg as angle_deg
 from ._sphere import direction_summary as direction_summary
 from ._sphere import lit_geometry as lit_geometry
-from ._sphere import onb as onb
-from ._sphere import to_local as to_local

@@ -70,9 +70,10 @@ from jaxrefl.fit import (
     make_residual,
     replace_params,
 )
+from jaxrefl.scene import orthonormal_basis, to_local
 
 from ._priors import Jeffreys, Prior, resolve_priors
-from ._sphere import SphereDirection, to_local
+from ._sphere import SphereDirection
 
 __all__ = ["LogPosterior", "SharedLight", "log_posterior"]
 
@@ -174,8 +175,9 @@ class LogPosterior(eqx.Module):
         dtype = theta.dtype
         n = jnp.asarray(normals, dtype)
         l = self.light.direction(u)
-        wi = to_local(jnp.broadcast_to(l, n.shape), n)
-        wo = to_local(data.wo.astype(dtype), n)
+        t, b = orthonormal_basis(n)
+        wi = to_local(jnp.broadcast_to(l, n.shape), n, t, b)
+        wo = to_local(data.wo.astype(dtype), n, t, b)
         ok = self.residual.usable(data)
         scale = jnp.where(ok, data.scale.astype(dtype), 0.0)
         params = self.space.to_natural(tb[None, :])

@@ -21,11 +21,9 @@ never enters the likelihood, and r is independent of l a posteriori. Every direc
 treated alike: there is no special axis.
 
 R-hat and ESS are computed on the components of l (``light.x``, ``light.y``,
-``light.z``), never on u (whose radius is a nuisance).
-
-:func:`onb` builds a tangent frame about a normal (Duff et al. 2017, *Building an
-Orthonormal Basis, Revisited*, JCGT 6(1)), branchless, to carry world directions into the
-local frame of each surface point.
+``light.z``), never on u (whose radius is a nuisance). World directions are carried into
+the local frame of each surface point with :func:`jaxrefl.scene.orthonormal_basis` and
+:func:`jaxrefl.scene.to_local`.
 """
 
 from __future__ import annotations
@@ -42,8 +40,6 @@ __all__ = [
     "angle_deg",
     "direction_summary",
     "lit_geometry",
-    "onb",
-    "to_local",
 ]
 
 
@@ -70,25 +66,6 @@ class SphereDirection(eqx.Module):
         """u for direction l at radius sqrt(2), the mode of the chi-3 radius."""
         l = jnp.asarray(l)
         return jnp.sqrt(2.0) * l / jnp.linalg.norm(l, axis=-1, keepdims=True)
-
-
-def onb(n: Float[Array, "*b 3"]) -> tuple[Float[Array, "*b 3"], Float[Array, "*b 3"]]:
-    """Tangent and bitangent (t, b) with (t, b, n) right-handed orthonormal (Duff et al.)."""
-    x, y, z = n[..., 0], n[..., 1], n[..., 2]
-    sign = jnp.where(z >= 0, 1.0, -1.0).astype(n.dtype)
-    a = -1.0 / (sign + z)  # |sign + z| >= 1: never a division by zero
-    b = x * y * a
-    t = jnp.stack([1.0 + sign * x * x * a, sign * b, -sign * x], axis=-1)
-    bt = jnp.stack([b, sign + y * y * a, -y], axis=-1)
-    return t, bt
-
-
-def to_local(v: Float[Array, "*b 3"], n: Float[Array, "*b 3"]) -> Float[Array, "*b 3"]:
-    """World direction v in the local frame of normal n (z = n)."""
-    t, b = onb(n)
-    return jnp.stack(
-        [jnp.sum(v * t, axis=-1), jnp.sum(v * b, axis=-1), jnp.sum(v * n, axis=-1)], axis=-1
-    )
 
 
 def angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
