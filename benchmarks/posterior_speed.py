@@ -99,7 +99,7 @@ def part_speed(args, model, space, lp, theta, data):
     t_em, c_em = 0.0, 0.0
     for i in range(args.emcee_pixels):
         d = jax.tree.map(lambda a, i=i: a[i], data)
-        e = jp.sample_emcee(lp, th0[i], (d,), theta_std=tsd[i], n_walkers=32, n_steps=2000)
+        e = jp.sample_emcee(lp, th0[i], (d,), jp.EmceeOptions(32, 2000), theta_std=tsd[i])
         em.append(ess_per_s(e, 1)[0])
         t_em += e.run_s
         c_em = max(c_em, e.compile_s)
@@ -234,9 +234,6 @@ def map_run(args, cap, name):
     model, space = svbrdf.capture_model("ggx", channels=c, alpha_min=cf.extra["alpha_min"])
     lp = jp.log_posterior(model, space, fit.GaussianNoise(None))
     theta = np.asarray(cf.theta, np.float64)
-    ok = np.all(np.isfinite(theta), -1)
-    dn = np.asarray(space.dnatural(jnp.asarray(np.where(ok[:, None], theta, 0.0))))
-    std = np.stack([_std_map(cf, lab).reshape(-1) for lab in space.labels], -1)
     noise0 = np.nan_to_num(cf.maps["noise_std"].reshape(-1), nan=1e-2)
     flag = cf.maps["laplace_flag"].reshape(-1)
     data = svbrdf.pixel_block(cap, 0, n, dtype=np.float64)
@@ -245,7 +242,7 @@ def map_run(args, cap, name):
         lp,
         data,
         theta,
-        std / np.abs(dn),
+        svbrdf.laplace_theta_std(cf, space),
         flag,
         jp.AdaptiveOptions(hmc=jp.MAP_OPTIONS, chunk=args.map_chunk, keep_samples=False),
         noise_scale=np.where(noise0 > 0, noise0, 1e-2),
@@ -304,13 +301,6 @@ def map_run(args, cap, name):
             )
 
 
-def _std_map(cf, label):
-    if "." in label:
-        base, ch = label.rsplit(".", 1)
-        return cf.maps[f"{base}_std.{ch}"]
-    return cf.maps[f"{label}.std"]
-
-
 def part_emcee_sbc(args):
     """SBC of emcee as in tests/test_posterior_sbc.py (1-channel GGX + Lambert, K = 16,
     truth from the truncated prior, 12 walkers x 400 steps, draws thinned to 19), with
@@ -339,7 +329,7 @@ def part_emcee_sbc(args):
     draws = []
     for i in range(n):
         d = jax.tree.map(lambda a, i=i: a[i], data)
-        e = jp.sample_emcee(lp, theta[i], (d,), n_walkers=12, n_steps=400, seed=i)
+        e = jp.sample_emcee(lp, theta[i], (d,), jp.EmceeOptions(12, 400), seed=i)
         draws.append(jp.thin(e.theta, 19)[0])
     wall = time.perf_counter() - t0
     res = jp.sbc_summary(theta, np.stack(draws), labels=lp.labels, bins=10)
@@ -416,8 +406,7 @@ def part_mixing(args) -> None:
     ok = np.all(np.isfinite(theta), -1)
     flag = cf.maps["laplace_flag"].reshape(-1)
     sel = np.flatnonzero(ok & (flag != 0))[: args.mixing_pixels]
-    dn = np.asarray(space.dnatural(jnp.asarray(theta[sel])))
-    tsd = np.stack([_std_map(cf, lab).reshape(-1)[sel] for lab in space.labels], -1) / np.abs(dn)
+    tsd = svbrdf.laplace_theta_std(cf, space)[sel]
     noise0 = np.nan_to_num(cf.maps["noise_std"].reshape(-1)[sel], nan=1e-2)
     s0 = np.where(noise0 > 0, noise0, 1e-2)
     sub = jax.tree.map(lambda v: v[sel], svbrdf.pixel_block(cap, 0, n, dtype=np.float64))

@@ -12,10 +12,12 @@ import jax
 import numpy as np
 import pytest
 
-from jaxrefl import brdf, fit
+from jaxrefl import brdf, fit, svbrdf
+from jaxrefl import measured as jm
 from jaxrefl import posterior as jp
+from jaxrefl._jsonsafe import NULLS_KEY, jsonable
 from jaxrefl.cli import main
-from jaxrefl.io import read_exr
+from jaxrefl.io import load_capture, read_exr
 
 with warnings.catch_warnings():
     warnings.simplefilter("ignore", FutureWarning)
@@ -49,10 +51,9 @@ def test_inference_data_netcdf_round_trip(lambert, tmp_path):
         lp,
         np.asarray(r.theta[1]),
         (d0,),
+        jp.EmceeOptions(n_walkers=8, n_steps=1500),
         natural=lp.natural,
         labels=lp.labels,
-        n_walkers=8,
-        n_steps=1500,
         seed=1,
     )
     one = jax.tree.map(lambda a: a[1:2], data)
@@ -101,7 +102,9 @@ def test_adaptive_method_map_and_exr(lambert, tmp_path):
 
 def test_cli_sample_capture_end_to_end(tmp_path):
     """`jaxrefl demo` (8 x 8) then `jaxrefl sample` on a 4 x 4 crop, Lambert model, MCMC on
-    every pixel: the EXR, the NetCDF and report.json with diagnostics."""
+    every pixel: the EXR, the NetCDF and report.json with diagnostics; then
+    :func:`jaxrefl.svbrdf.uncertainty_maps` with the same settings returns exactly what the
+    command wrote, as a typed result."""
     cap = tmp_path / "cap"
     assert main(["demo", "--out", str(cap), "--size", "8", "--no-fit"]) == 0
     out = tmp_path / "out"
@@ -129,6 +132,32 @@ def test_cli_sample_capture_end_to_end(tmp_path):
     assert post.posterior["albedo_R"].shape[-1] == 16
     assert main(["sample", str(tmp_path / "missing"), "--out", str(out)]) == 1
 
+    # The library call behind it gives the same maps and report as a typed result.
+    hmc = jp.HMCOptions(num_warmup=60, num_samples=60, num_chains=2)
+    options = jp.AdaptiveOptions(mcmc="all", hmc=hmc)
+    job = svbrdf.FitJob(model="lambert", dtype="float64")
+    res = svbrdf.uncertainty_maps(load_capture(cap).crop(2, 6, 2, 6), job, options)
+    assert isinstance(res, svbrdf.CaptureUncertainty) and (res.height, res.width) == (4, 4)
+    assert res.fit.job.tile_pixels == 16  # one tile of the crop's size
+    assert isinstance(res.map, jp.UncertaintyMap) and res.map.labels == res.posterior.labels
+    assert res.theta_std.shape == (16, 3) and np.all(res.theta_std > 0)
+    for name, ch in jp.uncertainty_channels(res.map, 4, 4).items():
+        np.testing.assert_array_equal(im.channels[name], ch, err_msg=name)
+    lib = jsonable(res.report())[0]  # as report.json holds it (NaN: null)
+    assert set(rep) - {NULLS_KEY} == set(lib) | {"input", "kind", "crop", "downsample", "files"}
+    for key in ("model", "height", "width", "noise", "priors", "sampler", "second_pass"):
+        assert rep[key] == lib[key], key
+    assert rep["fit_report"] == lib["fit_report"]
+    mine, cli = lib["uncertainty"], rep["uncertainty"]
+    assert set(mine.pop("timings")) == set(cli.pop("timings"))
+    assert cli == mine
+    assert rep["files"] == ["uncertainty.exr", "posterior.nc"]
+    again = [p.name for p in svbrdf.write_uncertainty(res, tmp_path / "lib")]
+    assert again == rep["files"]
+    back = az.from_netcdf(str(tmp_path / "lib" / "posterior.nc"))
+    np.testing.assert_array_equal(back.posterior["albedo_R"].values, post.posterior["albedo_R"])
+    assert list(back.posterior.attrs["rows"]) == list(post.posterior.attrs["rows"])
+
 
 def test_cli_sample_brdf_file(shared_data, tmp_path):
     """A Cornell BRDF, Lambert model (cheap), emcee: posterior.nc, corner.png, report."""
@@ -143,6 +172,22 @@ def test_cli_sample_brdf_file(shared_data, tmp_path):
     assert (out / "corner.png").stat().st_size > 1000
     post = az.from_netcdf(str(out / "posterior.nc"))
     assert post.posterior.attrs["method"] == "emcee"
+
+    # The library call behind it: the same draws and report, typed.
+    sampler = jp.EmceeOptions(n_walkers=10, n_steps=400)
+    res = jm.sample_posterior(src, "lambert", sampler)
+    assert isinstance(res, jm.BRDFPosterior) and res.sampler_name == "emcee"
+    for j, lab in enumerate(res.samples.labels):
+        drawn = post.posterior[lab.replace(".", "_")].values[..., 0]  # (walkers, draws)
+        np.testing.assert_array_equal(res.samples.natural[0, ..., j], drawn, err_msg=lab)
+    lib = jsonable(res.report())[0]
+    assert list(rep) == ["input", "kind", *lib, "files"]
+    assert rep["files"] == ["posterior.nc", "corner.png"]
+    for key in ("model", "sampler", "samples_used", "fit", "noise", "posterior", "diagnostics"):
+        assert rep[key] == lib[key], key
+    assert res.n_used == int(np.sum(np.asarray(res.data.weight) > 0)) > 0
+    with pytest.raises(TypeError, match="EmceeOptions or HMCOptions"):
+        jm.sample_posterior(src, "lambert", jp.AdaptiveOptions())
 
 
 def test_adaptive_chunks_have_one_shape_and_map_back(lambert, monkeypatch):

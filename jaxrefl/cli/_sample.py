@@ -6,36 +6,38 @@
     jaxrefl sample BRDF_FILE --out OUT_DIR [--brdf-model cook_torrance_ggx]
                    [--sampler emcee|hmc] [--steps N] [--walkers N]
 
-A capture (any layout :func:`jaxrefl.io.load_capture` reads) is first fitted by the capture
-job (:func:`jaxrefl.svbrdf.fit_capture`, float64: the LM optimum and Laplace covariance of
-every pixel), then :func:`jaxrefl.posterior.adaptive_uncertainty` keeps Laplace where it is
-flagged reliable and runs vmapped HMC on the flagged pixels and a random audit sample;
-the pixels whose chains then disagree (max R-hat above ``--rerun-rhat``, 1.1; 0 turns it
-off) run a second, longer pass (:func:`jaxrefl.posterior.longer_options`: twice the
-warm-up, four steps per kept draw).
-``--pixels`` restricts everything to a crop (rows R0:R1, columns C0:C1, after
-``--downsample``). The noise scale is unknown (sampled per pixel, Jeffreys prior).
-Writes OUT_DIR/uncertainty.exr (mean, std, q05, q95 per parameter, method, R-hat, ESS),
+A capture (any layout :func:`jaxrefl.io.load_capture` reads; ``--downsample`` first, then
+the ``--pixels`` crop: rows R0:R1, columns C0:C1) goes through
+:func:`jaxrefl.svbrdf.uncertainty_maps`: the capture job's float64 fit, its Laplace std,
+then :func:`jaxrefl.posterior.adaptive_uncertainty` with the
+:class:`~jaxrefl.posterior.AdaptiveOptions` the flags give (``--mcmc``, ``--audit``,
+``--warmup``/``--samples``/``--chains`` as its :class:`~jaxrefl.posterior.HMCOptions`,
+``--rerun-rhat``: the max R-hat above which a pixel runs the longer second pass, 0 for
+none, ``--seed``). The noise scale is unknown (sampled per pixel, Jeffreys prior).
+Writes OUT_DIR/uncertainty.exr (mean, std, q05, q95 per parameter, method, R-hat, ESS) and
 OUT_DIR/posterior.nc (ArviZ InferenceData of the MCMC pixels, with observed data and
-posterior predictive draws) and OUT_DIR/report.json (counts by method, R-hat/ESS
-distributions, divergences, Laplace/MCMC std ratios on the audit pixels, timings).
+posterior predictive draws) by :func:`jaxrefl.svbrdf.write_uncertainty`, and
+OUT_DIR/report.json (:meth:`jaxrefl.svbrdf.CaptureUncertainty.report` with the input,
+crop and downsampling: counts by method, R-hat/ESS distributions, divergences,
+Laplace/MCMC std ratios on the audit pixels, timings).
 
-A measured BRDF file (Cornell .astm, MERL .binary, CURET; spectra converted to RGB) is
-fitted with :func:`jaxrefl.measured.fit_model` (f_r cos theta_i residuals, 80 degree
-limit) and its posterior sampled with emcee (default) or HMC, the noise scale unknown.
-Writes OUT_DIR/posterior.nc, OUT_DIR/corner.png and OUT_DIR/report.json.
+A measured BRDF file (Cornell .astm, MERL .binary, CURET; spectra converted to RGB) goes
+through :func:`jaxrefl.measured.sample_posterior`: the least-squares fit of
+``--brdf-model`` (f_r cos theta_i residuals, 80 degree limit), then emcee
+(:class:`~jaxrefl.posterior.EmceeOptions` from ``--steps``, ``--walkers``; the default) or
+HMC (``--warmup``/``--samples``/``--chains``), the noise scale unknown. Writes
+OUT_DIR/posterior.nc and OUT_DIR/corner.png (:func:`jaxrefl.measured.write_posterior`) and
+OUT_DIR/report.json (:meth:`jaxrefl.measured.BRDFPosterior.report`).
 """
 
 from __future__ import annotations
 
 import argparse
-import time
 from pathlib import Path
 from typing import Any
 
 from ._main import positive_int
 
-_EMCEE_KEYS = ("tau", "burn", "thin", "tau_reliable", "n_steps", "n_walkers")
 HELP = "posterior sampling: uncertainty maps with diagnostics (capture or BRDF file)"
 
 
@@ -125,14 +127,18 @@ def _options(args):
 
 
 def _run_capture(args, path: Path, opts) -> dict:
-    import jax
-    import numpy as np
-
-    from jaxrefl import fit
     from jaxrefl import posterior as jp
+    from jaxrefl import svbrdf
     from jaxrefl.io import load_capture
-    from jaxrefl.svbrdf import FitJob, capture_model, fit_capture, pixel_block
 
+    job = svbrdf.FitJob(model=args.model, dtype="float64")
+    options = jp.AdaptiveOptions(
+        mcmc=args.mcmc,
+        audit=args.audit,
+        hmc=opts,
+        rerun_rhat=args.rerun_rhat if args.rerun_rhat > 0 else None,
+        seed=args.seed,
+    )
     cap = load_capture(path)
     if args.downsample > 1:
         cap = cap.downsample(args.downsample)
@@ -142,76 +148,24 @@ def _run_capture(args, path: Path, opts) -> dict:
         if r1 > h or c1 > w:
             raise ValueError(f"--pixels {r0}:{r1},{c0}:{c1} exceeds the {h} x {w} capture")
         cap = cap.crop(r0, r1, c0, c1)
-    _k, h, w, c = cap.shape
-    # one tile of the crop's size (a 4096-pixel default tile would fit mostly padding)
-    job = FitJob(model=args.model, dtype="float64", tile_pixels=min(4096, h * w))
-    t0 = time.perf_counter()
-    cf = fit_capture(cap, job, progress=not args.quiet)
-    t_fit = time.perf_counter() - t0
-    model, space = capture_model(args.model, channels=c, alpha_min=cf.extra["alpha_min"])
-    lp = jp.log_posterior(model, space, fit.GaussianNoise(None))
-    data = pixel_block(cap, 0, h * w, dtype=np.float64)
-    theta = np.asarray(cf.theta, np.float64)
-    std = np.stack([_map(cf, lab, "_std").reshape(-1) for lab in space.labels], -1)
-    ok = np.all(np.isfinite(theta), -1)
-    dn = np.asarray(space.dnatural(jax.numpy.asarray(np.where(ok[:, None], theta, 0.0))))
-    theta_std = std / np.abs(dn)  # exact for elementwise bijections (delta method reversed)
-    flag = cf.maps["laplace_flag"].reshape(-1)
-    noise0 = cf.maps["noise_std"].reshape(-1)
-    noise0 = np.where(np.isfinite(noise0) & (noise0 > 0), noise0, 1e-2)
-    t1 = time.perf_counter()
-    aopts = jp.AdaptiveOptions(
-        mcmc=args.mcmc,
-        audit=args.audit,
-        hmc=opts,
-        rerun_rhat=args.rerun_rhat if args.rerun_rhat > 0 else None,
-        seed=args.seed,
-    )
-    umap = jp.adaptive_uncertainty(lp, data, theta, theta_std, flag, aopts, noise_scale=noise0)
-    t_post = time.perf_counter() - t1
-    files = ["uncertainty.exr"]
-    jp.write_uncertainty_exr(
-        args.out / "uncertainty.exr", umap, h, w, metadata={"model": args.model}
-    )
-    if umap.samples is not None:
-        idx = umap.mcmc_pixels
-        sub = jax.tree.map(lambda a: a[idx], data)
-        ppc = jp.posterior_predictive(lp, umap.samples, sub, n_draws=50, seed=args.seed)
-        rows, cols = np.divmod(idx, w)
-        idata = jp.to_inference_data(
-            umap.samples,
-            sub,
-            pixels=idx,
-            predictive=ppc,
-            attrs={"rows": rows.tolist(), "cols": cols.tolist(), "width": w, "height": h},
-        )
-        jp.save_netcdf(idata, args.out / "posterior.nc")
-        files.append("posterior.nc")
+    res = svbrdf.uncertainty_maps(cap, job, options, progress=not args.quiet)
+    files = [p.name for p in svbrdf.write_uncertainty(res, args.out)]
+    rep = res.report()
+    head = {k: rep.pop(k) for k in ("model", "height", "width")}
     report = {
         "input": str(path),
         "kind": "capture",
-        "model": args.model,
-        "height": h,
-        "width": w,
+        **head,
         "crop": list(args.pixels) if args.pixels else None,
         "downsample": args.downsample,
-        "noise": "Gaussian, unknown scale per pixel (Jeffreys prior)",
-        "priors": {b.name: repr(p) for b, p in zip(space.blocks, lp.priors, strict=True)},
-        "sampler": {**vars(opts)},
-        "second_pass": {
-            "rerun_rhat": args.rerun_rhat if args.rerun_rhat > 0 else None,
-            "options": {**vars(jp.longer_options(opts))},
-        },
-        "fit_report": {k: cf.report[k] for k in ("status_counts", "laplace_flag_counts")},
-        "uncertainty": umap.report(),
-        "timings": {"fit_s": t_fit, "posterior_s": t_post},
+        **rep,
         "files": files,
     }
-    m = umap.report()
+    m = rep["uncertainty"]
     print(
-        f"{h} x {w} pixels: {m['method_counts']}; MCMC pixels with R-hat > 1.01: "
-        f"{m['mcmc']['pixels_rhat_above_1.01']}, > 1.1: {m['mcmc']['pixels_rhat_above_1.1']}, "
-        "with divergences: "
+        f"{res.height} x {res.width} pixels: {m['method_counts']}; MCMC pixels with R-hat > "
+        f"1.01: {m['mcmc']['pixels_rhat_above_1.01']}, > 1.1: "
+        f"{m['mcmc']['pixels_rhat_above_1.1']}, with divergences: "
         f"{m['mcmc']['pixels_with_divergences']}"
     )
     sp = m["mcmc"]["second_pass"]
@@ -224,104 +178,25 @@ def _run_capture(args, path: Path, opts) -> dict:
     return report
 
 
-def _map(cf, label: str, suffix: str):
-    """The capture job's map of ``label`` (``albedo.R`` -> ``albedo_std.R``, ``alpha`` ->
-    ``alpha.std``), as :class:`jaxrefl.svbrdf.CaptureFit` names them."""
-    if "." in label:
-        base, ch = label.rsplit(".", 1)
-        return cf.maps[f"{base}{suffix}.{ch}"]
-    return cf.maps[f"{label}.{suffix[1:]}"]
-
-
 def _run_brdf(args, path: Path, opts) -> dict:
-    import jax
-    import jax.numpy as jnp
     import matplotlib
 
     matplotlib.use("Agg")
-    import numpy as np
-
-    from jaxrefl import fit
+    from jaxrefl import measured
     from jaxrefl import posterior as jp
-    from jaxrefl.measured import build_model, fit_model, load_measured, restrict, to_rgb
 
-    m = load_measured(path)
-    if m.wavelengths_nm is not None:
-        m = to_rgb(m)
-    m = restrict(m, 80.0)
-    model = build_model(args.brdf_model)
-    t0 = time.perf_counter()
-    mf = fit_model(model, m, name=args.brdf_model, cosine=True, dtype="float64", timing=False)
-    t_fit = time.perf_counter() - t0
-    res = mf.result
-    space = res.space
-    wi, wo, vals = np.asarray(m.wi), np.asarray(m.wo), np.asarray(m.values)
-    cos = np.maximum(wi[:, 2], 0.0)[:, None] * np.ones_like(vals)
-    good = np.isfinite(vals) & (wi[:, 2:3] > 0) & (wo[:, 2:3] > 0)
-    data = fit.pixel_data(
-        np.where(good, vals * cos, 0.0), wi, wo, scale=cos, weight=good.astype(float)
-    )
-    lp = jp.log_posterior(model, space, fit.GaussianNoise(None))
-    theta = np.asarray(res.theta, np.float64)
-    n_used = float(np.sum(good))
-    s0 = float(np.sqrt(2 * mf.cost / max(n_used - space.size, 1.0)))
-    th0 = np.asarray(lp.init_theta(jnp.asarray(theta), noise_scale=s0))
+    sampler = opts
     if args.sampler == "emcee":
-        s = jp.sample_emcee(
-            lp,
-            th0,
-            (data,),
-            natural=lp.natural,
-            labels=lp.labels,
-            n_walkers=args.walkers,
-            n_steps=args.steps,
-            progress=not args.quiet,
-            seed=args.seed,
-        )
-    else:
-        batch = jax.tree.map(lambda a: a[None], data)
-        s = jp.sample_pixels(lp, batch, th0[None], options=opts, seed=args.seed)
-    dg = jp.diagnostics(s)
-    idata = jp.to_inference_data(s, jax.tree.map(lambda a: a[None], data))
-    jp.save_netcdf(idata, args.out / "posterior.nc")
-    fig = jp.plot_corner(s, 0)
-    fig.savefig(args.out / "corner.png", dpi=80)
-    x = s.flat(0)
-    summary = {
-        lab: {
-            "mean": float(np.mean(x[:, j])),
-            "std": float(np.std(x[:, j], ddof=1)),
-            "q05": float(np.quantile(x[:, j], 0.05)),
-            "q95": float(np.quantile(x[:, j], 0.95)),
-            "rhat": float(dg["rhat"][0, j]),
-            "ess_bulk": float(dg["ess_bulk"][0, j]),
-            "ess_tail": float(dg["ess_tail"][0, j]),
-        }
-        for j, lab in enumerate(s.labels)
-    }
+        sampler = jp.EmceeOptions(n_walkers=args.walkers, n_steps=args.steps)
+    res = measured.sample_posterior(
+        path, args.brdf_model, sampler, seed=args.seed, progress=not args.quiet
+    )
+    files = [p.name for p in measured.write_posterior(res, args.out)]
+    rep = res.report()
     print(f"{path.name} ({args.brdf_model}, {args.sampler}):")
-    for lab, v in summary.items():
+    for lab, v in rep["posterior"].items():
         print(
             f"  {lab:12s} {v['mean']:.4g} +- {v['std']:.2g}  "
             f"R-hat {v['rhat']:.3f}  ESS {v['ess_bulk']:.0f}"
         )
-    return {
-        "input": str(path),
-        "kind": "brdf",
-        "model": args.brdf_model,
-        "sampler": args.sampler,
-        "samples_used": int(n_used),
-        "fit": {"params": mf.to_dict()["params"], "cost": mf.cost, "status": mf.status},
-        "noise": "Gaussian on f_r cos(theta_i), unknown scale (Jeffreys prior)",
-        "posterior": summary,
-        "diagnostics": {
-            "max_rhat": float(np.max(dg["rhat"])),
-            "min_ess_bulk": float(np.min(dg["ess_bulk"])),
-            "min_ess_tail": float(np.min(dg["ess_tail"])),
-            "divergences": int(dg["divergences"][0]),
-            "acceptance": float(dg["acceptance"][0]),
-            **({k: s.extra[k] for k in _EMCEE_KEYS} if args.sampler == "emcee" else {}),
-        },
-        "timings": {"fit_s": t_fit, "compile_s": s.compile_s, "sample_s": s.run_s},
-        "files": ["posterior.nc", "corner.png"],
-    }
+    return {"input": str(path), "kind": "brdf", **rep, "files": files}

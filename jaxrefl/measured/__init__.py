@@ -11,6 +11,9 @@ Quick use::
     print(report.table())
     report.to_dict()                                # what `jaxrefl fit-brdf` writes
 
+    post = jm.sample_posterior(m, "cook_torrance_ggx")   # emcee; HMC: jp.HMCOptions()
+    post.summary(), jm.write_posterior(post, "out")      # posterior.nc, corner.png
+
 Parts: :mod:`._metrics` (cosine-weighted L2 of Ngan et al. 2005, log-space and relative
 L2), :mod:`._models` (the named model set), :mod:`._data` (reading, RGB conversion, angle
 limit), :mod:`._fit` (fit one model / all of them), :mod:`._retry` (float32 -> float64),
@@ -18,7 +21,8 @@ limit), :mod:`._fit` (fit one model / all of them), :mod:`._retry` (float32 -> f
 stability benchmark), :mod:`._components` (models assembled from switched-on components),
 :mod:`._compact` (leave out the pixels a scene does not need), :mod:`._prune` (drop
 components by BIC or Laplace evidence, per material or cluster), :mod:`._plan` (capture
-planning by expected Fisher information).
+planning by expected Fisher information), :mod:`._posterior` (a model's posterior given a
+material: emcee or HMC after the least-squares fit).
 """
 
 from ._compact import REASONS as REASONS
@@ -59,6 +63,9 @@ from ._plan import rank_candidates as rank_candidates
 from ._plots import in_plane_samples as in_plane_samples
 from ._plots import incidence_angles as incidence_angles
 from ._plots import plot_fit_lobes as plot_fit_lobes
+from ._posterior import BRDFPosterior as BRDFPosterior
+from ._posterior import sample_posterior as sample_posterior
+from ._posterior import write_posterior as write_posterior
 from ._prune import CRITERIA as CRITERIA
 from ._prune import GroupPruning as GroupPruning
 from ._prune import PruneReport as PruneReport

@@ -198,16 +198,9 @@ class UncertaintyMap:
     mcmc_pixels: np.ndarray
     samples: Samples | None
     laplace_std: np.ndarray
+    rerun: np.ndarray
+    rhat_first: np.ndarray
     timings: dict[str, float] = field(default_factory=dict)
-    rerun: np.ndarray | None = None
-    rhat_first: np.ndarray | None = None
-
-    def __post_init__(self):
-        n = self.method.size
-        if self.rerun is None:
-            self.rerun = np.zeros(n, bool)
-        if self.rhat_first is None:
-            self.rhat_first = np.full(n, np.nan)
 
     @property
     def audit_std_ratio(self) -> np.ndarray:
@@ -349,7 +342,7 @@ def adaptive_uncertainty(
                 # NaN R-hat (a chain that never moved) counts as disagreeing
                 stuck = ~(rhat[real] <= rerun_rhat) & ~cut.extra["no_estimate"]
                 for j in np.flatnonzero(stuck):
-                    restart[int(real[j])] = _restarts(cut, j, second.num_chains, rng)
+                    restart[int(real[j])] = _restarts(cut, int(j), second.num_chains, rng)
             if o.keep_samples:
                 parts.append(cut)
         timings["mcmc_s"] = float(np.sum(run_s))

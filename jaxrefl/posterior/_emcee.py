@@ -17,19 +17,46 @@ so R-hat over walkers is a (conservative) mixing check, not Gelman–Rubin's.
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 
 import emcee
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array
+from jaxtyping import ArrayLike, Float
 
 from jaxrefl.fit import PixelData
 
 from ._batched import Samples
 
-__all__ = ["sample_emcee"]
+__all__ = ["EmceeOptions", "sample_emcee"]
+
+
+@dataclass(frozen=True)
+class EmceeOptions:
+    """Settings of :func:`sample_emcee` (module docstring), immutable.
+
+    n_walkers:   walkers of the ensemble; None: max(32, 2 D + 2) for D parameters
+    n_steps:     steps of every walker (>= 1); at least 50 tau for a reliable tau
+    scale:       the start ball's radius in units of the theta-space std (> 0)
+    burn_factor: the burn-in, in units of the largest tau (>= 0; at most half the run)
+    """
+
+    n_walkers: int | None = None
+    n_steps: int = 2000
+    scale: float = 0.5
+    burn_factor: float = 2.0
+
+    def __post_init__(self) -> None:
+        if self.n_walkers is not None and self.n_walkers < 2:
+            raise ValueError(f"n_walkers must be >= 2, got {self.n_walkers}")
+        if self.n_steps < 1:
+            raise ValueError(f"n_steps must be >= 1, got {self.n_steps}")
+        if not self.scale > 0:
+            raise ValueError(f"scale must be positive, got {self.scale}")
+        if not self.burn_factor >= 0:
+            raise ValueError(f"burn_factor must be >= 0, got {self.burn_factor}")
 
 
 @eqx.filter_jit
@@ -39,16 +66,13 @@ def _log_prob_walkers(logdensity, x, args):
 
 def sample_emcee(
     logdensity,
-    theta0: Array,
+    theta0: Float[ArrayLike, " D"],
     args: tuple = (),
+    options: EmceeOptions | None = None,
     *,
     natural=None,
     labels: tuple[str, ...] = (),
-    theta_std: Array | None = None,
-    n_walkers: int | None = None,
-    n_steps: int = 2000,
-    scale: float = 0.5,
-    burn_factor: float = 2.0,
+    theta_std: Float[ArrayLike, " D"] | None = None,
     progress: bool = False,
     seed: int = 0,
 ) -> Samples:
@@ -57,8 +81,9 @@ def sample_emcee(
     so repeated calls with new ``args`` (data) of the same shapes do not recompile).
 
     theta0:  (D,) start (e.g. :meth:`LogPosterior.init_theta` of the LM optimum)
+    options: :class:`EmceeOptions` (None: its defaults)
     natural: maps theta draws (..., D) to natural values (e.g. ``LogPosterior.natural``)
-    n_walkers: default max(32, 2 D + 2)
+    theta_std: (D,) the start ball's shape (e.g. the Laplace std; None: 1e-2 everywhere)
     Returns :class:`Samples` with N = 1, walkers as chains (after burn-in and thinning);
     ``extra`` holds ``tau``, ``burn``, ``thin``, ``tau_reliable`` and ``acceptance``.
     """
@@ -66,7 +91,9 @@ def sample_emcee(
         logdensity = logdensity.for_data(args[0])  # drops the unused censored branch
     x0 = np.asarray(theta0, dtype=np.float64)
     d = x0.size
-    n_walkers = max(32, 2 * d + 2) if n_walkers is None else int(n_walkers)
+    o = EmceeOptions() if options is None else options
+    n_walkers = max(32, 2 * d + 2) if o.n_walkers is None else int(o.n_walkers)
+    n_steps, burn_factor = o.n_steps, o.burn_factor
     dtype = jnp.asarray(0.0).dtype
 
     def log_prob(x: np.ndarray) -> np.ndarray:
@@ -76,7 +103,7 @@ def sample_emcee(
     rng = np.random.default_rng(seed)
     sd = np.full(d, 1e-2) if theta_std is None else np.asarray(theta_std, dtype=np.float64)
     sd = np.where(np.isfinite(sd) & (sd > 0), np.minimum(sd, 1.0), 1e-2)
-    p0 = x0 + scale * sd * rng.normal(size=(n_walkers, d))
+    p0 = x0 + o.scale * sd * rng.normal(size=(n_walkers, d))
     t0 = time.perf_counter()
     log_prob(p0)  # compile
     compile_s = time.perf_counter() - t0

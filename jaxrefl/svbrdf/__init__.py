@@ -2,19 +2,27 @@
 
 Quick use::
 
+    import jax
     from jaxrefl.io import load_capture
-    from jaxrefl import svbrdf
+    from jaxrefl import posterior, svbrdf
 
     cap = load_capture("bath_tile")                          # any of the three layouts
     result = svbrdf.fit_capture(cap, svbrdf.FitJob(model="ggx", holdout=(0,)), "out")
     svbrdf.write_outputs(result, cap, "out")                # maps.exr, report.json, PNGs
     result.report["heldout_rmse"], result.maps["roughness"]
 
+    jax.config.update("jax_enable_x64", True)               # posteriors are float64
+    opts = posterior.AdaptiveOptions(hmc=posterior.MAP_OPTIONS)
+    u = svbrdf.uncertainty_maps(cap, svbrdf.FitJob(dtype="float64"), opts)
+    svbrdf.write_uncertainty(u, "post")                     # uncertainty.exr, posterior.nc
+    u.map.std, u.report()["uncertainty"]["method_counts"]
+
 Parts: :mod:`._models` (named capture models), :mod:`._data` (capture pixels as least-squares
 data: weights, censoring, geometry), :mod:`._pooled` (one lobe shape per capture, chosen by
 held-out photos), :mod:`._job` (tiled fit with Laplace uncertainty and resume),
 :mod:`._holdout` (leave-one-photo-out against a baseline), :mod:`._outputs` (EXR maps,
-report, previews).
+report, previews), :mod:`._uncertainty` (the fit's Laplace std, then MCMC where Laplace is
+flagged: posterior uncertainty maps).
 """
 
 from ._data import is_colocated as is_colocated
@@ -26,6 +34,7 @@ from ._job import DEFAULT_LOSS as DEFAULT_LOSS
 from ._job import CaptureFit as CaptureFit
 from ._job import FitJob as FitJob
 from ._job import fit_capture as fit_capture
+from ._job import map_name as map_name
 from ._job import status_meanings as status_meanings
 from ._models import CAPTURE_MODELS as CAPTURE_MODELS
 from ._models import capture_model as capture_model
@@ -35,3 +44,7 @@ from ._outputs import write_outputs as write_outputs
 from ._outputs import write_previews as write_previews
 from ._pooled import PoolChoice as PoolChoice
 from ._pooled import choose_pooled as choose_pooled
+from ._uncertainty import CaptureUncertainty as CaptureUncertainty
+from ._uncertainty import laplace_theta_std as laplace_theta_std
+from ._uncertainty import uncertainty_maps as uncertainty_maps
+from ._uncertainty import write_uncertainty as write_uncertainty

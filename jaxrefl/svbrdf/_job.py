@@ -41,7 +41,7 @@ from ._data import pixel_block, resolvable_alpha
 from ._models import ALPHA_RANGE, TWO_STAGE, capture_model
 from ._pooled import PoolChoice, choose_pooled
 
-__all__ = ["DEFAULT_LOSS", "CaptureFit", "FitJob", "fit_capture"]
+__all__ = ["DEFAULT_LOSS", "CaptureFit", "FitJob", "fit_capture", "map_name"]
 
 _NOISE = {"gaussian": fit.GaussianNoise, "shot": fit.ShotNoise}
 # Models whose default loss is not L2. Huber's threshold is one noise std (the pooled model
@@ -545,8 +545,10 @@ def fit_capture(
     )
 
 
-def _map_name(label: str, suffix: str = "") -> str:
-    """``albedo.R`` -> ``albedo{suffix}.R``; ``alpha`` -> ``alpha.std`` for suffix ``_std``."""
+def map_name(label: str, suffix: str = "") -> str:
+    """The name of parameter ``label``'s map in :attr:`CaptureFit.maps`: its value
+    (suffix ``""``: ``albedo.R``, ``alpha``) or its std (suffix ``"_std"``: ``albedo_std.R``,
+    ``alpha.std``); a channel stays the EXR layer's last component."""
     if "." in label:
         base, ch = label.rsplit(".", 1)
         return f"{base}{suffix}.{ch}"
@@ -562,8 +564,8 @@ def _maps(fitter: _TileFitter, cat, h: int, w: int) -> dict[str, np.ndarray]:
     maps: dict[str, np.ndarray] = {}
     labels = space.labels
     for j, lab in enumerate(labels):
-        maps[_map_name(lab)] = nat[:, j]
-        maps[_map_name(lab, "_std")] = cat["std"][:, j]
+        maps[map_name(lab)] = nat[:, j]
+        maps[map_name(lab, "_std")] = cat["std"][:, j]
     if "alpha" in labels:
         j = labels.index("alpha")
         root = np.sqrt(np.maximum(nat[:, j], 0.0))

@@ -1,0 +1,205 @@
+"""The posterior of an analytic model's parameters given one measured material.
+
+:func:`sample_posterior` fits the model by least squares (:func:`fit_model`, float64, on
+the residuals (f̂ - f) cos(theta_i) of the samples within the angle limit), then samples
+p(theta, s | f) for the same residuals with Gaussian noise of unknown scale s (Jeffreys
+prior) and the default priors (:func:`jaxrefl.posterior.default_priors`): the material is
+one "pixel" of K samples in C channels (:func:`measured_pixel_data`). The sampler is
+chosen by the type of its settings: :class:`jaxrefl.posterior.EmceeOptions` runs emcee
+(the default; walkers start about the LM optimum), :class:`jaxrefl.posterior.HMCOptions`
+the batched HMC sampler on this one pixel. Both start from the optimum with the noise
+scale at the residual std sqrt(2 cost / (n - P)).
+
+:func:`write_posterior` writes ``posterior.nc`` (ArviZ InferenceData with the observed
+data) and ``corner.png``; :meth:`BRDFPosterior.report` is the JSON-ready summary.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxrefl import fit
+from jaxrefl import posterior as jp
+from jaxrefl.fit import PixelData
+from jaxrefl.io import MeasuredBRDF
+
+from ._data import load_measured, restrict, to_rgb
+from ._fit import ModelFit, fit_model
+from ._models import build_model
+from ._prune import measured_pixel_data
+
+__all__ = ["BRDFPosterior", "sample_posterior", "write_posterior"]
+
+NOISE = "Gaussian on f_r cos(theta_i), unknown scale (Jeffreys prior)"
+_EMCEE_KEYS = ("tau", "burn", "thin", "tau_reliable", "n_steps", "n_walkers")
+
+
+@dataclass
+class BRDFPosterior:
+    """Result of :func:`sample_posterior`.
+
+    model:     the model's name (:func:`build_model`)
+    fit:       the least-squares fit (:class:`ModelFit`, float64)
+    samples:   the posterior draws (:class:`jaxrefl.posterior.Samples`, one pixel)
+    posterior: the log-posterior sampled (:class:`jaxrefl.posterior.LogPosterior`)
+    data:      the material's samples as one pixel (K, C), f_r cos(theta_i)
+    n_used:    observations (sample x channel) with weight > 0
+    sampler:   the sampler's settings; its type says which sampler ran
+    timings:   ``fit_s``, seconds in :func:`fit_model`
+    """
+
+    model: str
+    fit: ModelFit
+    samples: jp.Samples
+    posterior: jp.LogPosterior
+    data: PixelData
+    n_used: int
+    sampler: jp.EmceeOptions | jp.HMCOptions
+    timings: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def sampler_name(self) -> str:
+        """``"emcee"`` or ``"hmc"``."""
+        return "emcee" if isinstance(self.sampler, jp.EmceeOptions) else "hmc"
+
+    def diagnostics(self) -> dict[str, Any]:
+        """:func:`jaxrefl.posterior.diagnostics` of the draws."""
+        return jp.diagnostics(self.samples)
+
+    def summary(self) -> dict[str, dict[str, float]]:
+        """Per parameter (natural units): mean, std, 5% / 95% quantiles of the draws, split
+        R-hat, bulk and tail ESS."""
+        dg = self.diagnostics()
+        x = self.samples.flat(0)
+        return {
+            lab: {
+                "mean": float(np.mean(x[:, j])),
+                "std": float(np.std(x[:, j], ddof=1)),
+                "q05": float(np.quantile(x[:, j], 0.05)),
+                "q95": float(np.quantile(x[:, j], 0.95)),
+                "rhat": float(dg["rhat"][0, j]),
+                "ess_bulk": float(dg["ess_bulk"][0, j]),
+                "ess_tail": float(dg["ess_tail"][0, j]),
+            }
+            for j, lab in enumerate(self.samples.labels)
+        }
+
+    def inference_data(self):
+        """ArviZ InferenceData of the draws with the observed data."""
+        return jp.to_inference_data(self.samples, jax.tree.map(lambda a: a[None], self.data))
+
+    def report(self) -> dict[str, Any]:
+        """JSON-ready summary: model, sampler, the fit, noise model, :meth:`summary`,
+        diagnostics (worst R-hat and ESS, divergences, acceptance; emcee's tau, burn-in and
+        thinning) and timings."""
+        s, dg, mf = self.samples, self.diagnostics(), self.fit
+        emcee = {k: s.extra[k] for k in _EMCEE_KEYS} if self.sampler_name == "emcee" else {}
+        return {
+            "model": self.model,
+            "sampler": self.sampler_name,
+            "samples_used": self.n_used,
+            "fit": {"params": mf.to_dict()["params"], "cost": mf.cost, "status": mf.status},
+            "noise": NOISE,
+            "posterior": self.summary(),
+            "diagnostics": {
+                "max_rhat": float(np.max(dg["rhat"])),
+                "min_ess_bulk": float(np.min(dg["ess_bulk"])),
+                "min_ess_tail": float(np.min(dg["ess_tail"])),
+                "divergences": int(dg["divergences"][0]),
+                "acceptance": float(dg["acceptance"][0]),
+                **emcee,
+            },
+            "timings": {**self.timings, "compile_s": s.compile_s, "sample_s": s.run_s},
+        }
+
+
+def sample_posterior(
+    measured: MeasuredBRDF | str | Path,
+    model: str,
+    sampler: jp.EmceeOptions | jp.HMCOptions | None = None,
+    *,
+    max_theta_deg: float | None = 80.0,
+    seed: int = 0,
+    progress: bool = False,
+) -> BRDFPosterior:
+    """The posterior of ``model`` (a :func:`build_model` name) given ``measured`` (module
+    docstring); spectral data are converted to RGB (:func:`to_rgb`) first.
+
+    measured:      a :class:`jaxrefl.io.MeasuredBRDF`, or a file :func:`load_measured` reads
+    sampler:       :class:`jaxrefl.posterior.EmceeOptions` (None: its defaults) or
+                   :class:`jaxrefl.posterior.HMCOptions`
+    max_theta_deg: samples with either direction further from the normal are left out
+    seed, progress: the sampler's seed and progress bar (emcee only)
+    """
+    m = measured if isinstance(measured, MeasuredBRDF) else load_measured(measured)
+    if m.wavelengths_nm is not None:
+        m = to_rgb(m)
+    m = restrict(m, max_theta_deg)
+    sampler = jp.EmceeOptions() if sampler is None else sampler
+    brdf = build_model(model)
+    t0 = time.perf_counter()
+    mf = fit_model(
+        brdf,
+        m,
+        name=model,
+        cosine=True,
+        dtype="float64",
+        max_theta_deg=max_theta_deg,
+        timing=False,
+    )
+    t_fit = time.perf_counter() - t0
+    space = mf.result.space
+    data = jax.tree.map(lambda a: a[0], measured_pixel_data(m, cosine=True))
+    lp = jp.log_posterior(brdf, space, fit.GaussianNoise(None))
+    theta = np.asarray(mf.result.theta, np.float64)
+    n_used = float(np.sum(np.asarray(data.weight) > 0))
+    s0 = float(np.sqrt(2 * mf.cost / max(n_used - space.size, 1.0)))
+    th0 = lp.init_theta(jnp.asarray(theta), noise_scale=s0)
+    if isinstance(sampler, jp.EmceeOptions):
+        s = jp.sample_emcee(
+            lp,
+            th0,
+            (data,),
+            sampler,
+            natural=lp.natural,
+            labels=lp.labels,
+            progress=progress,
+            seed=seed,
+        )
+    elif isinstance(sampler, jp.HMCOptions):
+        batch = jax.tree.map(lambda a: a[None], data)
+        s = jp.sample_pixels(lp, batch, th0[None], options=sampler, seed=seed)
+    else:
+        raise TypeError(f"sampler must be EmceeOptions or HMCOptions, not {type(sampler).__name__}")
+    return BRDFPosterior(
+        model=model,
+        fit=mf,
+        samples=s,
+        posterior=lp,
+        data=data,
+        n_used=int(n_used),
+        sampler=sampler,
+        timings={"fit_s": t_fit},
+    )
+
+
+def write_posterior(result: BRDFPosterior, out_dir: str | Path) -> list[Path]:
+    """Write ``posterior.nc`` and ``corner.png`` (:func:`jaxrefl.posterior.plot_corner`)
+    into ``out_dir`` (created if missing); returns the paths written."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    nc = Path(jp.save_netcdf(result.inference_data(), out / "posterior.nc"))
+    fig = jp.plot_corner(result.samples, 0)
+    png = out / "corner.png"
+    fig.savefig(png, dpi=80)
+    import matplotlib.pyplot as plt
+
+    plt.close(fig)
+    return [nc, png]

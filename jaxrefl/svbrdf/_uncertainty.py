@@ -1,0 +1,213 @@
+"""Uncertainty maps of a capture: the capture job's fit, its Laplace covariance, and MCMC
+where Laplace is not to be trusted.
+
+:func:`uncertainty_maps` runs three stages on a :class:`jaxrefl.io.Capture`:
+
+1. :func:`fit_capture` with the job, in float64: per pixel the LM optimum theta*, the
+   Laplace std of every parameter in natural units (the job's ``*_std`` maps, named by
+   :func:`map_name`), the Laplace flags and the residual noise std.
+2. The Laplace std in the unconstrained space. The bijections x = g(theta) act entry by
+   entry, so the delta method std_x = |g'(theta*)| std_theta reverses exactly:
+   std_theta = std_x / |g'(theta*)|.
+3. :func:`jaxrefl.posterior.adaptive_uncertainty` with the given
+   :class:`~jaxrefl.posterior.AdaptiveOptions`: Laplace summaries where the flags call the
+   Gaussian reliable, HMC on the flagged pixels and an audit sample. The posterior is the
+   fitted model's with Gaussian noise of unknown scale per pixel (Jeffreys prior) and the
+   default priors (:func:`jaxrefl.posterior.default_priors`); the chains start from theta*
+   and the residual noise std (1e-2 where that is not a positive number).
+
+:func:`write_uncertainty` writes ``uncertainty.exr`` (mean, std, q05, q95 per parameter,
+method, R-hat, ESS; :func:`jaxrefl.posterior.write_uncertainty_exr`) and, where pixels were
+sampled, ``posterior.nc`` (ArviZ InferenceData of the MCMC pixels with their observations
+and posterior predictive draws). :meth:`CaptureUncertainty.report` is the JSON-ready
+summary (counts by method, R-hat/ESS distributions, audit std ratios, timings).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxrefl import fit
+from jaxrefl import posterior as jp
+from jaxrefl.fit import PixelData
+
+from ._data import pixel_block
+from ._job import CaptureFit, FitJob, fit_capture, map_name
+
+__all__ = ["CaptureUncertainty", "laplace_theta_std", "uncertainty_maps", "write_uncertainty"]
+
+NOISE = "Gaussian, unknown scale per pixel (Jeffreys prior)"
+_NOISE_START = 1e-2  # the chains' starting noise scale where the fit gave none
+_PPC_DRAWS = 50  # posterior predictive draws per MCMC pixel in posterior.nc
+
+
+@dataclass
+class CaptureUncertainty:
+    """Result of :func:`uncertainty_maps` (N = height x width pixels, row-major).
+
+    fit:       the capture job's result (:class:`CaptureFit`, float64)
+    map:       the per-pixel posterior summaries (:class:`jaxrefl.posterior.UncertaintyMap`)
+    posterior: the log-posterior that was sampled (:class:`jaxrefl.posterior.LogPosterior`)
+    data:      (N, K, C) the pixels' observations, float64
+    theta_std: (N, P) the Laplace std in the unconstrained space (NaN: no estimate)
+    options:   the settings the map was made with
+    timings:   seconds in :func:`fit_capture` (``fit_s``) and in
+               :func:`jaxrefl.posterior.adaptive_uncertainty` (``posterior_s``)
+    """
+
+    fit: CaptureFit
+    map: jp.UncertaintyMap
+    posterior: jp.LogPosterior
+    data: PixelData
+    theta_std: np.ndarray
+    height: int
+    width: int
+    options: jp.AdaptiveOptions
+    timings: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def model(self) -> str:
+        """The capture model's name (:data:`jaxrefl.svbrdf.CAPTURE_MODELS`)."""
+        return self.fit.job.model
+
+    def inference_data(self, n_draws: int = _PPC_DRAWS):
+        """ArviZ InferenceData of the MCMC pixels (None when none was sampled or the draws
+        were not kept): posterior, sample stats, observed data and ``n_draws`` posterior
+        predictive draws per pixel; attrs ``rows``, ``cols`` (each pixel's place in the
+        map, in the order of :attr:`UncertaintyMap.mcmc_pixels`), ``width``, ``height``."""
+        u = self.map
+        if u.samples is None:
+            return None
+        idx = u.mcmc_pixels
+        sub = jax.tree.map(lambda a: a[idx], self.data)
+        ppc = jp.posterior_predictive(
+            self.posterior, u.samples, sub, n_draws=n_draws, seed=self.options.seed
+        )
+        rows, cols = np.divmod(idx, self.width)
+        attrs = {"rows": rows.tolist(), "cols": cols.tolist(), "width": self.width}
+        return jp.to_inference_data(
+            u.samples, sub, pixels=idx, predictive=ppc, attrs={**attrs, "height": self.height}
+        )
+
+    def report(self) -> dict[str, Any]:
+        """JSON-ready summary: model and size, noise and priors, the sampler settings of
+        both passes, the fit's status and flag counts, :meth:`UncertaintyMap.report`,
+        timings."""
+        o = self.options
+        lp = self.posterior
+        # the second pass's settings, also where rerun_rhat turns it off
+        second = jp.longer_options(o.hmc) if o.rerun_hmc is None else o.rerun_hmc
+        return {
+            "model": self.model,
+            "height": self.height,
+            "width": self.width,
+            "noise": NOISE,
+            "priors": {b.name: repr(p) for b, p in zip(lp.space.blocks, lp.priors, strict=True)},
+            "sampler": {**vars(o.hmc)},
+            "second_pass": {"rerun_rhat": o.rerun_rhat, "options": {**vars(second)}},
+            "fit_report": {k: self.fit.report[k] for k in ("status_counts", "laplace_flag_counts")},
+            "uncertainty": self.map.report(),
+            "timings": dict(self.timings),
+        }
+
+
+def laplace_theta_std(cf: CaptureFit, space: fit.ParamSpace) -> np.ndarray:
+    """(N, P) the Laplace std in ``space``'s unconstrained coordinates from the job's std
+    maps: std_x / |g'(theta*)| per entry (module docstring); NaN where the fit has none."""
+    theta = np.asarray(cf.theta, np.float64)
+    std = np.stack([cf.maps[map_name(lab, "_std")].reshape(-1) for lab in space.labels], -1)
+    ok = np.all(np.isfinite(theta), -1)
+    dn = np.asarray(space.dnatural(jnp.asarray(np.where(ok[:, None], theta, 0.0))))
+    return std / np.abs(dn)
+
+
+def uncertainty_maps(
+    capture,
+    job: FitJob | None = None,
+    options: jp.AdaptiveOptions | None = None,
+    *,
+    progress: bool = False,
+) -> CaptureUncertainty:
+    """Posterior uncertainty of every pixel of ``capture`` (module docstring).
+
+    capture:  a :class:`jaxrefl.io.Capture`, or a folder :func:`jaxrefl.io.load_capture`
+              reads
+    job:      the fit (:class:`FitJob`; None: the default model); it must be float64
+              (``FitJob(dtype="float64")``, the default here), and ``jax_enable_x64`` on:
+              log densities of thousands of observations differ by less than float32's
+              resolution between nearby draws. Its ``tile_pixels`` is capped at the pixel
+              count (one tile, no padding, for a small capture or crop)
+    options:  :class:`jaxrefl.posterior.AdaptiveOptions` (None: its defaults)
+    progress: tqdm bars over the fit's tiles and the MCMC chunks
+    """
+    if jnp.asarray(0.0).dtype != jnp.float64:  # jax_enable_x64 is off
+        raise ValueError(
+            "uncertainty_maps computes posteriors in float64: enable it first with "
+            'jax.config.update("jax_enable_x64", True)'
+        )
+    job = FitJob(dtype="float64") if job is None else job
+    if np.dtype(job.dtype) != np.float64:
+        raise ValueError(f"uncertainty_maps needs FitJob(dtype='float64'), not {job.dtype!r}")
+    options = jp.AdaptiveOptions() if options is None else options
+    if isinstance(capture, (str, Path)):
+        from jaxrefl.io import load_capture
+
+        capture = load_capture(capture)
+    _k, h, w, _c = capture.shape
+    job = replace(job, tile_pixels=min(job.tile_pixels, h * w))
+    t0 = time.perf_counter()
+    cf = fit_capture(capture, job, progress=progress)
+    t_fit = time.perf_counter() - t0
+    model, space = cf.model()
+    lp = jp.log_posterior(model, space, fit.GaussianNoise(None))
+    data = pixel_block(capture, 0, h * w, dtype=np.float64)
+    theta_std = laplace_theta_std(cf, space)
+    noise0 = cf.maps["noise_std"].reshape(-1)
+    noise0 = np.where(np.isfinite(noise0) & (noise0 > 0), noise0, _NOISE_START)
+    t1 = time.perf_counter()
+    umap = jp.adaptive_uncertainty(
+        lp,
+        data,
+        np.asarray(cf.theta, np.float64),
+        theta_std,
+        cf.maps["laplace_flag"].reshape(-1),
+        options,
+        noise_scale=noise0,
+        progress=progress,
+    )
+    t_post = time.perf_counter() - t1
+    return CaptureUncertainty(
+        fit=cf,
+        map=umap,
+        posterior=lp,
+        data=data,
+        theta_std=theta_std,
+        height=h,
+        width=w,
+        options=options,
+        timings={"fit_s": t_fit, "posterior_s": t_post},
+    )
+
+
+def write_uncertainty(result: CaptureUncertainty, out_dir: str | Path) -> list[Path]:
+    """Write ``uncertainty.exr`` and, where pixels were sampled and their draws kept,
+    ``posterior.nc`` (:meth:`CaptureUncertainty.inference_data`) into ``out_dir``
+    (created if missing); returns the paths written."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    exr = out / "uncertainty.exr"
+    jp.write_uncertainty_exr(
+        exr, result.map, result.height, result.width, metadata={"model": result.model}
+    )
+    files = [exr]
+    idata = result.inference_data()
+    if idata is not None:
+        files.append(Path(jp.save_netcdf(idata, out / "posterior.nc")))
+    return files
