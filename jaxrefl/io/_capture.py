@@ -61,6 +61,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from jaxrefl._errors import JaxreflError
 
@@ -116,7 +117,7 @@ _RANK = np.zeros(256, np.uint8)  # code -> rank
 _RANK[_BY_RANK] = np.arange(len(_PRECEDENCE))
 
 
-def obs_severity(status: np.ndarray) -> np.ndarray:
+def obs_severity(status: npt.ArrayLike) -> np.ndarray:
     """The precedence rank of each :class:`ObsStatus` code (uint8): 0 for ``ok`` up to 8 for
     ``nonfinite``, in the order of the module docstring (not the numeric order of the codes)."""
     return _RANK[np.asarray(status, np.uint8)]
@@ -146,7 +147,12 @@ def geometry_status(
     out = status.copy()
     z = points[..., 2]
     for k in range(status.shape[0]):
-        lz = light_dir[k, 2] if light_pos is None else light_pos[k, 2] - z
+        if light_pos is not None:
+            lz = light_pos[k, 2] - z
+        elif light_dir is not None:
+            lz = light_dir[k, 2]
+        else:
+            raise ValueError("geometry_status needs light_pos or light_dir")
         below_l = np.broadcast_to(np.asarray(lz) <= 0.0, z.shape)
         below_v = camera_pos[k, 2] - z <= 0.0
         for code, below in (
@@ -436,6 +442,7 @@ class Capture:
                 wi_k = _unit_or_z(d)
                 irr[i] = inv[..., None] * self.light_power[i]
             else:
+                assert self.light_dir is not None  # __post_init__: light_pos or light_dir
                 wi_k = np.broadcast_to(self.light_dir[i], pts.shape)
                 irr[i] = self.light_power[i]
             wi[i] = wi_k
@@ -450,6 +457,7 @@ class Capture:
 
         if self.light_pos is not None:
             return [PointLight(p, e) for p, e in zip(self.light_pos, self.light_power, strict=True)]
+        assert self.light_dir is not None  # __post_init__: light_pos or light_dir
         return [
             DirectionalLight(d, e) for d, e in zip(self.light_dir, self.light_power, strict=True)
         ]

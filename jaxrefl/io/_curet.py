@@ -41,6 +41,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
+from typing import overload
 
 import numpy as np
 
@@ -132,6 +133,24 @@ def _read_table(path: Path, n_geometries: int) -> dict[int, np.ndarray]:
     return out
 
 
+@overload
+def read_curet(
+    abrdf_path: str | Path | Sequence[str | Path],
+    table_path: str | Path,
+    sample: int,
+    *,
+    channels: Sequence[str] | None = None,
+    expected_samples: int | None = N_SAMPLES,
+) -> MeasuredBRDF: ...
+@overload
+def read_curet(
+    abrdf_path: str | Path | Sequence[str | Path],
+    table_path: str | Path,
+    sample: None = None,
+    *,
+    channels: Sequence[str] | None = None,
+    expected_samples: int | None = N_SAMPLES,
+) -> list[MeasuredBRDF]: ...
 def read_curet(
     abrdf_path: str | Path | Sequence[str | Path],
     table_path: str | Path,

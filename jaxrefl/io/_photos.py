@@ -136,12 +136,12 @@ def unfilter(rows: np.ndarray, bpp: int) -> np.ndarray:
     f16 = filt.astype(np.int16)
     ft = ftype.astype(np.int16)
     for d in range(h + w - 1):
-        r = np.arange(max(0, d - w + 1), min(h, d + 1))
-        x = d - r
-        a = rec[r + 1, x]  # left
-        b = rec[r, x + 1]  # up
-        c = rec[r, x]  # upper left
-        t = ft[r][:, None]
+        rs = np.arange(max(0, d - w + 1), min(h, d + 1))  # the rows on this anti-diagonal
+        x = d - rs
+        a = rec[rs + 1, x]  # left
+        b = rec[rs, x + 1]  # up
+        c = rec[rs, x]  # upper left
+        t = ft[rs][:, None]
         pred = np.where(
             t == 1,
             a,
@@ -149,7 +149,7 @@ def unfilter(rows: np.ndarray, bpp: int) -> np.ndarray:
                 t == 2, b, np.where(t == 3, (a + b) >> 1, np.where(t == 4, _paeth(a, b, c), 0))
             ),
         )
-        rec[r + 1, x + 1] = (f16[r, x] + pred) & 255
+        rec[rs + 1, x + 1] = (f16[rs, x] + pred) & 255
     out[...] = rec[1:, 1:]
     return out
 
@@ -215,8 +215,9 @@ def _bomb_error() -> type[Exception]:
 def _read_png_pillow(path: Path) -> tuple[np.ndarray, int]:
     from PIL import Image
 
-    with Image.open(path) as im:
-        im.load()
+    with Image.open(path) as file:
+        file.load()
+        im: Image.Image = file
         mode = im.mode
         if mode in ("I;16", "I;16B", "I;16L", "I"):
             a = np.asarray(im)
@@ -362,14 +363,14 @@ def read_pixels(path: Path) -> tuple[np.ndarray, np.ndarray | None, int, bool]:
 def _read_pillow(path: Path) -> tuple[np.ndarray, int]:
     from PIL import Image
 
-    with Image.open(path) as im:
-        im.load()
-        if im.mode in ("I;16", "I;16B", "I;16L"):
-            return np.asarray(im).astype(np.uint16)[..., None], 16
-        raw = "".join(str(t[3]) for t in im.tile) if im.tile else ""
+    with Image.open(path) as file:
+        file.load()
+        if file.mode in ("I;16", "I;16B", "I;16L"):
+            return np.asarray(file).astype(np.uint16)[..., None], 16
+        raw = "".join(str(t[3]) for t in file.tile) if file.tile else ""
         if ";16" in raw:  # Pillow keeps only the high byte of 16-bit colour samples
-            raise OSError(f"16-bit {im.mode} {im.format} is read as 8 bits; use PNG or EXR")
-        im = im if im.mode in ("L", "LA", "RGB", "RGBA") else im.convert("RGB")
+            raise OSError(f"16-bit {file.mode} {file.format} is read as 8 bits; use PNG or EXR")
+        im = file if file.mode in ("L", "LA", "RGB", "RGBA") else file.convert("RGB")
         a = np.asarray(im)
     return (a[..., None] if a.ndim == 2 else a).astype(np.uint8), 8
 
@@ -386,6 +387,7 @@ class Photos:
             a, alpha, depth, is_float = read_pixels(f)
             if first is None:
                 first = (f, a.shape, depth, is_float)
+                self.bit_depth = depth
                 self.images = np.empty((len(files), *a.shape), np.float32)
                 self.status = np.zeros((len(files), *a.shape), np.uint8)
                 self._prepare(response, depth, is_float, saturation)
@@ -407,7 +409,6 @@ class Photos:
                 sk = self.status[k]
                 worse = obs_severity(sk[alpha]) > obs_severity(ObsStatus.MASKED)
                 sk[alpha] = np.where(worse, sk[alpha], ObsStatus.MASKED)
-        self.bit_depth = first[2]
 
     def _prepare(self, response, depth, is_float, saturation):
         self.saturation = None if saturation is None else float(saturation)

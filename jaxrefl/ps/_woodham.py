@@ -240,7 +240,12 @@ def check_inputs(obs, lights, intensities, weight):
     return lights, intensities, weight
 
 
-def prepare_inputs(obs, lights, intensities, weight):
+def prepare_inputs(
+    obs: Float[ArrayLike, "N K C"],
+    lights: Float[ArrayLike, "K 3"],
+    intensities: Float[ArrayLike, "K C"] | None,
+    weight: Float[ArrayLike, "N K C"] | None,
+) -> tuple[Float[Array, "N K C"], Float[Array, "K 3"], Float[Array, "K C"], Float[Array, "N K C"]]:
     """Arrays of one floating dtype (float32 unless obs is floating): obs (N, K, C), lights
     (K, 3), intensities E (K, C) (default 1), weights (N, K, C) (default 1), with non-finite
     observations or weights dropped (weight 0, value 0) before any arithmetic. The inputs

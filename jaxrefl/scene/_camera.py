@@ -202,7 +202,20 @@ class GammaResponse(Response):
     the gradient there is defined as 0 (gradient-safe guard) so optimisers never see inf.
     """
 
-    gamma: Float[Array, ""] = eqx.field(default=2.2, converter=_as_float)
+    gamma: Float[Array, ""]
+
+    def __init__(
+        self,
+        gamma: Float[ArrayLike, ""] = 2.2,
+        *,
+        exposure: Float[ArrayLike, ""] = 1.0,
+        clip: bool = True,
+    ):
+        # Written out so that type checkers see numbers accepted: mypy does not apply the
+        # converters of ``eqx.field`` to the generated ``__init__``.
+        self.gamma = _as_float(gamma)
+        self.exposure = _as_float(exposure)
+        self.clip = clip
 
     def _pow(self, v, e):
         a = jnp.abs(v)

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import DTypeLike
 from jaxtyping import Array, ArrayLike, Float
 
 from ..brdf import safe_normalize
@@ -110,7 +111,7 @@ def planar_points(
     height: int,
     width: int,
     side: float | tuple[float, float],
-    dtype: jnp.dtype | None = None,
+    dtype: DTypeLike | None = None,
 ) -> Float[Array, "H W 3"]:
     """World positions of the pixel centres of an H x W image of a planar sample.
 
