@@ -43,6 +43,7 @@ from ._problem import FitResult as FitResult
 from ._problem import Linearisation as Linearisation
 from ._problem import fit_pixels as fit_pixels
 from ._problem import fit_samples as fit_samples
+from ._problem import sample_arrays as sample_arrays
 from ._residual import L2 as L2
 from ._residual import Cauchy as Cauchy
 from ._residual import GaussianNoise as GaussianNoise

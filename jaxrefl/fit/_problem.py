@@ -26,6 +26,7 @@ from typing import Any, Literal
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from jaxrefl.brdf import BRDF
@@ -48,7 +49,7 @@ from ._shard import device_count, map_sharded
 from ._status import Status, describe, has_estimate
 from ._transform import ParamSpace
 
-__all__ = ["FitResult", "Linearisation", "fit_pixels", "fit_samples"]
+__all__ = ["FitResult", "Linearisation", "fit_pixels", "fit_samples", "sample_arrays"]
 
 Init = Literal["auto", "defaults"] | ArrayLike | Mapping[str, ArrayLike]
 
@@ -227,6 +228,41 @@ def fit_pixels(
     )
 
 
+def sample_arrays(
+    wi: ArrayLike,
+    wo: ArrayLike,
+    values: ArrayLike,
+    *,
+    cosine: bool,
+    keep: ArrayLike | None = None,
+    dtype: Any = np.float64,
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+    """Measured f_r samples as the arrays of one fitting problem: ``(obs, scale, weight)``,
+    each (K, C) in ``dtype`` (``scale`` is None without ``cosine``).
+
+    wi, wo (K, 3) and values (K, C) or (K,) f_r in 1/sr, all first converted to ``dtype``.
+    A sample takes part (weight 1) where both directions are above the horizon (z > 0) and
+    ``keep`` (K,) allows it; weight 0 elsewhere. With ``cosine`` the observations and the
+    predictions become f_r cos(theta_i) (``scale`` = cos_i, 0 where a sample does not take
+    part), so the residual is (f̂ - f) cos(theta_i) (Ngan et al. 2005's cosine weighting).
+    """
+    wi = np.asarray(wi, dtype)
+    wo = np.asarray(wo, dtype)
+    values = np.asarray(values, dtype)
+    if values.ndim == 1:
+        values = values[:, None]
+    k, c = values.shape
+    above = (wi[:, 2] > 0) & (wo[:, 2] > 0)
+    if keep is not None:
+        above &= np.asarray(keep, bool)
+    weight = np.broadcast_to(above[:, None], (k, c)).astype(dtype)
+    scale = None
+    if cosine:  # observations and predictions both become f_r cos(theta_i)
+        scale = np.broadcast_to(np.where(above, wi[:, 2], 0.0)[:, None], (k, c))
+        values = values * scale
+    return values, scale, weight
+
+
 def fit_samples(
     model: BRDF,
     measured: Any,
@@ -268,18 +304,10 @@ def fit_samples(
         names = tuple(measured.channels)
     if dtype is None:
         dtype = jnp.asarray(0.0).dtype
+    values, scale, weight = sample_arrays(wi, wo, values, cosine=cosine, dtype=dtype)
+    k, c = values.shape
     wi = jnp.asarray(wi, dtype)
     wo = jnp.asarray(wo, dtype)
-    values = jnp.asarray(values, dtype)
-    if values.ndim == 1:
-        values = values[:, None]
-    k, c = values.shape
-    above = (wi[:, 2] > 0) & (wo[:, 2] > 0)
-    weight = jnp.broadcast_to(above[:, None], (k, c)).astype(dtype)
-    scale = None
-    if cosine:  # observations and predictions both become f_r cos(theta_i)
-        scale = jnp.broadcast_to(jnp.where(above, wi[:, 2], 0.0)[:, None], (k, c))
-        values = values * scale
     if channels == "joint":
         s1 = None if scale is None else scale[None]
         data = pixel_data(values[None], wi[None], wo[None], scale=s1, weight=weight[None])

@@ -51,7 +51,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxrefl.fit import FitResult, PixelData, make_residual, pixel_data
+from jaxrefl.fit import FitResult, PixelData, make_residual, pixel_data, sample_arrays
 
 from ._compact import Compacted, compact
 from ._components import Components, fit_components, param_space, start_from
@@ -407,16 +407,16 @@ def measured_pixel_data(measured: Any, cosine: bool = True, dtype=None) -> Pixel
     :func:`jaxrefl.measured.fit_model` fits), samples below the horizon or non-finite at
     weight 0."""
     wi, wo, f = (np.asarray(x, np.float64) for x in (measured.wi, measured.wo, measured.values))
-    above = (wi[:, 2] > 0) & (wo[:, 2] > 0) & np.all(np.isfinite(f), axis=-1)
-    weight = np.broadcast_to(above[:, None], f.shape).astype(np.float64)
-    scale = np.broadcast_to(np.where(above, wi[:, 2], 0.0)[:, None], f.shape) if cosine else 1.0
-    obs = np.where(np.isfinite(f), f, 0.0) * scale
+    finite = np.isfinite(f)
+    obs, scale, weight = sample_arrays(
+        wi, wo, np.where(finite, f, 0.0), cosine=cosine, keep=np.all(finite, axis=-1)
+    )
     dt = dtype or jnp.asarray(0.0).dtype
     return pixel_data(
         obs[None],
         wi[None],
         wo[None],
-        scale=np.asarray(scale)[None] if cosine else None,
+        scale=None if scale is None else scale[None],
         weight=weight[None],
         dtype=dt,
     )
