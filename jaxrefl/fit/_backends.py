@@ -35,7 +35,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
 from ._lm import LMOptions, _linearise, batched_lm
-from ._status import Status, classify
+from ._status import Status, classify, severity
 from ._transform import ParamSpace
 
 __all__ = ["FitInfo", "solve"]
@@ -119,7 +119,9 @@ def _solve_optimistix(residual_fn, theta0, data, n_usable, space, max_iters, rto
             cond_max,
             opts.bound_rtol,
         )
-        other = ~(converged | hit_max | nonfinite) & (status <= Status.MAX_ITERATIONS)
+        other = ~(converged | hit_max | nonfinite) & (
+            severity(status) <= severity(Status.MAX_ITERATIONS)
+        )
         status = jnp.where(other, Status.ILL_CONDITIONED, status).astype(jnp.int32)
         theta = jnp.where(ok0, theta, t0)
         iters = sol.stats["num_steps"].astype(jnp.int32)
