@@ -95,7 +95,8 @@ def run(args: argparse.Namespace) -> int:
     (out / "parameters.json").write_text(json.dumps(params, indent=2))
     truth = {name: np.asarray(v) for name, v in scene.params.items()}
     truth["roughness"] = np.asarray(alpha_to_roughness(scene.params["alpha"]))
-    np.savez_compressed(out / "truth" / "params.npz", **truth)
+    # numpy >= 2 stubs: a ** dict might bind allow_pickle (bool); these keys are array names.
+    np.savez_compressed(out / "truth" / "params.npz", **truth)  # type: ignore[arg-type]
     _write_png(out / "truth" / "albedo.png", truth["albedo"] ** (1 / 2.2))
     _write_png(out / "truth" / "roughness.png", truth["roughness"])
     print(

@@ -91,9 +91,7 @@ def load_measured(
         raise FileNotFoundError(f"{table}: CURET geometry table not found (give curet_table)")
     if curet_sample is None:
         raise ValueError(f"{path}: a CURET file holds 61 samples; choose one (curet_sample)")
-    m = read_curet(path, table, sample=int(curet_sample))
-    assert isinstance(m, MeasuredBRDF)  # one sample asked for
-    return m
+    return read_curet(path, table, sample=int(curet_sample))
 
 
 def to_rgb(measured: MeasuredBRDF, illuminant: Literal["D65", "E"] = "D65") -> MeasuredBRDF:

@@ -145,7 +145,7 @@ class ModelFit:
     compile_time_s: float
     n_params: int
     dtype: str
-    channels: str
+    channels: Channels
     backend: str
     retry: dict[str, Any] | None = None
 

@@ -33,7 +33,7 @@ from __future__ import annotations
 
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Literal
 
 import equinox as eqx
 import jax
@@ -97,7 +97,7 @@ def float64_reasons(result: FitResult) -> list[str]:
 
 def float64_enabled() -> bool:
     """Whether JAX is running with 64-bit floats by default."""
-    return bool(jax.config.jax_enable_x64)
+    return bool(jax.config.read("jax_enable_x64"))
 
 
 @contextmanager
@@ -107,7 +107,7 @@ def x64():
         yield
 
 
-def choose(cost32: float, cost64: float) -> str:
+def choose(cost32: float, cost64: float) -> Literal["float32", "float64"]:
     """``"float64"`` when the float64 cost is finite and not worse than the float32 one
     (relative slack 1e-6: equal optima within round-off keep the more precise answer),
     else ``"float32"``."""

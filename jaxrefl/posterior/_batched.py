@@ -49,7 +49,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from blackjax.adaptation.step_size import dual_averaging_adaptation
-from jaxtyping import Array
+from jaxtyping import Array, ArrayLike, Float
 
 from jaxrefl.fit import PixelData
 
@@ -150,7 +150,9 @@ def _welford(mean, m2, count, x, on):
     return mean1, m2_1, c1
 
 
-def _one_chain(lp: LogPosterior, opts: HMCOptions, key, x0, imm0, data, normals):
+def _one_chain(
+    lp: LogPosterior | ConditionalAlbedo, opts: HMCOptions, key, x0, imm0, data, normals
+):
     """Warm-up and sampling of one chain in a single ``lax.scan`` (module docstring).
 
     Warm-up schedule (Stan's, with one slow window): steps [0, 15%) adapt the step size
@@ -230,7 +232,15 @@ def _one_chain(lp: LogPosterior, opts: HMCOptions, key, x0, imm0, data, normals)
 
 
 @eqx.filter_jit
-def _run(lp: LogPosterior, opts: HMCOptions, keys, x0, imm0, data: PixelData, normals):
+def _run(
+    lp: LogPosterior | ConditionalAlbedo,
+    opts: HMCOptions,
+    keys,
+    x0,
+    imm0,
+    data: PixelData,
+    normals,
+):
     def pixel(args):
         k, x, m, d, n = args
         n = n if lp.light is not None else None  # zeros stand in when the light is known
@@ -282,9 +292,9 @@ def _map_draws(rp: ConditionalAlbedo, pos, data: PixelData, normals, batch_size:
 def sample_pixels(
     lp: LogPosterior,
     data: PixelData,
-    theta0: Array,
+    theta0: Float[ArrayLike, "*N D"],
     *,
-    theta_std: Array | None = None,
+    theta_std: Float[ArrayLike, "*N D"] | None = None,
     normals: Array | None = None,
     options: HMCOptions | None = None,
     seed: int = 0,

@@ -322,14 +322,15 @@ class SharedLight(eqx.Module):
         return jnp.concatenate([rest[:, :p], ub, rest[:, p:]], axis=-1)
 
     def __call__(self, theta, data: PixelData, normals) -> Float[Array, ""]:
-        assert self.pixel.light is not None
+        light = self.pixel.light
+        assert light is not None
         full = self.expand(theta)
         u = theta[:3]
 
         def one(t, d, n):
             # Each pixel's prior without the light's (counted once below).
             p = self.pixel.space.size
-            return self.pixel(t, d, n) - self.pixel.light.log_density(t[p : p + 3])
+            return self.pixel(t, d, n) - light.log_density(t[p : p + 3])
 
-        lp = jnp.sum(jax.vmap(one)(full, data, normals)) + self.pixel.light.log_density(u)
+        lp = jnp.sum(jax.vmap(one)(full, data, normals)) + light.log_density(u)
         return jnp.where(jnp.isnan(lp), -jnp.inf, lp)

@@ -169,9 +169,9 @@ def conditional_albedo(lp: LogPosterior, name: str = "albedo") -> ConditionalAlb
         raise ValueError(f"no free parameter {name!r} to non-centre (free: {tuple(blocks)})")
     blk = blocks[name]
     bijs = {r.bijection for r in blk.runs}
-    if len(bijs) != 1 or not isinstance(next(iter(bijs)), ScaledSigmoid):
+    bij = next(iter(bijs), None)
+    if len(bijs) != 1 or not isinstance(bij, ScaledSigmoid):
         raise ValueError(f"{name!r} needs one bounded (scaled-logistic) bijection, got {bijs}")
-    bij = next(iter(bijs))
     _check_affine(lp, name)
     return ConditionalAlbedo(
         lp, name, blk.start, blk.stop, blk.grey, float(bij.lower), float(bij.upper)
@@ -186,10 +186,10 @@ def _check_affine(lp: LogPosterior, name: str) -> None:
     th = jnp.zeros((1, space.size), dtype)
     params = space.to_natural(th)
     ang = np.deg2rad(np.array([5.0, 30.0, 55.0, 75.0]))
-    wi = np.stack([np.sin(ang), 0 * ang, np.cos(ang)], -1)
-    wo = np.stack([-np.sin(ang[::-1]) * 0.7, np.sin(ang[::-1]) * 0.7, np.cos(ang[::-1])], -1)
-    wo /= np.linalg.norm(wo, axis=-1, keepdims=True)
-    wi, wo = jnp.asarray(wi, dtype), jnp.asarray(wo, dtype)
+    wi_np = np.stack([np.sin(ang), 0 * ang, np.cos(ang)], -1)
+    wo_np = np.stack([-np.sin(ang[::-1]) * 0.7, np.sin(ang[::-1]) * 0.7, np.cos(ang[::-1])], -1)
+    wo_np /= np.linalg.norm(wo_np, axis=-1, keepdims=True)
+    wi, wo = jnp.asarray(wi_np, dtype), jnp.asarray(wo_np, dtype)
 
     def ev(v):
         p = {**params, name: jnp.full(params[name].shape, v, dtype)}
