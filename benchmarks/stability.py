@@ -7,10 +7,10 @@ Forward models: per model and dtype, how many (parameter set x direction pair) c
 run, how many gave a non-finite value or gradient (must be 0), and the largest finite
 magnitudes.
 
-Fits (``--fit``): the stiff cases of :mod:`jaxrefl.measured._stiff` (roughness 1e-3 with a
+Fits (``--fit``): the stiff cases of ``_stiff_fits.py`` (roughness 1e-3 with a
 sharp highlight, grazing-only observations, a Blinn-Phong exponent of 1e4, nearly collinear
 lights), ``--n`` problems each, fitted in float32, in float64, and in float32 with the
-automatic float64 retry (:func:`jaxrefl.measured._retry.fit_pixels_retry`): the fraction of
+automatic float64 retry (:func:`jaxrefl.measured.fit_pixels_retry`): the fraction of
 fits that converge, are finite, and reach the optimum (cost within 1e-3 of the best known),
 the fraction the retry detected and sent to float64, the fraction where the float64 redo was
 kept, and the warm fit time.
@@ -32,9 +32,9 @@ jax.config.update("jax_enable_x64", True)
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import machine, table  # noqa: E402
 from _stability_sweep import run_stability  # noqa: E402
+from _stiff_fits import run_stiff  # noqa: E402
 
 from jaxrefl.brdf import model_zoo  # noqa: E402
-from jaxrefl.measured._stiff import run_stiff  # noqa: E402
 
 
 def fit_stability(n: int, csv_path: Path | None) -> int:

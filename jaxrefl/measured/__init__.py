@@ -17,8 +17,8 @@ Quick use::
 Parts: :mod:`._metrics` (cosine-weighted L2 of Ngan et al. 2005, log-space and relative
 L2), :mod:`._models` (the named model set), :mod:`._data` (reading, RGB conversion, angle
 limit), :mod:`._fit` (fit one model / all of them), :mod:`._retry` (float32 -> float64),
-:mod:`._plots` (measured vs fitted lobes), :mod:`._stiff` (stiff synthetic fits for the
-stability benchmark), :mod:`._components` (models assembled from switched-on components),
+:mod:`._plots` (measured vs fitted lobes), :mod:`._components` (models assembled from
+switched-on components),
 :mod:`._compact` (leave out the pixels a scene does not need), :mod:`._prune` (drop
 components by BIC or Laplace evidence, per material or cluster), :mod:`._plan` (capture
 planning by expected Fisher information), :mod:`._posterior` (a model's posterior given a
@@ -74,4 +74,8 @@ from ._prune import criteria as criteria
 from ._prune import kmeans as kmeans
 from ._prune import measured_pixel_data as measured_pixel_data
 from ._prune import prune as prune
+from ._retry import RetryResult as RetryResult
+from ._retry import cost64 as cost64
+from ._retry import fit_pixels_retry as fit_pixels_retry
 from ._retry import float64_reasons as float64_reasons
+from ._retry import x64 as x64

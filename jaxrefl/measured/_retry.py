@@ -16,11 +16,11 @@ values and gradients finite, but a stiff problem can still defeat it:
   float64 cost by more than ``GAIN_RTOL`` (0.1%) the fit is redone (by
   :func:`fit_pixels_retry`, which has the data; :func:`float64_reasons` sees only the
   result and does not apply this test). A fit within 0.1% of an optimum cannot gain that
-  much, so a healthy fit is never sent. On the stiff cases of ``_stiff`` the threshold
-  separates the float32 fits that reached the optimum (smaller gains) from those that
-  stopped short (larger ones). Not caught: the collinear-lights fits that stop short (the
-  step cannot move along the unresolved direction, so it gains nothing) unless flagged
-  ILL_CONDITIONED. The float32 cost itself is no detector: its round-off at a stiff
+  much, so a healthy fit is never sent. On the stiff cases of ``benchmarks/_stiff_fits.py``
+  the threshold separates the float32 fits that reached the optimum (smaller gains) from
+  those that stopped short (larger ones). Not caught: the collinear-lights fits that stop
+  short (the step cannot move along the unresolved direction, so it gains nothing) unless
+  flagged ILL_CONDITIONED. The float32 cost itself is no detector: its round-off at a stiff
   optimum is as large as the shortfall it would have to reveal.
 
 :func:`float64_reasons` says which of these a result shows (empty: keep it);
@@ -66,7 +66,8 @@ __all__ = [
 #: Status codes that send a float32 fit to float64.
 RETRY_STATUS = (Status.NONFINITE_INPUT, Status.ILL_CONDITIONED)
 #: Relative float64 cost decrease of one Gauss-Newton step that sends a fit to float64
-#: (the optimum tolerance of ``_stiff``: a fit this far from its optimum is not at it).
+#: (the optimum tolerance of ``benchmarks/_stiff_fits.py``: a fit this far from its optimum
+#: is not at it).
 GAIN_RTOL = 1e-3
 # Step lengths tried along the Gauss-Newton direction (the best is kept): a full step can
 # overshoot on a lobe 0.6 degrees wide, a shorter one still shows the missing decrease.

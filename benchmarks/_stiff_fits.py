@@ -38,8 +38,7 @@ import numpy as np
 
 from jaxrefl.brdf import BRDF, BlinnPhong, CookTorrance
 from jaxrefl.fit import FitResult, PixelData, fit_pixels, has_estimate, pixel_data
-
-from ._retry import RetryResult, cost64, fit_pixels_retry, x64
+from jaxrefl.measured import RetryResult, cost64, fit_pixels_retry, x64
 
 __all__ = ["STIFF_CASES", "StiffProblem", "StiffRow", "run_stiff", "stiff_problems"]
 
