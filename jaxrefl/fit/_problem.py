@@ -248,10 +248,10 @@ def sample_arrays(
     """
     wi = np.asarray(wi, dtype)
     wo = np.asarray(wo, dtype)
-    values = np.asarray(values, dtype)
-    if values.ndim == 1:
-        values = values[:, None]
-    k, c = values.shape
+    obs = np.asarray(values, dtype)
+    if obs.ndim == 1:
+        obs = obs[:, None]
+    k, c = obs.shape
     above = (wi[:, 2] > 0) & (wo[:, 2] > 0)
     if keep is not None:
         above &= np.asarray(keep, bool)
@@ -259,8 +259,8 @@ def sample_arrays(
     scale = None
     if cosine:  # observations and predictions both become f_r cos(theta_i)
         scale = np.broadcast_to(np.where(above, wi[:, 2], 0.0)[:, None], (k, c))
-        values = values * scale
-    return values, scale, weight
+        obs = obs * scale
+    return obs, scale, weight
 
 
 def fit_samples(
