@@ -157,6 +157,13 @@ def test_cli_sample_capture_end_to_end(tmp_path):
     back = az.from_netcdf(str(tmp_path / "lib" / "posterior.nc"))
     np.testing.assert_array_equal(back.posterior["albedo_R"].values, post.posterior["albedo_R"])
     assert list(back.posterior.attrs["rows"]) == list(post.posterior.attrs["rows"])
+    # theta_std is the job's std maps through the bijections' slopes (delta method reversed)
+    lab = res.posterior.labels[0]
+    slope = np.asarray(res.posterior.space.dnatural(jax.numpy.asarray(res.fit.theta)))[:, 0]
+    std_map = res.fit.maps[svbrdf.map_name(lab, "_std")].reshape(-1)
+    np.testing.assert_allclose(res.theta_std[:, 0] * np.abs(slope), std_map, rtol=1e-12)
+    with pytest.raises(ValueError, match="float64"):
+        svbrdf.uncertainty_maps(cap, svbrdf.FitJob(model="lambert"), options)
 
 
 def test_cli_sample_brdf_file(shared_data, tmp_path):

@@ -292,37 +292,21 @@ def adaptive_uncertainty(
     theta_hat = np.asarray(theta_hat, dtype=np.float64)
     theta_std = np.asarray(theta_std, dtype=np.float64)
     flag = np.asarray(flag).astype(np.int64)
-    n, p = theta_hat.shape
     has = np.all(np.isfinite(theta_hat), axis=-1) & ((flag & LaplaceFlag.NO_ESTIMATE) == 0)
     t0 = time.perf_counter()
     mean, std, q05, q95 = laplace_summary(lp, theta_hat, theta_std)
-    lap_std = std.copy()
-    rng = np.random.default_rng(o.seed)
+    rng = np.random.default_rng(o.seed)  # the audit pixels, then the second pass's starts
     method = _choose_methods(has, flag, o, rng)
-    t_lap = time.perf_counter() - t0
+    timings = {"laplace_summary_s": time.perf_counter() - t0}
+    out = _Summaries.from_laplace(mean, std, q05, q95, lp.size)
     idx = np.flatnonzero(np.isin(method, (2, 3)))
     # Pixels without censored observations first: their chunks run the cheaper posterior
     # without the censored branch (LogPosterior.for_data); at most one chunk is mixed.
     censored_px = np.any(np.asarray(data.censored)[idx] != 0, axis=(-2, -1))
     idx = idx[np.argsort(censored_px, kind="stable")]
-    d = lp.size
-    extra = d - p
-    big = np.full((n, extra), np.nan)
-    mean = np.concatenate([mean, big], -1)
-    std = np.concatenate([std, big], -1)
-    q05 = np.concatenate([q05, big], -1)
-    q95 = np.concatenate([q95, big], -1)
-    lap_std = np.concatenate([lap_std, big], -1)
-    rhat = np.full(n, np.nan)
-    ess_b = np.full(n, np.nan)
-    ess_t = np.full(n, np.nan)
-    div = np.zeros(n, np.int64)
     samples = None
-    timings = {"laplace_summary_s": t_lap}
-    rerun = np.zeros(n, bool)
-    rhat_first = np.full(n, np.nan)
     if idx.size:
-        opts, second, rerun_rhat = o.hmc, o.second_pass, o.rerun_rhat
+        extra = lp.size - theta_hat.shape[1]
         s0_all = None if noise_scale is None else np.asarray(noise_scale)
 
         def first_starts(rows):
@@ -330,71 +314,114 @@ def adaptive_uncertainty(
             th0 = lp.init_theta(jnp.asarray(theta_hat[rows]), noise_scale=s0)
             return th0, np.concatenate([theta_std[rows], np.ones((rows.size, extra))], -1)
 
-        out = _Summaries(mean, std, q05, q95, rhat, ess_b, ess_t, div)
+        run = _Run(lp, data, normals, o, progress, timings)
+        samples, restart = run.first_pass(idx, first_starts, out, rng)
+        run.second_pass(idx, restart, out, samples)
+    return UncertaintyMap(
+        labels=lp.labels,
+        mean=out.mean,
+        std=out.std,
+        q05=out.q05,
+        q95=out.q95,
+        method=method,
+        rhat=out.rhat,
+        ess_bulk=out.ess_bulk,
+        ess_tail=out.ess_tail,
+        divergences=out.divergences,
+        mcmc_pixels=idx,
+        samples=samples,
+        laplace_std=out.laplace_std,
+        rerun=out.rerun,
+        rhat_first=out.rhat_first,
+        timings=timings,
+    )
+
+
+@dataclass
+class _Run:
+    """The MCMC passes of one :func:`adaptive_uncertainty` call (module docstring)."""
+
+    lp: LogPosterior
+    data: PixelData
+    normals: np.ndarray | None
+    o: AdaptiveOptions
+    progress: bool
+    timings: dict[str, Any]
+
+    def first_pass(self, idx, starts, out: _Summaries, rng):
+        """Sample the pixels ``idx``; returns their draws (None unless ``keep_samples``)
+        and, per pixel whose chains disagree, its second-pass starts."""
+        o, tm = self.o, self.timings
+        second = o.second_pass
         restart: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         parts, run_s = [], []
-        for real, cut, rs in _chunks(
-            lp, data, idx, first_starts, normals, opts, o.seed, o.chunk, progress, "MCMC pixels"
-        ):
+        for real, cut, rs in self._chunks(idx, starts, o.hmc, o.seed, "MCMC pixels"):
             run_s.append(rs)
             out.store(real, cut)
             if second is not None:  # draws kept for the second pass's starts only
                 # NaN R-hat (a chain that never moved) counts as disagreeing
-                stuck = ~(rhat[real] <= rerun_rhat) & ~cut.extra["no_estimate"]
+                stuck = ~(out.rhat[real] <= o.rerun_rhat) & ~cut.extra["no_estimate"]
                 for j in np.flatnonzero(stuck):
                     restart[int(real[j])] = _restarts(cut, int(j), second.num_chains, rng)
             if o.keep_samples:
                 parts.append(cut)
-        timings["mcmc_s"] = float(np.sum(run_s))
-        timings["mcmc_pixels"] = int(idx.size)
-        timings["mcmc_chunks"] = len(run_s)
-        timings["mcmc_chunk_size"] = _chunk_size(int(idx.size), o.chunk, opts.batch_size)
+        tm["mcmc_s"] = float(np.sum(run_s))
+        tm["mcmc_pixels"] = int(idx.size)
+        tm["mcmc_chunks"] = len(run_s)
+        tm["mcmc_chunk_size"] = _chunk_size(int(idx.size), o.chunk, o.hmc.batch_size)
         if len(run_s) > 1:
             # the first chunk compiles; the others reuse it
-            timings["mcmc_compile_s"] = max(0.0, run_s[0] - float(np.median(run_s[1:])))
-            timings["mcmc_chunk_s_median"] = float(np.median(run_s[1:]))
-        if o.keep_samples:
-            samples = _concat(parts)
-        if restart:
-            # Second pass (module docstring): the pixels whose chains disagree run again.
-            again = idx[np.isin(idx, np.fromiter(restart, int))]  # first pass's order
-            rhat_first[again] = rhat[again]
+            tm["mcmc_compile_s"] = max(0.0, run_s[0] - float(np.median(run_s[1:])))
+            tm["mcmc_chunk_s_median"] = float(np.median(run_s[1:]))
+        return (_concat(parts) if o.keep_samples else None), restart
 
-            def second_starts(rows):
-                return tuple(np.stack([restart[int(i)][k] for i in rows]) for k in (0, 1))
+    def second_pass(self, idx, restart, out: _Summaries, samples: Samples | None) -> None:
+        """Sample the pixels of ``restart`` again from their starts under the second
+        pass's settings; their summaries and draws replace the first pass's."""
+        second = self.o.second_pass
+        if second is None or not restart:
+            return
+        again = idx[np.isin(idx, np.fromiter(restart, int))]  # first pass's order
+        out.rhat_first[again] = out.rhat[again]
 
-            run2 = []
-            at = {int(i): k for k, i in enumerate(idx)}
-            seed2 = o.seed + _RERUN_SEED
-            desc = "MCMC second pass"
-            for real, cut, rs in _chunks(
-                lp, data, again, second_starts, normals, second, seed2, o.chunk, progress, desc
-            ):
-                run2.append(rs)
-                out.store(real, cut)
-                if samples is not None:
-                    _put(samples, [at[int(i)] for i in real], cut)
-            rerun[again] = True
-            timings["rerun_s"] = float(np.sum(run2))
-            timings["rerun_pixels"] = int(again.size)
-    return UncertaintyMap(
-        labels=lp.labels,
-        mean=mean,
-        std=std,
-        q05=q05,
-        q95=q95,
-        method=method,
-        rhat=rhat,
-        ess_bulk=ess_b,
-        ess_tail=ess_t,
-        divergences=div,
-        mcmc_pixels=idx,
-        samples=samples,
-        laplace_std=lap_std,
-        timings=timings,
-        rerun=rerun,
-        rhat_first=rhat_first,
-    )
+        def starts(rows):
+            return tuple(np.stack([restart[int(i)][k] for i in rows]) for k in (0, 1))
+
+        run_s = []
+        at = {int(i): k for k, i in enumerate(idx)}
+        seed = self.o.seed + _RERUN_SEED
+        for real, cut, rs in self._chunks(again, starts, second, seed, "MCMC second pass"):
+            run_s.append(rs)
+            out.store(real, cut)
+            if samples is not None:
+                _put(samples, [at[int(i)] for i in real], cut)
+        out.rerun[again] = True
+        self.timings["rerun_s"] = float(np.sum(run_s))
+        self.timings["rerun_pixels"] = int(again.size)
+
+    def _chunks(self, idx, starts, opts: HMCOptions, seed: int, desc: str):
+        """Sample the pixels ``idx`` in chunks of one compiled size (module docstring).
+
+        starts(rows) -> (theta0 (R, D) or (R, chains, D), theta_std (R, D)) for the map's
+        pixels ``rows``. Yields (real pixels, their Samples, run seconds).
+        """
+        size = _chunk_size(idx.size, self.o.chunk, opts.batch_size)
+        firsts = range(0, idx.size, size)
+        if self.progress:
+            from tqdm.auto import tqdm
+
+            firsts = tqdm(firsts, desc=desc, unit="chunk")
+        for ci, a in enumerate(firsts):
+            real = idx[a : a + size]
+            # pad the last chunk by repeating its pixels: one compiled shape for the map
+            rows = np.resize(real, size)
+            sub = jax.tree.map(lambda v, rows=rows: v[rows], self.data)
+            th0, sd = starts(rows)
+            nrm = None if self.normals is None else jnp.asarray(np.asarray(self.normals)[rows])
+            smp = sample_pixels(
+                self.lp, sub, th0, theta_std=sd, normals=nrm, options=opts, seed=seed + ci
+            )
+            yield real, _take(smp, real.size), smp.run_s
 
 
 def _choose_methods(has: np.ndarray, flag: np.ndarray, o: AdaptiveOptions, rng) -> np.ndarray:
@@ -415,16 +442,40 @@ def _choose_methods(has: np.ndarray, flag: np.ndarray, o: AdaptiveOptions, rng) 
 
 @dataclass
 class _Summaries:
-    """The map's (N, ...) summary arrays, filled in place chunk by chunk."""
+    """The map's (N, ...) arrays, Laplace's first, then filled in place chunk by chunk."""
 
     mean: np.ndarray
     std: np.ndarray
     q05: np.ndarray
     q95: np.ndarray
+    laplace_std: np.ndarray
     rhat: np.ndarray
     ess_bulk: np.ndarray
     ess_tail: np.ndarray
     divergences: np.ndarray
+    rerun: np.ndarray
+    rhat_first: np.ndarray
+
+    @classmethod
+    def from_laplace(cls, mean, std, q05, q95, d: int) -> _Summaries:
+        """The Laplace summaries (N, P), NaN-padded to the posterior's D entries (the
+        noise scale and light have no Laplace summary); no MCMC diagnostics yet."""
+        n, p = mean.shape
+        big = np.full((n, d - p), np.nan)
+        mean, std, q05, q95 = (np.concatenate([a, big], -1) for a in (mean, std, q05, q95))
+        return cls(
+            mean=mean,
+            std=std,
+            q05=q05,
+            q95=q95,
+            laplace_std=std.copy(),
+            rhat=np.full(n, np.nan),
+            ess_bulk=np.full(n, np.nan),
+            ess_tail=np.full(n, np.nan),
+            divergences=np.zeros(n, np.int64),
+            rerun=np.zeros(n, bool),
+            rhat_first=np.full(n, np.nan),
+        )
 
     def store(self, real: np.ndarray, cut: Samples) -> None:
         """Summaries of the draws ``cut`` of the map's pixels ``real``."""
@@ -439,29 +490,6 @@ class _Summaries:
         self.ess_bulk[real] = dg["min_ess_bulk"]
         self.ess_tail[real] = dg["min_ess_tail"]
         self.divergences[real] = dg["divergences"]
-
-
-def _chunks(lp, data, idx, starts, normals, opts, seed, chunk, progress, desc):
-    """Sample the pixels ``idx`` in chunks of one compiled size (module docstring).
-
-    starts(rows) -> (theta0 (R, D) or (R, chains, D), theta_std (R, D)) for the map's
-    pixels ``rows``. Yields (real pixels, their Samples, run seconds).
-    """
-    size = _chunk_size(idx.size, chunk, opts.batch_size)
-    firsts = range(0, idx.size, size)
-    if progress:
-        from tqdm.auto import tqdm
-
-        firsts = tqdm(firsts, desc=desc, unit="chunk")
-    for ci, a in enumerate(firsts):
-        real = idx[a : a + size]
-        # pad the last chunk by repeating its pixels: one compiled shape for the map
-        rows = np.resize(real, size)
-        sub = jax.tree.map(lambda v, rows=rows: v[rows], data)
-        th0, sd = starts(rows)
-        nrm = None if normals is None else jnp.asarray(np.asarray(normals)[rows])
-        smp = sample_pixels(lp, sub, th0, theta_std=sd, normals=nrm, options=opts, seed=seed + ci)
-        yield real, _take(smp, real.size), smp.run_s
 
 
 def _chunk_size(n: int, chunk: int, batch: int) -> int:
