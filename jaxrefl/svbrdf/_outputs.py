@@ -116,6 +116,15 @@ def write_previews(result: CaptureFit, capture, out: Path, preview_side: int = 3
         ax.axis("off")
         return im
 
+    def show_bar(fig, ax, img, title, **kw):
+        fig.colorbar(show(ax, img, title, **kw), ax=ax, fraction=0.046)
+
+    def save(fig, name):
+        fig.tight_layout()
+        paths.append(out / name)
+        fig.savefig(paths[-1], dpi=100)
+        plt.close(fig)
+
     # Parameter maps.
     names = [n for n in ("specular", "roughness") if n in m]
     fig, axes = plt.subplots(1, 2 + len(names), figsize=(3.2 * (2 + len(names)), 3.4))
@@ -123,16 +132,9 @@ def write_previews(result: CaptureFit, capture, out: Path, preview_side: int = 3
         alb = np.stack([m["albedo.R"], m["albedo.G"], m["albedo.B"]], -1)
         show(axes[0], _encode(alb), "diffuse albedo (gamma 2.2)")
     for ax, n in zip(axes[1:], names, strict=False):
-        fig.colorbar(show(ax, m[n], n, cmap="viridis"), ax=ax, fraction=0.046)
-    fig.colorbar(
-        show(axes[-1], m["status"], "fit status", cmap="tab10", vmin=0, vmax=9),
-        ax=axes[-1],
-        fraction=0.046,
-    )
-    fig.tight_layout()
-    paths.append(out / "params.png")
-    fig.savefig(paths[-1], dpi=100)
-    plt.close(fig)
+        show_bar(fig, ax, m[n], n, cmap="viridis")
+    show_bar(fig, axes[-1], m["status"], "fit status", cmap="tab10", vmin=0, vmax=9)
+    save(fig, "params.png")
 
     # Uncertainty maps.
     std_names = [n for n in ("albedo_std.G", "specular.std", "roughness.std") if n in m]
@@ -141,16 +143,9 @@ def write_previews(result: CaptureFit, capture, out: Path, preview_side: int = 3
     for ax, sn in zip(axes, std_names, strict=False):
         v = m[sn]
         hi = np.nanpercentile(v, 99) if np.any(np.isfinite(v)) else 1.0
-        fig.colorbar(show(ax, v, sn, cmap="magma", vmin=0, vmax=hi), ax=ax, fraction=0.046)
-    fig.colorbar(
-        show(axes[-1], m["laplace_flag"], "Laplace flag (0 = reliable)", cmap="tab20"),
-        ax=axes[-1],
-        fraction=0.046,
-    )
-    fig.tight_layout()
-    paths.append(out / "uncertainty.png")
-    fig.savefig(paths[-1], dpi=100)
-    plt.close(fig)
+        show_bar(fig, ax, v, sn, cmap="magma", vmin=0, vmax=hi)
+    show_bar(fig, axes[-1], m["laplace_flag"], "Laplace flag (0 = reliable)", cmap="tab20")
+    save(fig, "uncertainty.png")
 
     # Photographed against fitted.
     k = capture.n_photos
@@ -162,10 +157,7 @@ def write_previews(result: CaptureFit, capture, out: Path, preview_side: int = 3
         tag = " (held out)" if i in result.job.holdout else ""
         show(axes[row, 0], _encode(shot[row]), f"photo {i}{tag}")
         show(axes[row, 1], _encode(pred[row]), f"fitted {i}")
-    fig.tight_layout()
-    paths.append(out / "compare.png")
-    fig.savefig(paths[-1], dpi=100)
-    plt.close(fig)
+    save(fig, "compare.png")
     return paths
 
 
