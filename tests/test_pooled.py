@@ -185,3 +185,87 @@ def test_cli_holdout_all(shared_lobe_capture, tmp_path):
     assert len(report["heldout_rmse_per_photo"]) == 4
     assert report["heldout_rmse"] < report["lambert_heldout_rmse"]
     assert report["pooled"]["model"] == "lobe"
+
+
+def _corrupt(cap, k):
+    """``cap`` with photo k's values replaced by noise ten times their scale."""
+    img = cap.images.copy()
+    img[k] = np.random.default_rng(9).uniform(0.0, 10.0 * float(img.max()), img[k].shape)
+    return Capture(**{**cap.__dict__, "images": img.astype(np.float32)})
+
+
+def test_auto_chooses_the_shared_coloured_lobe_and_never_sees_held_out_photos(
+    shared_lobe_capture,
+):
+    from jaxrefl.svbrdf import AUTO_CANDIDATES, choose_model
+
+    cap, _ = shared_lobe_capture
+    cap = cap.select([0, 1, 2, 3, 4, 5])
+    job = FitJob(holdout=(5,), alpha_min=1e-3)
+    assert job.model == "auto" and job.loss is None
+    choice = choose_model(cap, job)
+    assert set(choice.cv_rmse) == set(AUTO_CANDIDATES)
+    # A gold F0 of 0.5 is outside the dielectric range, and per pixel the narrow lobe is not
+    # identified: the pooled coloured lobe predicts unseen photos best, by a wide margin
+    # over Lambert.
+    assert choice.model == "pooled"
+    assert choice.cv_rmse["pooled"] < 0.5 * choice.cv_rmse["lambert"]
+    assert choice.cv_rmse["pooled"] < choice.cv_rmse["ggx"]
+    assert choice.folds == (0, 1, 2, 3, 4)
+    # Photo 5 is held out: replacing it by noise changes no score.
+    again = choose_model(_corrupt(cap, 5), job)
+    assert again.cv_rmse == choice.cv_rmse
+    # The fit resolves the model and its loss and reports the choice.
+    res = fit_capture(cap, job)
+    assert res.job.model == "pooled" and res.job.loss == "huber"
+    assert res.report["model"] == "pooled"
+    assert res.report["auto"]["model"] == "pooled"
+    assert res.report["auto"]["cv_rmse"] == pytest.approx(choice.cv_rmse)
+    assert "leave-one-photo-out" in res.report["auto"]["why"]
+    assert (
+        res.report["heldout_rmse"]
+        < 0.5 * fit_capture(cap, FitJob(model="lambert", holdout=(5,))).report["heldout_rmse"]
+    )
+
+
+def test_auto_leaves_out_what_a_matte_capture_does_not_need(shared_lobe_capture):
+    from jaxrefl.svbrdf import choose_model
+
+    cap, truth = shared_lobe_capture
+    geo = cap.per_pixel_geometry(dtype=np.float64)
+    img = truth["albedo"][None] / np.pi * geo["irradiance"] * geo["cos_i"][..., None]
+    img = img * (1.0 + 0.005 * np.random.default_rng(1).standard_normal(img.shape))
+    matte = Capture(**{**cap.__dict__, "images": img.astype(np.float32)}).select(range(5))
+    choice = choose_model(matte, FitJob(alpha_min=1e-3), ("lambert", "pooled", "ggx"))
+    assert choice.model == "lambert"
+    assert set(choice.cv_rmse) == {"lambert", "pooled", "ggx"}
+    with pytest.raises(ValueError, match="auto"):
+        choose_model(matte, FitJob(), ("auto",))
+
+
+def test_tilted_model_compiles_once_for_every_tile(shared_lobe_capture):
+    """ggx_normal estimates the noise scale per tile: as an array, so the second tile's fit
+    reuses the first's programs (a float would be static under equinox's jit)."""
+    import jax
+
+    cap, _ = shared_lobe_capture
+    cap = cap.select([0, 1, 2, 3])
+    n_px = cap.shape[1] * cap.shape[2]
+    events: list[int] = []
+    tiles = {"done": 0}
+
+    def listener(event, duration, **kw):
+        if event == "/jax/core/compile/backend_compile_duration":
+            events.append(tiles["done"])
+
+    def on_tile(i, n):
+        tiles["done"] += 1
+
+    jax.monitoring.register_event_duration_secs_listener(listener)
+    try:
+        res = fit_capture(cap, FitJob(model="ggx_normal", tile_pixels=n_px // 3), on_tile=on_tile)
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listener)
+    assert res.report["timings"]["tiles"] == 3
+    # The first tile runs twice (warm-up, then timed); nothing compiles after it.
+    assert [e for e in events if e >= 1] == []

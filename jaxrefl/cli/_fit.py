@@ -1,13 +1,14 @@
 """Fit a photographed planar capture: per-pixel reflectance maps with uncertainty.
 
-    jaxrefl fit CAPTURE_DIR --out OUT_DIR [--model ggx|beckmann|ggx_rgb|pooled|lambert|...]
+    jaxrefl fit CAPTURE_DIR --out OUT_DIR [--model auto|ggx|ggx_rgb|pooled|lambert|...]
                 [--holdout i,j,...|all] [--tile-pixels N] [--downsample F] [--restart]
 
 CAPTURE_DIR is in one of the layouts :func:`jaxrefl.io.load_capture` reads (the
 svbrdf-diff-renderer ``parameters.json`` or ``optim.json`` layouts, MaterialGAN's text
 files, or the generic JSON). ``--holdout all`` fits every photo out in turn and reports each
 one's held-out RMSE beside Lambert's (:func:`jaxrefl.svbrdf.leave_one_out`), then writes the
-maps of the fit on all photos.
+maps of the fit on all photos. ``--model auto`` (the default) fits the model that best predicts
+held-out training photos (:func:`jaxrefl.svbrdf.choose_model`); the report says which and why.
 
 Writes OUT_DIR/maps.exr (parameters, their Laplace std, correlations, status and
 reliability flags), OUT_DIR/report.json (timings with compile apart, pixel counts by status,
@@ -41,7 +42,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
     p.add_argument("capture", type=Path, help="capture folder (or generic JSON file)")
     p.add_argument("--out", type=Path, required=True, help="output folder")
-    p.add_argument("--model", default="ggx", choices=sorted(CAPTURE_MODELS), help="model")
+    p.add_argument(
+        "--model",
+        default="auto",
+        choices=["auto", *sorted(CAPTURE_MODELS)],
+        help="capture model; auto (default): the candidate with the lowest leave-one-photo-out "
+        "error over the training photos",
+    )
     p.add_argument(
         "--holdout",
         type=_indices,
@@ -154,6 +161,10 @@ def print_summary(report: dict) -> None:
                 f"per-pixel 99th percentile {b_p99:.5f}; photos predicted worse than "
                 f"{base}: {report['photos_worse_than_baseline'] or 'none'}"
             )
+    if report.get("auto"):
+        print(f"auto: chose {report['auto']['model']}: {report['auto']['why']}")
+    for a in report.get("auto_per_fold", []):
+        print(f"auto (fold): chose {a['model']}")
     if report.get("pooled"):
         pc = report["pooled"]
         alpha = f" (alpha {pc['alpha']:.4f})" if pc["alpha"] else ""

@@ -17,7 +17,8 @@ Quick use::
     svbrdf.write_uncertainty(u, "post")                     # uncertainty.exr, posterior.nc
     u.map.std, u.report()["uncertainty"]["method_counts"]
 
-Parts: :mod:`._models` (named capture models), :mod:`._data` (capture pixels as least-squares
+Parts: :mod:`._models` (named capture models), :mod:`._auto` (the capture's model chosen by
+held-out photos), :mod:`._data` (capture pixels as least-squares
 data: weights, censoring, geometry), :mod:`._pooled` (one lobe shape per capture, chosen by
 held-out photos), :mod:`._job` (tiled fit with Laplace uncertainty and resume),
 :mod:`._holdout` (leave-one-photo-out against a baseline), :mod:`._outputs` (EXR maps,
@@ -25,6 +26,9 @@ report, previews), :mod:`._uncertainty` (the fit's Laplace std, then MCMC where 
 flagged: posterior uncertainty maps).
 """
 
+from ._auto import AUTO_CANDIDATES as AUTO_CANDIDATES
+from ._auto import ModelChoice as ModelChoice
+from ._auto import choose_model as choose_model
 from ._data import is_colocated as is_colocated
 from ._data import pixel_block as pixel_block
 from ._data import resolvable_alpha as resolvable_alpha

@@ -75,6 +75,7 @@ def _run(capture, job: FitJob, progress: Callable[[str], None] | None):
     sse = np.zeros(h * w)
     cnt = np.zeros(h * w)
     choices = []
+    autos = []
     counts: dict[str, dict[str, int]] = {"status": {}, "laplace_flag": {}}
     for i in range(k):
         t0 = time.perf_counter()
@@ -87,6 +88,8 @@ def _run(capture, job: FitJob, progress: Callable[[str], None] | None):
         cnt += c
         if fit.report.get("pooled") is not None:
             choices.append(fit.report["pooled"])
+        if fit.report.get("auto") is not None:
+            autos.append(fit.report["auto"])
         for key, src in (("status", "status_counts"), ("laplace_flag", "laplace_flag_counts")):
             for name, v in fit.report[src].items():
                 counts[key][name] = counts[key].get(name, 0) + int(v)
@@ -94,7 +97,7 @@ def _run(capture, job: FitJob, progress: Callable[[str], None] | None):
             progress(f"{job.model}: photo {i} held out, RMSE {per[i]:.5f} ({wall:.1f} s)")
     with np.errstate(invalid="ignore", divide="ignore"):
         pix = np.where(cnt > 0, np.sqrt(sse / np.maximum(cnt, 1)), np.nan).reshape(h, w)
-    return per, pix, secs, compile_s, choices, counts
+    return per, pix, secs, compile_s, choices, autos, counts
 
 
 def _finite(x: float) -> float | None:
@@ -118,9 +121,9 @@ def leave_one_out(
     job = FitJob() if job is None else job
     if capture.n_photos < 2:
         raise ValueError("leave-one-out needs at least two photos")
-    per, pix, secs, comp, choices, counts = _run(capture, job, progress)
+    per, pix, secs, comp, choices, autos, counts = _run(capture, job, progress)
     base_job = replace(job, model=baseline)
-    b_per, b_pix, b_secs, b_comp, _, _ = _run(capture, base_job, progress)
+    b_per, b_pix, b_secs, b_comp, _, _, _ = _run(capture, base_job, progress)
     tag = baseline
     report: dict[str, Any] = {
         "holdout": "all",
@@ -142,6 +145,8 @@ def leave_one_out(
     }
     if choices:
         report["pooled_per_fold"] = choices
+    if autos:
+        report["auto_per_fold"] = autos
     return LeaveOneOut(
         job=job,
         baseline=tag,

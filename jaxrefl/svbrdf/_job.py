@@ -37,6 +37,7 @@ import numpy as np
 from jaxrefl import brdf, fit
 from jaxrefl.fit import Status
 
+from ._auto import ModelChoice, choose_model
 from ._data import pixel_block, resolvable_alpha
 from ._models import ALPHA_RANGE, TWO_STAGE, capture_model
 from ._pooled import PoolChoice, choose_pooled
@@ -55,7 +56,9 @@ _LOSS = {"l2": fit.L2, "huber": fit.Huber, "cauchy": fit.Cauchy}
 class FitJob:
     """What to fit and how (everything that changes the result; see :func:`fit_capture`).
 
-    model:      a name of :data:`jaxrefl.svbrdf.CAPTURE_MODELS` (default ``ggx``)
+    model:      a name of :data:`jaxrefl.svbrdf.CAPTURE_MODELS`, or ``auto`` (the default):
+                the candidate that best predicts held-out training photos
+                (:func:`jaxrefl.svbrdf.choose_model`; the report's ``auto`` says why)
     holdout:    photo indices left out of the fit and used to measure prediction error
     tile_pixels: pixels per tile (memory is constant in the image size, about 1 kB a pixel)
     backend:    ``lean`` (default), ``optimistix`` or ``jaxopt``
@@ -77,7 +80,7 @@ class FitJob:
                 slopes of a real capture overfit (bath_tile: 17% of pixels at 45 degrees).
     """
 
-    model: str = "ggx"
+    model: str = "auto"
     holdout: tuple[int, ...] = ()
     tile_pixels: int = 4096
     backend: str = "lean"
@@ -92,12 +95,14 @@ class FitJob:
     tilt_std: float = 0.1
 
     def __post_init__(self) -> None:
-        capture_model(self.model)  # raises for an unknown name
+        if self.model != "auto":
+            capture_model(self.model)  # raises for an unknown name
         if self.noise not in _NOISE:
             raise ValueError(f"noise must be one of {sorted(_NOISE)}, not {self.noise!r}")
-        if self.loss is None:
+        # ``auto`` leaves the loss to the model it chooses (None stays None until then).
+        if self.loss is None and self.model != "auto":
             object.__setattr__(self, "loss", DEFAULT_LOSS.get(self.model, "l2"))
-        if self.loss not in _LOSS:
+        if self.loss is not None and self.loss not in _LOSS:
             raise ValueError(f"loss must be one of {sorted(_LOSS)}, not {self.loss!r}")
         if self.dtype not in ("float32", "float64"):
             raise ValueError(f"dtype must be float32 or float64, not {self.dtype!r}")
@@ -299,7 +304,9 @@ class _TileFitter:
             s2 = s2[np.isfinite(s2) & (s2 > 0)]
             # No pixel with an estimate (all masked): any scale will do, nothing is fitted.
             sigma = float(np.sqrt(np.median(s2))) if s2.size else 1.0
-            noise = fit.GaussianNoise(sigma=sigma)
+            # An array, not a float: equinox's jit treats a float as static, and a new value
+            # in every tile or fold would compile the tilted fit again.
+            noise = fit.GaussianNoise(sigma=jnp.asarray(sigma, fit_data.obs.dtype))
         t = float(self.job.tilt_std)
         prior = fit.gaussian_prior(self.space, {"tilt_x": (0.0, t), "tilt_y": (0.0, t)})
         kw2 = {
@@ -317,8 +324,13 @@ class _TileFitter:
         res = fit.make_residual(self.model, self.space, noise, self.loss, prior)
         return best, res, None if sigma is None else sigma * sigma
 
-    def __call__(self, data, n: int) -> dict[str, np.ndarray]:
-        train_w = jnp.asarray(self.train, data.weight.dtype)[None, :, None]
+    def __call__(self, data, n: int, train=None) -> dict[str, np.ndarray]:
+        """Fit the first ``n`` pixels of ``data`` on the job's training photos, or per pixel
+        on ``train`` ((N, K) bool: several held-out folds stacked in one tile)."""
+        if train is None:
+            train_w = jnp.asarray(self.train, data.weight.dtype)[None, :, None]
+        else:
+            train_w = jnp.asarray(train, data.weight.dtype)[:, :, None]
         fit_data = eqx.tree_at(lambda d: d.weight, data, data.weight * train_w)
         kw = dict(
             noise=self.noise,
@@ -481,6 +493,10 @@ def fit_capture(
     """
     job = FitJob() if job is None else job
     _k, h, w, c = capture.shape
+    choice: ModelChoice | None = None
+    if job.model == "auto":
+        choice = choose_model(capture, job)
+        job = replace(job, model=choice.model)
     fitter = _TileFitter(capture, job)
     tiles = _tiles(h, w, job.tile_pixels)
     tdir = None
@@ -527,6 +543,7 @@ def fit_capture(
     cat = {key: np.concatenate([r[key] for r in done]) for key in done[0]}
     maps = _maps(fitter, cat, h, w)
     report = _report(fitter, cat, capture, job, maps, compile_s, times, len(tiles), loaded)
+    report["auto"] = None if choice is None else choice.as_dict()
     return CaptureFit(
         maps=maps,
         report=report,
@@ -541,6 +558,7 @@ def fit_capture(
             "cnt": cat["cnt"],
             "alpha_min": fitter.alpha_min,
             "pooled": fitter.pooled,
+            "auto": choice,
         },
     )
 

@@ -1,0 +1,145 @@
+"""Choosing a capture's model by held-out photos: add what the scene needs, leave out the rest.
+
+``FitJob(model="auto")`` (the default) fits a capture with whichever candidate of
+:data:`AUTO_CANDIDATES` predicts photos it was not fitted to best:
+
+* ``lambert``: diffuse only;
+* ``ggx``: a dielectric (grey F0 in [0, 0.25]) with a per-pixel lobe;
+* ``ggx_rgb``: a coloured specular (F0 per channel in [0, 1], metals) with a per-pixel lobe;
+* ``pooled``: the coloured specular with one lobe width for the capture and pooled F0
+  (:mod:`jaxrefl.svbrdf._pooled`);
+* ``ggx_normal``: the dielectric with a per-pixel shading normal.
+
+The score is the leave-one-photo-out RMSE over the *training* photos (the job's own
+``holdout`` photos are never looked at, so a held-out figure of an ``auto`` fit stays an
+honest one): for each training photo j, every candidate is fitted on the other training
+photos and predicts photo j's uncensored observations; the squared errors of all folds are
+summed. The folds share one random set of pixels (a paired comparison: every candidate is
+scored on the same observations), and they are stacked into the rows of one tile of the job's
+tiling, each row with its own training photos, so a candidate costs one tile's fit, and the
+chosen model's compiled programs serve the full fit too. ``pooled``'s shared width and F0
+prior are chosen once from all training photos (one scalar and a per-channel prior, fitted to
+every selection pixel; the per-pixel parameters are fitted per fold).
+
+The lowest score wins, except that a more complex candidate must beat the simplest one within
+:data:`TOLERANCE` (relative) of the best: the ranking is a measurement, and a difference
+smaller than the folds' scatter is not evidence for extra parameters. The report's ``auto``
+entry lists every candidate's score and says why the winner won.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING, Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+if TYPE_CHECKING:
+    from ._job import FitJob
+
+__all__ = ["AUTO_CANDIDATES", "SELECTION_PIXELS", "TOLERANCE", "ModelChoice", "choose_model"]
+
+# In order of complexity (parameters per pixel, then shared structure): ties go to the first.
+AUTO_CANDIDATES: tuple[str, ...] = ("lambert", "pooled", "ggx", "ggx_rgb", "ggx_normal")
+SELECTION_PIXELS = 4096
+# Relative margin a more complex model must win by (see the module docstring).
+TOLERANCE = 0.01
+
+
+@dataclass(frozen=True)
+class ModelChoice:
+    """What :func:`choose_model` chose, and the evidence.
+
+    model:    the chosen candidate's name
+    cv_rmse:  leave-one-photo-out RMSE of every candidate over the training photos
+    pixels:   pixels of the selection sample (each scored once per fold)
+    folds:    the training photos scored, each held out once
+    """
+
+    model: str
+    cv_rmse: dict[str, float]
+    pixels: int
+    folds: tuple[int, ...]
+
+    def as_dict(self) -> dict[str, Any]:
+        ranked = sorted(self.cv_rmse.items(), key=lambda kv: kv[1])
+        lam = self.cv_rmse.get("lambert")
+        why = f"lowest leave-one-photo-out RMSE over {len(self.folds)} training photos: " + (
+            ", ".join(f"{m} {r:.5f}" for m, r in ranked)
+        )
+        if lam is not None and self.model != "lambert":
+            why += f" ({self.cv_rmse[self.model] / lam:.2f} x Lambert's)"
+        return {
+            "model": self.model,
+            "why": why,
+            "cv_rmse": dict(self.cv_rmse),
+            "selection_pixels": self.pixels,
+            "folds": list(self.folds),
+            "tolerance": TOLERANCE,
+        }
+
+
+def _stack(data, train: list[int], k: int, size: int):
+    """``data`` (n pixels) once per training photo j, each copy fitted without photo j, padded
+    to a multiple of ``size`` rows with unweighted rows. Returns (stacked data, (rows, K)
+    training mask, (rows,) the copy's held-out photo, -1 for padding)."""
+    n = data.obs.shape[0]
+    rows = -(-(n * len(train)) // size) * size
+    pad = rows - n * len(train)
+    idx = np.concatenate([np.tile(np.arange(n), len(train)), np.full(pad, n - 1)])
+    held = np.concatenate([np.repeat(np.asarray(train), n), np.full(pad, -1)])
+    stacked = jax.tree.map(lambda a: a[idx], data)
+    live = jnp.asarray(held >= 0, stacked.weight.dtype)[:, None, None]
+    stacked = eqx.tree_at(lambda d: d.weight, stacked, stacked.weight * live)
+    mask = np.zeros((rows, k), bool)
+    mask[:, train] = True
+    mask[held >= 0, held[held >= 0]] = False
+    return stacked, mask, held
+
+
+def choose_model(
+    capture,
+    job: FitJob,
+    candidates: tuple[str, ...] = AUTO_CANDIDATES,
+    *,
+    max_pixels: int = SELECTION_PIXELS,
+    seed: int = 0,
+) -> ModelChoice:
+    """Score every candidate by leave-one-photo-out over the photos ``job`` trains on
+    (module docstring) and choose one. ``job`` gives everything but the model (noise, loss
+    -- None: each model's default --, dtype, alpha_min, tiling). ``max_pixels``: selection
+    rows in all (pixels x folds; at least 256 pixels a fold). With fewer than two training
+    photos there is nothing to score and the choice is the first candidate that is not
+    Lambert."""
+    from ._job import _TileFitter
+    from ._pooled import _subsample
+
+    if not candidates or "auto" in candidates:
+        raise ValueError("candidates must name one or more models other than 'auto'")
+    k = capture.n_photos
+    train = [i for i in range(k) if i not in job.holdout]
+    if len(train) < 2:
+        first = next((m for m in candidates if m != "lambert"), candidates[0])
+        return ModelChoice(first, {}, 0, ())
+    per_fold = max(256, max_pixels // len(train))
+    data = _subsample(capture, per_fold, seed, np.dtype(job.dtype))
+    size = job.tile_pixels
+    stacked, mask, held = _stack(data, train, k, size)
+    cv: dict[str, float] = {}
+    for m in candidates:
+        fitter = _TileFitter(capture, replace(job, model=m))
+        sse = cnt = 0.0
+        for s in range(0, mask.shape[0], size):
+            part = slice(s, s + size)
+            out = fitter(jax.tree.map(lambda a, p=part: a[p], stacked), size, mask[part])
+            h = held[part]
+            rows = np.flatnonzero(h >= 0)
+            sse += float(np.sum(out["sse"][rows, h[rows]]))
+            cnt += float(np.sum(out["cnt"][rows, h[rows]]))
+        cv[m] = float(np.sqrt(sse / cnt)) if cnt > 0 else float("inf")
+    best = min(cv.values())
+    chosen = next(m for m in candidates if cv[m] <= best * (1.0 + TOLERANCE))
+    return ModelChoice(chosen, cv, int(data.obs.shape[0]), tuple(train))
