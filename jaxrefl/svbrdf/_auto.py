@@ -8,7 +8,8 @@
 * ``ggx_rgb``: a coloured specular (F0 per channel in [0, 1], metals) with a per-pixel lobe;
 * ``pooled``: the coloured specular with one lobe width for the capture and pooled F0
   (:mod:`jaxrefl.svbrdf._pooled`);
-* ``ggx_normal``: the dielectric with a per-pixel shading normal.
+* ``ggx_normal``: the dielectric with a per-pixel shading normal, tried only where the
+  per-pixel dielectric is the best so far (:data:`REFINES`).
 
 The score is the leave-one-photo-out RMSE over the *training* photos (the job's own
 ``holdout`` photos are never looked at, so a held-out figure of an ``auto`` fit stays an
@@ -45,6 +46,10 @@ __all__ = ["AUTO_CANDIDATES", "SELECTION_PIXELS", "TOLERANCE", "ModelChoice", "c
 # In order of complexity (parameters per pixel, then shared structure): ties go to the first.
 AUTO_CANDIDATES: tuple[str, ...] = ("lambert", "pooled", "ggx", "ggx_rgb", "ggx_normal")
 SELECTION_PIXELS = 4096
+# Candidates that refine another (name -> the model they extend) are scored only when that
+# model is the best so far: a per-pixel normal on a lobe the photos do not support cannot
+# help, and the tilted fit costs more than all the other candidates together.
+REFINES: dict[str, str] = {"ggx_normal": "ggx"}
 # Relative margin a more complex model must win by (see the module docstring).
 TOLERANCE = 0.01
 
@@ -57,12 +62,14 @@ class ModelChoice:
     cv_rmse:  leave-one-photo-out RMSE of every candidate over the training photos
     pixels:   pixels of the selection sample (each scored once per fold)
     folds:    the training photos scored, each held out once
+    skipped:  candidates not scored, with the reason (:data:`REFINES`)
     """
 
     model: str
     cv_rmse: dict[str, float]
     pixels: int
     folds: tuple[int, ...]
+    skipped: dict[str, str]
 
     def as_dict(self) -> dict[str, Any]:
         ranked = sorted(self.cv_rmse.items(), key=lambda kv: kv[1])
@@ -78,6 +85,7 @@ class ModelChoice:
             "cv_rmse": dict(self.cv_rmse),
             "selection_pixels": self.pixels,
             "folds": list(self.folds),
+            "skipped": dict(self.skipped),
             "tolerance": TOLERANCE,
         }
 
@@ -123,13 +131,18 @@ def choose_model(
     train = [i for i in range(k) if i not in job.holdout]
     if len(train) < 2:
         first = next((m for m in candidates if m != "lambert"), candidates[0])
-        return ModelChoice(first, {}, 0, ())
+        return ModelChoice(first, {}, 0, (), {})
     per_fold = max(256, max_pixels // len(train))
     data = _subsample(capture, per_fold, seed, np.dtype(job.dtype))
     size = job.tile_pixels
     stacked, mask, held = _stack(data, train, k, size)
     cv: dict[str, float] = {}
+    skipped: dict[str, str] = {}
     for m in candidates:
+        base = REFINES.get(m)
+        if base in cv and cv[base] > min(cv.values()) * (1.0 + TOLERANCE):
+            skipped[m] = f"refines {base}, which is not the best so far"
+            continue
         fitter = _TileFitter(capture, replace(job, model=m))
         sse = cnt = 0.0
         for s in range(0, mask.shape[0], size):
@@ -142,4 +155,4 @@ def choose_model(
         cv[m] = float(np.sqrt(sse / cnt)) if cnt > 0 else float("inf")
     best = min(cv.values())
     chosen = next(m for m in candidates if cv[m] <= best * (1.0 + TOLERANCE))
-    return ModelChoice(chosen, cv, int(data.obs.shape[0]), tuple(train))
+    return ModelChoice(chosen, cv, int(data.obs.shape[0]), tuple(train), skipped)
