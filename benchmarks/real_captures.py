@@ -8,6 +8,9 @@ predicted by a fit on the other eight:
 * ``ggx``: per-pixel GGX + Lambert with a grey (dielectric) F0;
 * ``pooled``: one GGX width per capture, chosen by held-out photos, coloured F0 with an
   empirical-Bayes prior (:mod:`jaxrefl.svbrdf._pooled`);
+* ``auto``: the default, ``FitJob(model="auto")``: in every fold, the model that best
+  predicts the fold's own training photos held out in turn (:mod:`jaxrefl.svbrdf._auto`),
+  its selection's time included (its first fold compiles every candidate);
 * ``adam``: the per-pixel gradient-descent peer (``benchmarks/peer_adam.py``: the
   svbrdf-diff-renderer / MaterialGAN per-pixel mode, 1,000 Adam steps).
 
@@ -17,7 +20,7 @@ percentile over pixels of the per-pixel held-out RMSE (all photos). Times: run s
 over the folds, compilation apart, and process CPU seconds (both cores count).
 
     python benchmarks/real_captures.py [--size 256] [--captures bath_tile,yellow_box]
-        [--models lambert,ggx,pooled,adam] [--adam-steps 1000] [--no-write]
+        [--models lambert,ggx,pooled,auto,adam] [--adam-steps 1000] [--no-write]
 
 It prints the tables and writes them, dated and with the machine, to the section
 ``real_captures`` of ``docs/benchmarks.md``.
@@ -71,6 +74,7 @@ def _jaxrefl_model(cap, model: str) -> dict:
         "not_identified": fl.get("NOT_IDENTIFIED", 0) / npx,
         "laplace_reliable": fl.get("reliable", 0) / npx,
         "pooled": r.get("pooled_per_fold"),
+        "auto": r.get("auto_per_fold"),
         "lambert": {
             "per_photo": loo.baseline_per_photo,
             "p50": r["lambert_heldout_pixel_rmse_median"],
@@ -133,7 +137,7 @@ def run_capture(name: str, size: int, models: list[str], adam_steps: int) -> tup
             results["lambert"] = lam
     if "lambert" not in results and "lambert" in models:
         results["lambert"] = _jaxrefl_model(cap, "lambert")["lambert"]
-    order = [m for m in ("lambert", "ggx", "pooled", "adam") if m in results]
+    order = [m for m in ("lambert", "ggx", "pooled", "auto", "adam") if m in results]
     lam = results.get("lambert")
     k = cap.n_photos
     headers = ["model", *[f"photo {i}" for i in range(k)], "mean", "/ Lambert", "p50 px", "p99 px"]
@@ -195,14 +199,23 @@ def run_capture(name: str, size: int, models: list[str], adam_steps: int) -> tup
             f"pooled chose {', '.join(models_ch)} in the {len(ch)} folds"
             + (f"; shared alpha {min(fin):.3f}-{max(fin):.3f}" if fin else ""),
         ]
+    if "auto" in results and results["auto"].get("auto"):
+        ch = [c["model"] for c in results["auto"]["auto"]]
+        text += [
+            "",
+            "auto chose "
+            + ", ".join(f"{m} in {ch.count(m)} of {len(ch)} folds" for m in sorted(set(ch))),
+        ]
     return "\n".join(text), results
 
 
 def _targets(name: str, results: dict) -> str:
-    """The issue's targets for the pooled model, checked against this run."""
-    if not {"lambert", "pooled"} <= set(results):
+    """The issue's targets for the default model (``auto``; ``pooled`` when auto was not
+    run), checked against this run."""
+    tag = "auto" if "auto" in results else "pooled"
+    if not {"lambert", tag} <= set(results):
         return ""
-    lam, new = results["lambert"], results["pooled"]
+    lam, new = results["lambert"], results[tag]
     lines = []
     m_new, m_lam = float(np.nanmean(new["per_photo"])), float(np.nanmean(lam["per_photo"]))
     lines.append(f"mean / Lambert {m_new / m_lam:.2f} (target <= 0.70)")
@@ -211,13 +224,13 @@ def _targets(name: str, results: dict) -> str:
         lines.append(f"mean / Adam {m_new / m_adam:.2f} (target <= 0.80)")
         if new.get("cpu_s") and results["adam"].get("cpu_s"):
             lines.append(
-                f"Adam CPU s / pooled CPU s {results['adam']['cpu_s'] / new['cpu_s']:.1f} "
+                f"Adam CPU s / {tag} CPU s {results['adam']['cpu_s'] / new['cpu_s']:.1f} "
                 "(target >= 10)"
             )
     worse = [int(i) for i in np.flatnonzero(new["per_photo"] > lam["per_photo"])]
     lines.append(f"photos worse than Lambert: {worse or 'none'}")
     lines.append(f"p99 per pixel {new['p99']:.4f} against Lambert's {lam['p99']:.4f}")
-    return f"{name}: " + "; ".join(lines)
+    return f"{name} ({tag}): " + "; ".join(lines)
 
 
 def _write(section: str, body: str) -> Path:
@@ -243,7 +256,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--size", type=int, default=256)
     ap.add_argument("--captures", default="bath_tile,yellow_box")
-    ap.add_argument("--models", default="lambert,ggx,pooled,adam")
+    ap.add_argument("--models", default="lambert,ggx,pooled,auto,adam")
     ap.add_argument("--adam-steps", type=int, default=1000)
     ap.add_argument("--no-write", action="store_true", help="print only")
     args = ap.parse_args(argv)
@@ -263,7 +276,7 @@ def main(argv=None) -> int:
         summary.append(_targets(name, results))
     summary = [s for s in summary if s]
     if summary:
-        parts += ["", "Targets (issue: pooled against Lambert and the Adam peer):", ""]
+        parts += ["", "Targets (the default model against Lambert and the Adam peer):", ""]
         parts += [f"- {s}" for s in summary]
         print("\n".join(summary))
     if not args.no_write:

@@ -290,3 +290,30 @@ def test_auto_keeps_a_per_pixel_lobe_where_roughness_varies(shared_lobe_capture)
     assert choice.model == "ggx", choice.as_dict()["why"]
     assert set(choice.cv_rmse) == {"lambert", "pooled", "ggx", "ggx_rgb", "ggx_normal"}
     assert choice.cv_rmse["ggx"] < choice.cv_rmse["pooled"] < choice.cv_rmse["lambert"]
+
+
+def test_held_out_photo_is_re_rendered_with_coloured_highlights(shared_lobe_capture, tmp_path):
+    """compare.png shows ``predict_photos`` of the held-out photo: with the default model its
+    gold highlight stays gold; the grey-F0 dielectric paints it whiter."""
+    from jaxrefl.svbrdf import predict_photos, write_outputs
+
+    cap, _ = shared_lobe_capture
+    job = FitJob(holdout=(4,), alpha_min=1e-3)
+    res = fit_capture(cap, job)
+    assert res.job.model == "pooled"
+    shot, pred = predict_photos(res, cap, [4])
+    shot, pred = shot[0], pred[0]
+    # The highlight: the brightest 3% of the held-out photo's pixels.
+    lum = shot.mean(-1)
+    hi = lum >= np.quantile(lum, 0.97)
+
+    def chroma(img):  # R / B of the highlight's mean colour above the diffuse level
+        return float(img[hi][:, 0].mean() / img[hi][:, 2].mean())
+
+    assert chroma(shot) > 1.8  # the photo's highlight is gold
+    assert chroma(pred) == pytest.approx(chroma(shot), rel=0.15)
+    grey = fit_capture(cap, FitJob(model="ggx", holdout=(4,), alpha_min=1e-3))
+    _, g = predict_photos(grey, cap, [4])
+    assert abs(chroma(g[0]) - chroma(shot)) > 2 * abs(chroma(pred) - chroma(shot))
+    files = write_outputs(res, cap, tmp_path / "out")
+    assert any(p.endswith("compare.png") for p in files["previews"])

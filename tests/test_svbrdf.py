@@ -73,7 +73,9 @@ def test_noise_free_pixels_recover_parameters_to_1e4():
 # first stage of ggx_normal and the flat comparison), so they run one compiled tile program.
 # A known noise scale of 1e-6 only rescales the residuals of a noise-free fit (the LM's
 # tolerances and damping are relative); the tilted test needs it for its prior.
-_F64_JOB = dict(dtype="float64", tile_pixels=64, alpha_min=1e-3, max_iters=60, sigma=1e-6)
+_F64_JOB = dict(
+    model="ggx", dtype="float64", tile_pixels=64, alpha_min=1e-3, max_iters=60, sigma=1e-6
+)
 
 
 def test_noise_free_capture_recovers_the_maps():
@@ -173,7 +175,7 @@ def test_capture_with_tilted_normals_is_recovered_by_ggx_normal():
     )
     cap, _ = _demo_capture(size=size)
     cap = replace(cap, images=lin)
-    job = svbrdf.FitJob(model="ggx_normal", **_F64_JOB)
+    job = svbrdf.FitJob(**{**_F64_JOB, "model": "ggx_normal"})
     r = svbrdf.fit_capture(cap, job)
     p = r.params()
     err = np.abs(np.stack([p["tilt_x"], p["tilt_y"]]) - tilt)
@@ -369,7 +371,7 @@ def test_capture_job_status_censoring_and_bad_pixels():
     st[:4, 0, 1] = ObsStatus.NEGATIVE  # some bad observations: fitted from the rest
     st[:, 0, 2] = ObsStatus.SATURATED  # all saturated: censored only
     cap = replace(cap, images=img, status=st, saturation_level=0.5)
-    r = svbrdf.fit_capture(cap, svbrdf.FitJob(tile_pixels=_TILE))
+    r = svbrdf.fit_capture(cap, svbrdf.FitJob(model="ggx", tile_pixels=_TILE))
     s = r.maps["status"]
     assert s[0, 0] == fit.Status.MASKED
     assert np.isnan(r.maps["alpha"][0, 0]) and r.maps["laplace_flag"][0, 0] & 1
@@ -383,7 +385,7 @@ def test_capture_job_status_censoring_and_bad_pixels():
 
 def test_holdout_and_bad_job_arguments():
     cap, _ = _demo_capture(size=8, noise=1e-3)
-    r = svbrdf.fit_capture(cap, svbrdf.FitJob(holdout=(2,), tile_pixels=_TILE))
+    r = svbrdf.fit_capture(cap, svbrdf.FitJob(model="ggx", holdout=(2,), tile_pixels=_TILE))
     assert r.report["holdout"] == [2]
     assert r.report["heldout_rmse"] < 5e-3
     assert set(r.report["heldout_rmse_per_photo"]) == {"2"}
@@ -406,7 +408,7 @@ class _Interrupt(Exception):
 
 def test_interrupted_run_resumes_without_recomputing(tmp_path):
     cap, _ = _demo_capture(size=8, noise=1e-3)
-    job = svbrdf.FitJob(tile_pixels=_TILE)  # 4 tiles
+    job = svbrdf.FitJob(model="ggx", tile_pixels=_TILE)  # 4 tiles
     full = svbrdf.fit_capture(cap, job)
 
     def stop_after_two(i, n):
@@ -443,7 +445,7 @@ def test_interrupted_run_resumes_without_recomputing(tmp_path):
 
 def test_outputs_exr_report_previews(tmp_path):
     cap, _ = _demo_capture(size=8, noise=1e-3)
-    r = svbrdf.fit_capture(cap, svbrdf.FitJob(holdout=(0,), tile_pixels=_TILE))
+    r = svbrdf.fit_capture(cap, svbrdf.FitJob(model="ggx", holdout=(0,), tile_pixels=_TILE))
     files = svbrdf.write_outputs(r, cap, tmp_path)
     exr = read_exr(tmp_path / "maps.exr")
     for name in ("albedo.R", "specular", "roughness", "roughness.std", "status", "laplace_flag"):

@@ -127,11 +127,13 @@ def write_previews(result: CaptureFit, capture, out: Path, preview_side: int = 3
 
     # Parameter maps.
     names = [n for n in ("specular", "roughness") if n in m]
-    fig, axes = plt.subplots(1, 2 + len(names), figsize=(3.2 * (2 + len(names)), 3.4))
-    if "albedo.R" in m:
-        alb = np.stack([m["albedo.R"], m["albedo.G"], m["albedo.B"]], -1)
-        show(axes[0], _encode(alb), "diffuse albedo (gamma 2.2)")
-    for ax, n in zip(axes[1:], names, strict=False):
+    rgb = [n for n in ("albedo", "specular") if f"{n}.R" in m]  # coloured maps
+    n_ax = max(1, len(rgb)) + len(names) + 1
+    fig, axes = plt.subplots(1, n_ax, figsize=(3.2 * n_ax, 3.4))
+    titles = {"albedo": "diffuse albedo (gamma 2.2)", "specular": "specular F0 (gamma 2.2)"}
+    for ax, n in zip(axes, rgb, strict=False):
+        show(ax, _encode(np.stack([m[f"{n}.{c}"] for c in "RGB"], -1)), titles[n])
+    for ax, n in zip(axes[max(1, len(rgb)) :], names, strict=False):
         show_bar(fig, ax, m[n], n, cmap="viridis")
     show_bar(fig, axes[-1], m["status"], "fit status", cmap="tab10", vmin=0, vmax=9)
     save(fig, "params.png")
