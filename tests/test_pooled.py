@@ -194,16 +194,21 @@ def _corrupt(cap, k):
     return Capture(**{**cap.__dict__, "images": img.astype(np.float32)})
 
 
-def test_auto_chooses_the_shared_coloured_lobe_and_never_sees_held_out_photos(
-    shared_lobe_capture,
-):
-    from jaxrefl.svbrdf import AUTO_CANDIDATES, choose_model
-
+@pytest.fixture(scope="module")
+def auto_fit(shared_lobe_capture):
+    """(6-photo capture, its default fit with photo 5 held out)."""
     cap, _ = shared_lobe_capture
     cap = cap.select([0, 1, 2, 3, 4, 5])
     job = FitJob(holdout=(5,), alpha_min=1e-3)
     assert job.model == "auto" and job.loss is None
-    choice = choose_model(cap, job)
+    return cap, fit_capture(cap, job)
+
+
+def test_auto_chooses_the_shared_coloured_lobe_and_never_sees_held_out_photos(auto_fit):
+    from jaxrefl.svbrdf import AUTO_CANDIDATES, choose_model
+
+    cap, res = auto_fit
+    choice = res.extra["auto"]
     assert set(choice.cv_rmse) | set(choice.skipped) == set(AUTO_CANDIDATES)
     # The per-pixel normal refines the per-pixel dielectric, which is not the best here.
     assert "ggx_normal" in choice.skipped
@@ -215,19 +220,16 @@ def test_auto_chooses_the_shared_coloured_lobe_and_never_sees_held_out_photos(
     assert choice.cv_rmse["pooled"] < choice.cv_rmse["ggx"]
     assert choice.folds == (0, 1, 2, 3, 4)
     # Photo 5 is held out: replacing it by noise changes no score.
-    again = choose_model(_corrupt(cap, 5), job)
+    again = choose_model(_corrupt(cap, 5), FitJob(holdout=(5,), alpha_min=1e-3))
     assert again.cv_rmse == choice.cv_rmse
     # The fit resolves the model and its loss and reports the choice.
-    res = fit_capture(cap, job)
     assert res.job.model == "pooled" and res.job.loss == "huber"
     assert res.report["model"] == "pooled"
     assert res.report["auto"]["model"] == "pooled"
     assert res.report["auto"]["cv_rmse"] == pytest.approx(choice.cv_rmse)
     assert "leave-one-photo-out" in res.report["auto"]["why"]
-    assert (
-        res.report["heldout_rmse"]
-        < 0.5 * fit_capture(cap, FitJob(model="lambert", holdout=(5,))).report["heldout_rmse"]
-    )
+    lam = fit_capture(cap, FitJob(model="lambert", holdout=(5,)))
+    assert res.report["heldout_rmse"] < 0.5 * lam.report["heldout_rmse"]
 
 
 def test_auto_leaves_out_what_a_matte_capture_does_not_need(shared_lobe_capture):
@@ -269,8 +271,9 @@ def test_tilted_model_compiles_once_for_every_tile(shared_lobe_capture):
     finally:
         jax.monitoring.unregister_event_duration_listener(listener)
     assert res.report["timings"]["tiles"] == 3
-    # The first tile runs twice (warm-up, then timed); nothing compiles after it.
-    assert [e for e in events if e >= 1] == []
+    # The first tile runs twice (warm-up, then timed); tiles 1 and 2 compile nothing (the
+    # maps and the report after the last tile may).
+    assert events and [e for e in events if 1 <= e < 3] == []
 
 
 def test_auto_keeps_a_per_pixel_lobe_where_roughness_varies(shared_lobe_capture):
@@ -292,16 +295,14 @@ def test_auto_keeps_a_per_pixel_lobe_where_roughness_varies(shared_lobe_capture)
     assert choice.cv_rmse["ggx"] < choice.cv_rmse["pooled"] < choice.cv_rmse["lambert"]
 
 
-def test_held_out_photo_is_re_rendered_with_coloured_highlights(shared_lobe_capture, tmp_path):
+def test_held_out_photo_is_re_rendered_with_coloured_highlights(auto_fit, tmp_path):
     """compare.png shows ``predict_photos`` of the held-out photo: with the default model its
     gold highlight stays gold; the grey-F0 dielectric paints it whiter."""
     from jaxrefl.svbrdf import predict_photos, write_outputs
 
-    cap, _ = shared_lobe_capture
-    job = FitJob(holdout=(4,), alpha_min=1e-3)
-    res = fit_capture(cap, job)
+    cap, res = auto_fit
     assert res.job.model == "pooled"
-    shot, pred = predict_photos(res, cap, [4])
+    shot, pred = predict_photos(res, cap, [5])
     shot, pred = shot[0], pred[0]
     # The highlight: the brightest 3% of the held-out photo's pixels.
     lum = shot.mean(-1)
@@ -312,8 +313,8 @@ def test_held_out_photo_is_re_rendered_with_coloured_highlights(shared_lobe_capt
 
     assert chroma(shot) > 1.8  # the photo's highlight is gold
     assert chroma(pred) == pytest.approx(chroma(shot), rel=0.15)
-    grey = fit_capture(cap, FitJob(model="ggx", holdout=(4,), alpha_min=1e-3))
-    _, g = predict_photos(grey, cap, [4])
+    grey = fit_capture(cap, FitJob(model="ggx", holdout=(5,), alpha_min=1e-3))
+    _, g = predict_photos(grey, cap, [5])
     assert abs(chroma(g[0]) - chroma(shot)) > 2 * abs(chroma(pred) - chroma(shot))
     files = write_outputs(res, cap, tmp_path / "out")
     assert any(p.endswith("compare.png") for p in files["previews"])
