@@ -77,7 +77,8 @@ class FitJob:
                 as the models allow
     tilt_std:   ``ggx_normal`` only: std of the zero-mean Gaussian prior on the slopes
                 ``tilt_x``, ``tilt_y`` (MAP fit; 0.1 is about 6 degrees). Without it the
-                slopes of a real capture overfit (bath_tile: 17% of pixels at 45 degrees).
+                slopes of a real capture overfit: a tilt turns a highlight seen in one
+                photo into a steep normal rather than a brighter lobe.
     """
 
     model: str = "auto"
@@ -400,18 +401,17 @@ def _keep_lower(a, b):
     return replace(a, **out, linearisation=lin)
 
 
-# Starting slopes besides 0: four at this radius (11 degrees) along the axes. On demo pixels
-# tilted by up to 0.25 (noise-free), the start at 0 alone recovered the tilt on 94% of pixels
-# (with _STAGE2_ITERS and the start moved off the bounds); the rest sit in another minimum
-# where colour and width explain the highlight's shift.
+# Starting slopes besides 0: four at this radius (11 degrees) along the axes. From the flat
+# start alone some tilted pixels stay in another minimum, where colour and width explain the
+# highlight's shift; the ring reaches the tilt's basin (tests/test_svbrdf.py checks recovery).
 _TILT_RING = 0.2
 _TILT_STARTS = (
     np.zeros(2),
     *(_TILT_RING * np.array(v, float) for v in ((1, 0), (0, 1), (-1, 0), (0, -1))),
 )
 # The second stage starts from a flat optimum that is often at a bound (F0 at the dielectric
-# cap, alpha at its floor), where the sigmoid has no slope; its LM gets this many iterations
-# at least (40 left 29% of demo pixels unconverged, 150 3%).
+# cap, alpha at its floor), where the sigmoid has no slope, and moves slowly at first: its LM
+# gets this many iterations at least.
 _STAGE2_ITERS = 150
 # Unconstrained start values of bounded parameters are kept within +-this: 4.7% of the range
 # from either edge, where the sigmoid's slope is still 0.045 of its peak.
