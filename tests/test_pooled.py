@@ -224,6 +224,7 @@ def test_auto_chooses_the_shared_coloured_lobe_and_never_sees_held_out_photos(au
     assert again.cv_rmse == choice.cv_rmse
     # The fit resolves the model and its loss and reports the choice.
     assert res.job.model == "pooled" and res.job.loss == "huber"
+    assert res.extra["pooled"] is choice.pooled  # the selection's width, not chosen again
     assert res.report["model"] == "pooled"
     assert res.report["auto"]["model"] == "pooled"
     assert res.report["auto"]["cv_rmse"] == pytest.approx(choice.cv_rmse)

@@ -38,6 +38,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._pooled import PoolChoice
+
 if TYPE_CHECKING:
     from ._job import FitJob
 
@@ -63,6 +65,8 @@ class ModelChoice:
     pixels:   pixels of the selection sample (each scored once per fold)
     folds:    the training photos scored, each held out once
     skipped:  candidates not scored, with the reason (:data:`REFINES`)
+    pooled:   ``pooled``'s own choice (width, F0 prior) on the same training photos, which
+              the fit reuses when ``pooled`` wins
     """
 
     model: str
@@ -70,6 +74,7 @@ class ModelChoice:
     pixels: int
     folds: tuple[int, ...]
     skipped: dict[str, str]
+    pooled: PoolChoice | None = None
 
     def as_dict(self) -> dict[str, Any]:
         ranked = sorted(self.cv_rmse.items(), key=lambda kv: kv[1])
@@ -138,12 +143,14 @@ def choose_model(
     stacked, mask, held = _stack(data, train, k, size)
     cv: dict[str, float] = {}
     skipped: dict[str, str] = {}
+    pool: PoolChoice | None = None
     for m in candidates:
         base = REFINES.get(m)
         if base in cv and cv[base] > min(cv.values()) * (1.0 + TOLERANCE):
             skipped[m] = f"refines {base}, which is not the best so far"
             continue
         fitter = _TileFitter(capture, replace(job, model=m))
+        pool = fitter.pooled if m == "pooled" else pool
         sse = cnt = 0.0
         for s in range(0, mask.shape[0], size):
             part = slice(s, s + size)
@@ -155,4 +162,4 @@ def choose_model(
         cv[m] = float(np.sqrt(sse / cnt)) if cnt > 0 else float("inf")
     best = min(cv.values())
     chosen = next(m for m in candidates if cv[m] <= best * (1.0 + TOLERANCE))
-    return ModelChoice(chosen, cv, int(data.obs.shape[0]), tuple(train), skipped)
+    return ModelChoice(chosen, cv, int(data.obs.shape[0]), tuple(train), skipped, pool)

@@ -224,7 +224,8 @@ def _load_tile(path: Path, n: int) -> dict[str, np.ndarray] | None:
 class _TileFitter:
     """Fit one tile: fit, Laplace, held-out error; pure function of the tile's data."""
 
-    def __init__(self, capture, job: FitJob):
+    def __init__(self, capture, job: FitJob, pooled: PoolChoice | None = None):
+        """``pooled``: ``pooled``'s choice when already made for these training photos."""
         self.capture = capture
         self.job = job
         k = capture.n_photos
@@ -238,7 +239,9 @@ class _TileFitter:
         self.alpha_min = resolvable_alpha(capture) if job.alpha_min is None else job.alpha_min
         self.pooled: PoolChoice | None = None
         if job.model == "pooled":
-            self.pooled = choose_pooled(capture, self.train, self.alpha_min, dtype=job.dtype)
+            self.pooled = pooled or choose_pooled(
+                capture, self.train, self.alpha_min, dtype=job.dtype
+            )
         self.model, self.space = capture_model(
             job.model,
             channels=capture.shape[-1],
@@ -497,7 +500,7 @@ def fit_capture(
     if job.model == "auto":
         choice = choose_model(capture, job)
         job = replace(job, model=choice.model)
-    fitter = _TileFitter(capture, job)
+    fitter = _TileFitter(capture, job, pooled=None if choice is None else choice.pooled)
     tiles = _tiles(h, w, job.tile_pixels)
     tdir = None
     if out_dir is not None:
