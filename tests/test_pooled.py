@@ -172,7 +172,7 @@ def test_cli_holdout_all(shared_lobe_capture, tmp_path):
         camera_pos=cap.camera_pos,
     ).parent
     out = tmp_path / "out"
-    argv = ["fit", str(folder), "--out", str(out), "--model", "pooled", "--holdout", "all"]
+    argv = ["fit", str(folder), "--out", str(out), "--holdout", "all"]  # the default model
     assert main([*argv, "--quiet", "--no-previews", "--alpha-min", "0.001"]) == 0
 
     def refuse(name):
@@ -184,6 +184,9 @@ def test_cli_holdout_all(shared_lobe_capture, tmp_path):
         assert isinstance(report[key], float)
     assert len(report["heldout_rmse_per_photo"]) == 4
     assert report["heldout_rmse"] < report["lambert_heldout_rmse"]
+    # auto chose the shared lobe in every fold and for the final maps, and says why.
+    assert [a["model"] for a in report["auto_per_fold"]] == ["pooled"] * 4
+    assert report["model"] == "pooled" and report["auto"]["model"] == "pooled"
     assert report["pooled"]["model"] == "lobe"
 
 
