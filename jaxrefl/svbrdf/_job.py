@@ -27,7 +27,7 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import equinox as eqx
 import jax
@@ -44,7 +44,7 @@ from ._pooled import PoolChoice, choose_pooled
 
 __all__ = ["DEFAULT_LOSS", "CaptureFit", "FitJob", "fit_capture", "map_name"]
 
-_NOISE = {"gaussian": fit.GaussianNoise, "shot": fit.ShotNoise}
+_NOISES = ("gaussian", "shot")
 # Models whose default loss is not L2. Huber's threshold is one noise std (the pooled model
 # estimates that std): a glint or a misregistered edge in one photo then pulls the shared
 # lobe and the pixel's F0 linearly, not quadratically.
@@ -98,8 +98,8 @@ class FitJob:
     def __post_init__(self) -> None:
         if self.model != "auto":
             capture_model(self.model)  # raises for an unknown name
-        if self.noise not in _NOISE:
-            raise ValueError(f"noise must be one of {sorted(_NOISE)}, not {self.noise!r}")
+        if self.noise not in _NOISES:
+            raise ValueError(f"noise must be one of {sorted(_NOISES)}, not {self.noise!r}")
         # ``auto`` leaves the loss to the model it chooses (None stays None until then).
         if self.loss is None and self.model != "auto":
             object.__setattr__(self, "loss", DEFAULT_LOSS.get(self.model, "l2"))
@@ -261,6 +261,7 @@ class _TileFitter:
             if isinstance(self.noise, fit.GaussianNoise) and self.noise.sigma is None:
                 # An array, not a float: equinox's jit would treat a float as static and
                 # compile again for every capture or leave-one-out fold.
+                assert self.pooled.sigma is not None  # choose_pooled sets it with alpha
                 sigma = jnp.asarray(self.pooled.sigma, jnp.dtype(job.dtype))
                 self.noise = fit.GaussianNoise(sigma=sigma)
                 self.known_noise = float(self.pooled.sigma) ** 2
@@ -276,6 +277,7 @@ class _TileFitter:
                     )
                 },
             )
+        assert job.loss is not None  # FitJob gives a named (not auto) model its loss
         self.loss = _LOSS[job.loss]()
         self.residual = fit.make_residual(self.model, self.space, self.noise, self.loss, self.prior)
         self.dtype = jnp.dtype(job.dtype)
@@ -298,6 +300,7 @@ class _TileFitter:
         unknown sigma it is the median over the tile's pixels of the flat fit's estimated
         noise scale (empirical Bayes). Returns (fit result, residual, noise variance or None
         where the Laplace step should estimate it)."""
+        assert self.first is not None  # called for two-stage models only
         model1, space1 = self.first
         r1 = fit.fit_pixels(model1, fit_data, space=space1, **kw)
         noise = self.noise
@@ -348,7 +351,7 @@ class _TileFitter:
         else:
             r, res, noise_var = self._two_stage(fit_data, kw)
         # A prior's scale is tied to the noise scale: that one is then known, not re-estimated.
-        known = "known" if noise_var is not None else "estimate"
+        known: Literal["known", "estimate"] = "known" if noise_var is not None else "estimate"
         lap = fit.laplace(r, fit_data, residual=res, noise=known)
         lap_noise = lap.noise_var if noise_var is None else jnp.full_like(lap.noise_var, noise_var)
         sse, cnt = _errors(res, r.theta, data)
@@ -595,17 +598,17 @@ def _maps(fitter: _TileFitter, cat, h: int, w: int) -> dict[str, np.ndarray]:
         maps["roughness.std"] = cat["std"][:, j] / np.where(root > 0, 2.0 * root, np.nan)
     if fitter.pooled is not None and fitter.pooled.alpha is not None:
         # The shared width: one value, the same map everywhere a pixel has an estimate.
-        a = np.where(ok, fitter.pooled.alpha, np.nan)
-        maps["alpha"] = a
-        maps["roughness"] = np.sqrt(a)
+        shared = np.where(ok, fitter.pooled.alpha, np.nan)
+        maps["alpha"] = shared
+        maps["roughness"] = np.sqrt(shared)
     spec = [j for j, lab in enumerate(labels) if lab.startswith("specular.")]
     alb = [j for j, lab in enumerate(labels) if lab.startswith("albedo.")]
     if len(spec) > 1 and len(spec) == len(alb):
         # The metallic-roughness view of a coloured specular (glTF 2.0; brdf._convert).
-        base, metal = brdf.specular_to_metallic(
+        base_j, metal = brdf.specular_to_metallic(
             jnp.asarray(np.nan_to_num(nat[:, alb])), jnp.asarray(np.nan_to_num(nat[:, spec]))
         )
-        base = np.where(ok[:, None], np.asarray(base), np.nan)
+        base = np.where(ok[:, None], np.asarray(base_j), np.nan)
         for j, lab in zip(range(base.shape[1]), [labels[i] for i in alb], strict=True):
             maps["base_color." + lab.split(".", 1)[1]] = base[:, j]
         maps["metallic"] = np.where(ok, np.asarray(metal), np.nan)
