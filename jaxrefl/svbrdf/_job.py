@@ -400,7 +400,7 @@ def _keep_lower(a, b):
     la, lb = a.linearisation, b.linearisation
     # The curvature goes with the theta it was taken at; without both there is none.
     same = la is not None and lb is not None
-    if same and (la.residual is lb.residual or bool(eqx.tree_equal(la.residual, lb.residual))):
+    if same and fit.same_residual(la.residual, lb.residual):
         lin = replace(la, jtj=pick(la.jtj, lb.jtj), active=pick(la.active, lb.active))
     else:
         lin = None
@@ -672,7 +672,7 @@ def _report(fitter, cat, capture, job, maps, compile_s, times, n_tiles, loaded) 
         },
         "pixels": n_px,
         "status_counts": fit.describe(maps["status"]),
-        "laplace_flag_counts": _flag_counts(maps["laplace_flag"]),
+        "laplace_flag_counts": fit.flag_counts(maps["laplace_flag"]),
         "timings": {
             "compile_s": compile_s,
             "run_s": run_s,
@@ -698,13 +698,6 @@ def _report(fitter, cat, capture, job, maps, compile_s, times, n_tiles, loaded) 
         report["heldout_pixel_rmse_median"] = float(np.median(per_px)) if per_px.size else None
         report["heldout_pixel_rmse_p99"] = float(np.quantile(per_px, 0.99)) if per_px.size else None
     return report
-
-
-def _flag_counts(flag: np.ndarray) -> dict[str, int]:
-    f = flag.reshape(-1)
-    out = {b.name: int(np.sum((f & b.value) != 0)) for b in fit.LaplaceFlag if b.name}
-    out["reliable"] = int(np.sum(f == 0))
-    return out
 
 
 def status_meanings() -> dict[str, str]:
