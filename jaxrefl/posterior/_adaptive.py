@@ -72,6 +72,7 @@ from jaxrefl.fit import LaplaceFlag, PixelData
 from ._batched import HMCOptions, Samples, sample_pixels
 from ._diagnostics import diagnostics
 from ._logpost import LogPosterior
+from ._methods import MCMC_METHODS, Method
 
 __all__ = [
     "MAP_OPTIONS",
@@ -84,7 +85,7 @@ __all__ = [
     "longer_options",
 ]
 
-METHODS = {0: "none", 1: "laplace", 2: "mcmc", 3: "mcmc_audit"}
+METHODS = {int(m): m.name.lower() for m in Method}
 _Z95 = 1.6448536269514722  # standard normal 95% quantile
 MAP_OPTIONS = HMCOptions(
     num_warmup=100, num_samples=100, num_chains=2, num_integration_steps=32, batch_size=128
@@ -205,7 +206,7 @@ class UncertaintyMap:
     @property
     def audit_std_ratio(self) -> np.ndarray:
         """(A, D) Laplace std / MCMC std on the audit pixels (method 3)."""
-        a = self.method == 3
+        a = self.method == Method.MCMC_AUDIT
         return self.laplace_std[a] / self.std[a]
 
     def method_counts(self) -> dict[str, int]:
@@ -213,7 +214,7 @@ class UncertaintyMap:
 
     def report(self) -> dict[str, Any]:
         """JSON-ready summary: counts by method, MCMC diagnostics, audit ratios, timings."""
-        on = np.isin(self.method, (2, 3))
+        on = np.isin(self.method, MCMC_METHODS)
 
         def dist(v):
             v = v[np.isfinite(v)]
@@ -299,7 +300,7 @@ def adaptive_uncertainty(
     method = _choose_methods(has, flag, o, rng)
     timings = {"laplace_summary_s": time.perf_counter() - t0}
     out = _Summaries.from_laplace(mean, std, q05, q95, lp.size)
-    idx = np.flatnonzero(np.isin(method, (2, 3)))
+    idx = np.flatnonzero(np.isin(method, MCMC_METHODS))
     # Pixels without censored observations first: their chunks run the cheaper posterior
     # without the censored branch (LogPosterior.for_data); at most one chunk is mixed.
     censored_px = np.any(np.asarray(data.censored)[idx] != 0, axis=(-2, -1))
@@ -428,15 +429,15 @@ def _choose_methods(has: np.ndarray, flag: np.ndarray, o: AdaptiveOptions, rng) 
     """(N,) uint8 method codes (:data:`METHODS`): 0 without an estimate, else 1 (Laplace),
     2 (MCMC, flagged) or 3 (MCMC audit of a reliable pixel) as ``o.mcmc`` and ``o.audit``
     choose; the audit pixels are drawn with ``rng``."""
-    method = np.where(has, 1, 0).astype(np.uint8)
+    method = np.where(has, Method.LAPLACE, Method.NONE).astype(np.uint8)
     if o.mcmc == MCMCPixels.FLAGGED:
         reliable = np.flatnonzero(has & (flag == 0))
         n_audit = int(np.ceil(o.audit * reliable.size)) if o.audit > 0 and reliable.size else 0
         audit_idx = rng.choice(reliable, size=n_audit, replace=False) if n_audit else []
-        method[has & (flag != 0)] = 2
-        method[np.asarray(audit_idx, dtype=int)] = 3
+        method[has & (flag != 0)] = Method.MCMC
+        method[np.asarray(audit_idx, dtype=int)] = Method.MCMC_AUDIT
     elif o.mcmc == MCMCPixels.ALL:
-        method[has] = np.where(flag[has] == 0, 3, 2)
+        method[has] = np.where(flag[has] == 0, Method.MCMC_AUDIT, Method.MCMC)
     return method
 
 
