@@ -16,16 +16,16 @@ The score is the leave-one-photo-out RMSE over the *training* photos (the job's 
 honest one): for each training photo j, every candidate is fitted on the other training
 photos and predicts photo j's uncensored observations; the squared errors of all folds are
 summed. The folds share one random set of pixels (a paired comparison: every candidate is
-scored on the same observations), and they are stacked into the rows of one tile of the job's
-tiling, each row with its own training photos, so a candidate costs one tile's fit, and the
+scored on the same observations), and they are stacked into the rows of tiles of the job's
+tiling (one tile at the defaults), each row with its own training photos, and the
 chosen model's compiled programs serve the full fit too. ``pooled``'s shared width and F0
 prior are chosen once from all training photos (one scalar and a per-channel prior, fitted to
 every selection pixel; the per-pixel parameters are fitted per fold).
 
-The lowest score wins, except that a more complex candidate must beat the simplest one within
-:data:`TOLERANCE` (relative) of the best: the ranking is a measurement, and a difference
-smaller than the folds' scatter is not evidence for extra parameters. The report's ``auto``
-entry lists every candidate's score and says why the winner won.
+The winner is the first candidate (in :data:`AUTO_CANDIDATES` order, simplest first) whose
+score is within :data:`TOLERANCE` (relative) of the lowest: the ranking is a measurement, and
+a difference smaller than the folds' scatter is not evidence for extra parameters. The
+report's ``auto`` entry lists every candidate's score and says why the winner won.
 """
 
 from __future__ import annotations

@@ -78,10 +78,11 @@ class CaptureUncertainty:
         return self.fit.job.model
 
     def inference_data(self, n_draws: int = _PPC_DRAWS):
-        """ArviZ InferenceData of the MCMC pixels (None when none was sampled or the draws
-        were not kept): posterior, sample stats, observed data and ``n_draws`` posterior
-        predictive draws per pixel; attrs ``rows``, ``cols`` (each pixel's place in the
-        map, in the order of :attr:`UncertaintyMap.mcmc_pixels`), ``width``, ``height``."""
+        """ArviZ InferenceData of the MCMC pixels (None when no pixel was sampled or
+        ``AdaptiveOptions.keep_samples`` is False): posterior, sample stats, observed data
+        and ``n_draws`` posterior predictive draws per pixel; attrs ``rows``, ``cols``
+        (each pixel's place in the map, in the order of :attr:`UncertaintyMap.mcmc_pixels`),
+        ``width``, ``height``."""
         u = self.map
         if u.samples is None:
             return None
