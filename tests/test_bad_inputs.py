@@ -590,18 +590,43 @@ def test_brdf_eval_directions_property(arg, f, model):
         ({"alpha_min": float("nan")}, "alpha_min"),
         ({"alpha_min": 0.0}, "alpha_min"),
         ({"alpha_min": 1.5}, "alpha_min"),
-        ({"sigma": float("nan")}, "sigma"),
-        ({"sigma": -0.01}, "sigma"),
-        ({"sigma": 0.0}, "sigma"),
-        ({"read": float("inf")}, "read"),
-        ({"gain": -1.0}, "gain"),
+        ({"noise": ("gaussian", {"sigma": float("nan")})}, "sigma"),
+        ({"noise": ("gaussian", {"sigma": -0.01})}, "sigma"),
+        ({"noise": ("gaussian", {"sigma": 0.0})}, "sigma"),
+        ({"noise": ("gaussian", {"sigma": float("inf")})}, "sigma"),
+        ({"noise": ("shot", {"read": float("inf")})}, "read"),
+        ({"noise": ("shot", {"read": float("nan")})}, "read"),
+        ({"noise": ("shot", {"gain": -1.0})}, "gain"),
+        ({"noise": ("shot", {"gain": float("inf")})}, "gain"),
+        ({"loss": ("huber", {"delta": 0.0})}, "delta"),
+        ({"loss": ("cauchy", {"c": float("nan")})}, "c"),
+        ({"dtype": np.float16}, "dtype"),
+        ({"dtype": np.int32}, "dtype"),
     ],
 )
 def test_fit_job_refuses_bad_numbers(kw, name):
+    """FitJob and the option objects it takes refuse bad numbers, naming the field."""
+    from jaxrefl import fit
     from jaxrefl.svbrdf import FitJob
 
+    kinds = {
+        "gaussian": fit.GaussianNoise,
+        "shot": fit.ShotNoise,
+        "huber": fit.Huber,
+        "cauchy": fit.Cauchy,
+    }
+
+    def make():
+        cfg = {k: v for k, v in kw.items() if k in ("noise", "loss", "dtype")}
+        for k in ("noise", "loss"):
+            if k in cfg:
+                kind, args = cfg[k]
+                cfg[k] = kinds[kind](**args)
+        job = {k: v for k, v in kw.items() if k not in cfg}
+        return FitJob(**job, config=fit.FitConfig(**cfg))
+
     with pytest.raises(ValueError, match=name):
-        FitJob(**kw)
+        make()
 
 
 def test_cli_refuses_a_nan_alpha_min(tmp_path, capsys):

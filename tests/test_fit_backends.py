@@ -18,17 +18,20 @@ import jaxrefl
 from jaxrefl import fit
 
 ZOO = {p.name: p for p in problem_zoo()}
-# Library tolerances for the comparison: tight enough that their own stopping error is far
-# below the agreement tolerances (float64).
-LIBRARY_TOL = {"rtol": 1e-10, "atol": 1e-12}
+# Library solvers for the comparison: tolerances tight enough that their own stopping error
+# is far below the agreement tolerances (float64).
+SOLVERS = {
+    "lean": fit.LMOptions(),
+    "optimistix": fit.OptimistixLM(rtol=1e-10, atol=1e-12),
+    "jaxopt": fit.JaxoptLM(rtol=1e-10, atol=1e-12),
+}
 
 
 def _solve(pr, backend):
     space = fit.ParamSpace(pr.model)
     res = fit.make_residual(pr.model, space)
     theta0 = fit.initial_theta(res, pr.data)
-    kw = {} if backend == "lean" else LIBRARY_TOL
-    theta, info = fit.solve(res, theta0, pr.data, backend, space=space, **kw)
+    theta, info = fit.solve(res, theta0, pr.data, SOLVERS[backend], space=space)
     assert theta.shape == theta0.shape and info.status.shape == theta0.shape[:1]
     return np.asarray(space.natural_vector(theta)), np.asarray(info.cost), info
 
@@ -57,7 +60,8 @@ def test_jaxopt_warnings_do_not_leak():
     pr = ZOO["lambert"]
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        r = fit.fit_pixels(pr.model, pr.data, backend="jaxopt")
+        r = fit.fit_pixels(pr.model, pr.data, config=fit.FitConfig(solver=fit.JaxoptLM()))
+    assert r.backend == "jaxopt"
     assert r.status_counts()["CONVERGED"] == pr.data.obs.shape[0]
     # In a fresh interpreter (where jaxopt's import-time DeprecationWarning fires) with every
     # warning turned into an error.
@@ -68,7 +72,7 @@ def test_jaxopt_warnings_do_not_leak():
         m = jaxrefl.brdf.get("lambert")
         wi = jnp.tile(jnp.asarray([0.0, 0.6, 0.8]), (4, 5, 1))
         data = fit.pixel_data(jnp.full((4, 5, 1), 0.1), wi, scale=jnp.pi)
-        r = fit.fit_pixels(m, data, backend="jaxopt")
+        r = fit.fit_pixels(m, data, config=fit.FitConfig(solver=fit.JaxoptLM()))
         assert int((r.status == 0).sum()) == 4, r.status
         """
     )
@@ -82,18 +86,18 @@ def test_backend_errors_and_outputs():
     pr = ZOO["lambert"]
     space = fit.ParamSpace(pr.model)
     res = fit.make_residual(pr.model, space)
-    with pytest.raises(ValueError, match="unknown backend"):
-        fit.solve(res, jnp.zeros((4, 3)), pr.data, "scipy")
+    with pytest.raises(TypeError, match="solver must be"):
+        fit.solve(res, jnp.zeros((4, 3)), pr.data, "scipy")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match=r"\(N, P\)"):
         fit.solve(res, jnp.zeros(3), pr.data)
     # optimistix maps its result codes; a NaN start becomes NONFINITE_INPUT, nothing crashes.
-    # The settings of the zoo comparison (``_solve``: 256 steps, LIBRARY_TOL), so the solver
+    # The settings of the zoo comparison (``_solve``: 256 steps, SOLVERS), so the solver
     # compiled for test_backends_agree_on_the_zoo[lambert] is reused.
     theta0 = fit.initial_theta(res, pr.data).at[0].set(jnp.nan)
-    steps = 256
-    _, info = fit.solve(
-        res, theta0, pr.data, "optimistix", max_iters=steps, space=space, **LIBRARY_TOL
-    )
+    solver = SOLVERS["optimistix"]
+    steps = solver.max_iters
+    assert steps == 256
+    _, info = fit.solve(res, theta0, pr.data, solver, space=space)
     st = np.asarray(info.status)
     assert st[0] == fit.Status.NONFINITE_INPUT and np.all(st[1:] == fit.Status.CONVERGED)
     assert np.all(np.asarray(info.iterations[1:]) <= steps)
@@ -115,11 +119,11 @@ def test_jaxopt_missing_gives_an_actionable_error(monkeypatch):
     res = fit.make_residual(m, fit.ParamSpace(m, channels=1))
     data = fit.pixel_data(jnp.ones((2, 3, 1)), jnp.tile(jnp.asarray([0.0, 0.0, 1.0]), (2, 3, 1)))
     with pytest.raises(ImportError, match="pip install jaxopt"):
-        fit.solve(res, jnp.zeros((2, 1)), data, "jaxopt")
+        fit.solve(res, jnp.zeros((2, 1)), data, fit.JaxoptLM())
 
 
 def test_optimistix_on_float32_data_under_x64():
-    """The suite runs with jax_enable_x64: optimistix's float64 damping term used to make
+    """The suite runs with jax_enable_x64: optimistix's float64 damping term would make
     lineax refuse a float32 system. float32 in gives float32 out and the lean optimum."""
     m = jaxrefl.brdf.get("lambert")
     rng = np.random.default_rng(0)
@@ -127,8 +131,42 @@ def test_optimistix_on_float32_data_under_x64():
     wi /= np.linalg.norm(wi, axis=-1, keepdims=True)
     obs = rng.uniform(0.05, 0.2, (3, 8, 3))
     d = fit.pixel_data(jnp.asarray(obs, jnp.float32), jnp.asarray(wi, jnp.float32))
-    r = fit.fit_pixels(m, d, backend="optimistix")
+    r = fit.fit_pixels(m, d, config=fit.FitConfig(solver=fit.OptimistixLM()))
     lean = fit.fit_pixels(m, d)
     assert r.theta.dtype == jnp.float32 and r.cost.dtype == jnp.float32
     assert (np.asarray(r.status) <= fit.Status.AT_BOUND).all()
     np.testing.assert_allclose(r.params["albedo"], lean.params["albedo"], rtol=1e-3)
+
+
+def test_solver_objects_carry_their_budget_and_write_json():
+    """Each solver carries its own iteration budget; ``max_iters`` of a library solver
+    bounds the iterations it reports, and every option object names itself in JSON."""
+    pr = ZOO["lambert"]
+    space = fit.ParamSpace(pr.model)
+    res = fit.make_residual(pr.model, space)
+    theta0 = jnp.broadcast_to(space.default_theta(jnp.float64), (pr.data.obs.shape[0], space.size))
+    _, info = fit.solve(res, theta0, pr.data, fit.LMOptions(max_iters=2), space=space)
+    assert int(np.max(np.asarray(info.iterations))) <= 2
+    assert fit.OptimistixLM().max_iters == fit.JaxoptLM().max_iters == 256
+    assert fit.LMOptions().max_iters == 40
+    with pytest.raises(ValueError, match="max_iters"):
+        fit.OptimistixLM(max_iters=0)
+    assert fit.OptimistixLM(max_iters=9).to_json() == {
+        "type": "optimistix",
+        "max_iters": 9,
+        "rtol": None,
+        "atol": None,
+        "cond_max": None,
+        "bound_rtol": 1e-3,
+    }
+    cfg = fit.FitConfig(
+        solver=fit.JaxoptLM(), noise=fit.ShotNoise(read=0.002, gain=0.002), loss=fit.Huber(2.0)
+    )
+    js = cfg.to_json()
+    assert js["noise"] == {"type": "shot", "read": 0.002, "gain": 0.002}
+    assert js["loss"] == {"type": "huber", "delta": 2.0} and js["solver"]["type"] == "jaxopt"
+    assert js["dtype"] is None
+    assert fit.FitConfig(dtype=jnp.float32).dtype == np.dtype(np.float32)
+    assert fit.FitConfig(dtype=jnp.float32).to_json()["dtype"] == "float32"
+    with pytest.raises(ValueError, match="floating"):
+        fit.FitConfig(dtype=np.int32)

@@ -9,6 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from jaxrefl import fit
 from jaxrefl import measured as jm
 from jaxrefl.brdf import MERL, Ward
 from jaxrefl.io import MeasuredBRDF, write_merl
@@ -57,7 +58,7 @@ def test_recovers_a_known_ward_brdf():
     wi, wo = _gonio(1439, seed=1)
     f = np.asarray(Ward().eval({k: jnp.asarray(v) for k, v in truth.items()}, wi, wo))
     m = MeasuredBRDF(wi, wo, f, ("R", "G", "B"), name="synthetic ward")
-    rep = jm.fit_brdf(m, ["lambert", "ward"], dtype="float32")
+    rep = jm.fit_brdf(m, ["lambert", "ward"], config=fit.FitConfig(dtype=np.float32))
     ward, lam = rep.fits["ward"], rep.fits["lambert"]
     assert ward.dtype == "float32" and ward.retry is None
     np.testing.assert_allclose(ward.params["alpha"], 0.08, rtol=2e-3)
@@ -117,7 +118,8 @@ def test_merl_file_from_an_analytic_model(tmp_path):
     assert len(m) == 1500 and m.meta["format"] == "MERL binary"
     w = jm.sample_weights(m)
     assert w.std() > 0.1  # cells of unequal solid angle
-    rep = jm.fit_brdf(m, ["cook_torrance_ggx"], dtype="float64", timing=False)
+    cfg = fit.FitConfig(dtype=np.float64)
+    rep = jm.fit_brdf(m, ["cook_torrance_ggx"], config=cfg, timing=False)
     ct = rep.fits["cook_torrance_ggx"]
     # Cell centres are stored exactly, so the fit recovers the model.
     for name, v in truth.items():

@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxrefl import brdf
+from jaxrefl import brdf, fit
 from jaxrefl.demo import demo_scene
 from jaxrefl.io._capture import Capture
 from jaxrefl.svbrdf import FitJob, fit_capture, leave_one_out
@@ -203,7 +203,7 @@ def auto_fit(shared_lobe_capture):
     cap, _ = shared_lobe_capture
     cap = cap.select([0, 1, 2, 3, 4, 5])
     job = FitJob(holdout=(5,), alpha_min=1e-3)
-    assert job.model == "auto" and job.loss is None
+    assert job.model == "auto" and job.config.loss is None
     return cap, fit_capture(cap, job)
 
 
@@ -226,7 +226,7 @@ def test_auto_chooses_the_shared_coloured_lobe_and_never_sees_held_out_photos(au
     again = choose_model(_corrupt(cap, 5), FitJob(holdout=(5,), alpha_min=1e-3))
     assert again.cv_rmse == choice.cv_rmse
     # The fit resolves the model and its loss and reports the choice.
-    assert res.job.model == "pooled" and res.job.loss == "huber"
+    assert res.job.model == "pooled" and res.job.config.loss == fit.Huber()
     assert res.extra["pooled"] is choice.pooled  # the selection's width, not chosen again
     assert res.report["model"] == "pooled"
     assert res.report["auto"]["model"] == "pooled"

@@ -39,7 +39,7 @@ def lambert():
     wi = np.tile(np.array([0.0, 0.0, 1.0]), (n, k, 1))
     obs = alb[:, None, :] / math.pi + SIGMA * rng.normal(size=(n, k, 3))
     data = fit.pixel_data(obs, wi)
-    r = fit.fit_pixels(m, data, space=space, noise=fit.GaussianNoise(SIGMA))
+    r = fit.fit_pixels(m, data, config=fit.FitConfig(noise=fit.GaussianNoise(SIGMA)), space=space)
     lap = fit.laplace(r, data, residual=fit.make_residual(m, space, fit.GaussianNoise(SIGMA)))
     return lp, data, r, lap
 
@@ -135,7 +135,7 @@ def test_cli_sample_capture_end_to_end(tmp_path):
     # The library call behind it gives the same maps and report as a typed result.
     hmc = jp.HMCOptions(num_warmup=60, num_samples=60, num_chains=2)
     options = jp.AdaptiveOptions(mcmc="all", hmc=hmc)
-    job = svbrdf.FitJob(model="lambert", dtype="float64")
+    job = svbrdf.FitJob(model="lambert", config=fit.FitConfig(dtype=np.float64))
     res = svbrdf.uncertainty_maps(load_capture(cap).crop(2, 6, 2, 6), job, options)
     assert isinstance(res, svbrdf.CaptureUncertainty) and (res.height, res.width) == (4, 4)
     assert res.fit.job.tile_pixels == 16  # one tile of the crop's size

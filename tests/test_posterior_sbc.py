@@ -79,7 +79,9 @@ def test_sbc_laplace_where_reliable(ggx1):
     """The Laplace Gaussian in theta (flat prior) on pixels flagged reliable: PIT uniform
     and nominal coverage within 3.5 standard errors."""
     model, space, _lp, theta, data = ggx1
-    r = fit.fit_pixels(model, data, space=space, noise=fit.GaussianNoise(SIGMA))
+    r = fit.fit_pixels(
+        model, data, config=fit.FitConfig(noise=fit.GaussianNoise(SIGMA)), space=space
+    )
     res_fn = fit.make_residual(model, space, fit.GaussianNoise(SIGMA))
     lap = fit.laplace(r, data, residual=res_fn, noise="known")
     ok = np.asarray(lap.reliable)

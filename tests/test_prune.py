@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxrefl.fit import LMOptions, Status, pixel_data
+from jaxrefl.fit import FitConfig, LMOptions, Status, pixel_data
 from jaxrefl.measured import Components, compact, prune
 
 TRIALS = 20  # per true model
@@ -79,7 +79,7 @@ def _scene(seed: int = 0):
 def pruned():
     data, mask, truth = _scene()
     # P <= 5: the LAPACK Cholesky compiles faster than the unrolled one and costs nothing here.
-    bic = prune(data, RICH, criterion="bic", mask=mask, fit_options={"options": LM})
+    bic = prune(data, RICH, criterion="bic", mask=mask, config=FitConfig(solver=LM))
     ev = prune(data, RICH, criterion="evidence", mask=mask, cache=bic.fits)
     return data, mask, truth, bic, ev
 

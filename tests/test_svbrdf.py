@@ -56,7 +56,8 @@ _N_PIXELS = 1500
 
 
 def _fit_synthetic(model, space, data):
-    return fit.fit_pixels(model, data, space=space, noise=fit.GaussianNoise(_SIGMA), max_iters=80)
+    config = fit.FitConfig(solver=fit.LMOptions(max_iters=80), noise=fit.GaussianNoise(_SIGMA))
+    return fit.fit_pixels(model, data, config=config, space=space)
 
 
 def test_noise_free_pixels_recover_parameters_to_1e4():
@@ -74,7 +75,12 @@ def test_noise_free_pixels_recover_parameters_to_1e4():
 # A known noise scale of 1e-6 only rescales the residuals of a noise-free fit (the LM's
 # tolerances and damping are relative); the tilted test needs it for its prior.
 _F64_JOB = dict(
-    model="ggx", dtype="float64", tile_pixels=64, alpha_min=1e-3, max_iters=60, sigma=1e-6
+    model="ggx",
+    tile_pixels=64,
+    alpha_min=1e-3,
+    config=fit.FitConfig(
+        solver=fit.LMOptions(max_iters=60), noise=fit.GaussianNoise(sigma=1e-6), dtype=np.float64
+    ),
 )
 
 
@@ -144,9 +150,8 @@ def test_gaussian_prior_residual_is_the_map_estimate():
     # Tolerances far below the defaults: this checks the MAP identity, not the stopping rule
     # (which stops a damped first step short by up to ~1e-4 posterior std).
     tight = fit.LMOptions(xtol=1e-13, ftol=1e-15)
-    r = fit.fit_pixels(
-        model, data, space=space, noise=noise, prior=prior, init="defaults", options=tight
-    )
+    config = fit.FitConfig(solver=tight, noise=noise)
+    r = fit.fit_pixels(model, data, config=config, space=space, prior=prior, init="defaults")
     # obs = a/pi + e: precision k/(pi sigma)^2 + 1/s0^2, mean weighted by the precisions.
     prec_d, prec_0 = k / (np.pi * sigma) ** 2, 1 / s0**2
     mode = (prec_d * np.pi * obs.mean() + prec_0 * m0) / (prec_d + prec_0)
@@ -436,6 +441,38 @@ def test_interrupted_run_resumes_without_recomputing(tmp_path):
     np.testing.assert_array_equal(again.maps["alpha"], full.maps["alpha"])
     with pytest.raises(ValueError, match="different fit"):
         svbrdf.fit_capture(cap, svbrdf.FitJob(tile_pixels=_TILE, model="lambert"), tmp_path)
+    # So is the same model with another noise model, solver or loss: the manifest records
+    # each option object (its type and every field), so a changed field counts as well.
+    shot = fit.ShotNoise(read=0.002, gain=0.002)
+    changes = (
+        {"noise": shot},
+        {"noise": fit.GaussianNoise(sigma=0.01)},
+        {"loss": fit.Huber()},
+        {"solver": fit.LMOptions(max_iters=41)},
+    )
+    for change in changes:
+        other = replace(job, config=job.config.replace(**change))
+        with pytest.raises(ValueError, match="different fit"):
+            svbrdf.fit_capture(cap, other, tmp_path)
+    manifest = json.loads((tmp_path / "tiles" / "manifest.json").read_text())
+    assert manifest["job"]["config"]["noise"] == {"type": "gaussian", "sigma": None}
+    assert manifest["job"]["config"]["loss"] == {"type": "l2"}
+    assert manifest["job"]["config"]["dtype"] == "float32"
+    # A job with shot noise resumes its own tiles, and refuses the same job with another gain.
+    shot_dir = tmp_path / "shot"
+    shot_job = replace(job, config=job.config.replace(noise=shot))
+    with pytest.raises(_Interrupt):
+        svbrdf.fit_capture(cap, shot_job, shot_dir, on_tile=stop_after_two)
+    resumed = svbrdf.fit_capture(cap, shot_job, shot_dir)
+    assert resumed.tiles_loaded == 2 and resumed.tiles_computed == 2
+    assert resumed.report["job"]["config"]["noise"] == {
+        "type": "shot",
+        "read": 0.002,
+        "gain": 0.002,
+    }
+    brighter = replace(job, config=job.config.replace(noise=replace(shot, gain=0.004)))
+    with pytest.raises(ValueError, match="different fit"):
+        svbrdf.fit_capture(cap, brighter, shot_dir)
     # A corrupt manifest is named as such, with the way out.
     (tmp_path / "tiles" / "manifest.json").write_text('{"job": ')
     with pytest.raises(ValueError, match=r"manifest\.json: unreadable resume manifest.*--restart"):

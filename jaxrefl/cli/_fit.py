@@ -22,6 +22,7 @@ import argparse
 from pathlib import Path
 
 from ._main import positive_int
+from ._options import BACKENDS, DTYPES, LOSSES, NOISES, SHOT_GAIN, SHOT_READ, fit_config
 
 HELP = "fit a capture: per-pixel maps, uncertainty, held-out error"
 
@@ -64,13 +65,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--max-photos", type=positive_int, default=None, help="read at most this many photos"
     )
-    p.add_argument("--backend", default="lean", choices=("lean", "optimistix", "jaxopt"))
-    p.add_argument("--dtype", default="float32", choices=("float32", "float64"))
-    p.add_argument("--noise", default="gaussian", choices=("gaussian", "shot"))
+    p.add_argument("--backend", default="lean", choices=BACKENDS)
+    p.add_argument("--dtype", default="float32", choices=DTYPES)
+    p.add_argument(
+        "--noise",
+        default="gaussian",
+        choices=NOISES,
+        help=f"gaussian (sigma estimated) or shot (read {SHOT_READ}, gain {SHOT_GAIN})",
+    )
     p.add_argument(
         "--loss",
         default=None,
-        choices=("l2", "huber", "cauchy"),
+        choices=LOSSES,
         help="default: huber for pooled (robust to glints), l2 for the others",
     )
     p.add_argument(
@@ -103,10 +109,7 @@ def run(args: argparse.Namespace) -> int:
         model=args.model,
         holdout=() if loo_all else args.holdout,
         tile_pixels=args.tile_pixels,
-        backend=args.backend,
-        dtype=args.dtype,
-        noise=args.noise,
-        loss=args.loss,
+        config=fit_config(args.backend, args.dtype, args.noise, args.loss),
         alpha_min=args.alpha_min,
         tilt_std=args.tilt_std,
     )  # options are checked before any file is read

@@ -20,6 +20,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from ._options import BACKENDS, DTYPES, fit_config
+
 HELP = "fit analytic models to a measured BRDF (Cornell, CURET, MERL)"
 
 
@@ -56,8 +58,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "as Ngan et al. 2005; a negative value keeps all)",
     )
     p.add_argument("--no-cosine", action="store_true", help="fit f_r, not f_r cos(theta_i)")
-    p.add_argument("--backend", choices=("lean", "optimistix", "jaxopt"), default="lean")
-    p.add_argument("--dtype", choices=("float32", "float64"), default="float32")
+    p.add_argument("--backend", choices=BACKENDS, default="lean")
+    p.add_argument("--dtype", choices=DTYPES, default="float32")
     p.add_argument("--no-retry", action="store_true", help="no automatic float64 retry")
     p.add_argument("--max-iters", type=int, default=None, help="solver iteration budget")
     p.add_argument(
@@ -102,10 +104,8 @@ def run(args: argparse.Namespace) -> int:
         illuminant=args.illuminant,
         max_theta_deg=max_theta,
         cosine=not args.no_cosine,
-        backend=args.backend,
-        dtype=args.dtype,
+        config=fit_config(args.backend, args.dtype, max_iters=args.max_iters),
         retry_float64=not args.no_retry,
-        max_iters=args.max_iters,
         progress=lambda name: print(f"  fitting {name} ...", flush=True),
     )
     args.out.mkdir(parents=True, exist_ok=True)

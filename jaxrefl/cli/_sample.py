@@ -37,6 +37,7 @@ from pathlib import Path
 from typing import Any
 
 from ._main import positive_int
+from ._options import fit_config
 
 HELP = "posterior sampling: uncertainty maps with diagnostics (capture or BRDF file)"
 
@@ -131,7 +132,7 @@ def _run_capture(args, path: Path, opts) -> dict:
     from jaxrefl import svbrdf
     from jaxrefl.io import load_capture
 
-    job = svbrdf.FitJob(model=args.model, dtype="float64")
+    job = svbrdf.FitJob(model=args.model, config=fit_config(dtype="float64"))
     options = jp.AdaptiveOptions(
         mcmc=args.mcmc,
         audit=args.audit,

@@ -7,18 +7,26 @@ Quick use::
 
     model = jaxrefl.brdf.get("cook_torrance", distribution="ggx", diffuse="lambert")
     data = fit.pixel_data(obs, wi, wo, scale=irradiance_cos)   # (N, K, C), (N, K, 3) ...
-    result = fit.fit_pixels(model, data)                       # lean batched LM, float32
+    result = fit.fit_pixels(model, data)                       # lean batched LM
     result.params["alpha"], result.status_counts()
+    cfg = fit.FitConfig(solver=fit.LMOptions(max_iters=80), noise=fit.ShotNoise(0.002, 0.002),
+                        loss=fit.Huber(), dtype=jnp.float32)
+    result = fit.fit_pixels(model, data, config=cfg)
 
 Parts: :class:`ParamSpace` and the bijections (unconstrained parametrisation), :class:`PixelData`
 and :func:`make_residual` (noise models, robust losses, censoring), :func:`initial_theta`
 (closed-form colours on a roughness grid), :func:`lm_solve` / :func:`batched_lm` (the lean
-Levenberg-Marquardt as pure init/step functions), :func:`solve` (lean, optimistix or
-jaxopt), per-pixel :class:`Status` codes, and :func:`laplace` (Gauss-Newton covariance in
-natural units with reliability flags).
+Levenberg-Marquardt as pure init/step functions), :func:`solve` (the solver objects
+:class:`LMOptions`, :class:`OptimistixLM`, :class:`JaxoptLM`), :class:`FitConfig` (solver,
+noise, loss and dtype of a fit, taken by every fitting entry point), per-pixel
+:class:`Status` codes, and :func:`laplace` (Gauss-Newton covariance in natural units with
+reliability flags).
 """
 
 from ._backends import FitInfo as FitInfo
+from ._backends import JaxoptLM as JaxoptLM
+from ._backends import OptimistixLM as OptimistixLM
+from ._backends import Solver as Solver
 from ._backends import solve as solve
 from ._init import diffuse_albedo as diffuse_albedo
 from ._init import grid_values as grid_values
@@ -39,6 +47,8 @@ from ._lm import cholesky_unrolled as cholesky_unrolled
 from ._lm import lm_init as lm_init
 from ._lm import lm_solve as lm_solve
 from ._lm import lm_step as lm_step
+from ._options import Option as Option
+from ._problem import FitConfig as FitConfig
 from ._problem import FitResult as FitResult
 from ._problem import Linearisation as Linearisation
 from ._problem import fit_pixels as fit_pixels

@@ -1,23 +1,26 @@
-"""One interface to three batched least-squares solvers.
+"""One interface to three batched least-squares solvers, each chosen by its object.
 
-``solve(residual_fn, theta0 (N, P), data (leading N axis), backend=...)`` minimises
+``solve(residual_fn, theta0 (N, P), data (leading N axis), solver)`` minimises
 1/2 |r(theta, data_n)|^2 for every pixel n independently and returns ``(theta, FitInfo)``
-with per-pixel :class:`~jaxrefl.fit.Status` codes, iteration counts and final costs:
+with per-pixel :class:`~jaxrefl.fit.Status` codes, iteration counts and final costs. The
+solver object carries its own iteration budget and tolerances:
 
-* ``"lean"`` (default): :func:`~jaxrefl.fit.batched_lm`, fixed iteration budget, lam * I
-  damping, unrolled Cholesky, compaction of unconverged pixels (fastest by far under vmap).
-* ``"optimistix"``: ``optimistix.least_squares`` with ``optimistix.LevenbergMarquardt``
-  (trust-region LM, QR solves) under ``vmap``, ``throw=False``; its ``RESULTS`` are mapped
-  to our codes (successful -> CONVERGED, max steps -> MAX_ITERATIONS, nonfinite ->
-  NONFINITE_INPUT, any other failure -> ILL_CONDITIONED).
-* ``"jaxopt"``: ``jaxopt.LevenbergMarquardt`` under ``vmap`` with ``damping_parameter=1``
-  and ``solver="cholesky"`` (with its default damping of 1e-6 x max diag(J^T J), nearly
-  undamped Gauss-Newton steps send more GGX pixels into the "highlight missed" local
-  minimum; see :mod:`jaxrefl.fit._lm` on damping), Madsen-Nielsen stop test. jaxopt is no
-  longer maintained: it is imported only when asked for, its import-time warnings are
-  silenced, and a missing install raises an ImportError saying what to do.
+* :class:`~jaxrefl.fit.LMOptions` (default, kind ``"lean"``): :func:`~jaxrefl.fit.batched_lm`,
+  fixed iteration budget, lam * I damping, unrolled Cholesky, compaction of unconverged
+  pixels (fastest by far under vmap).
+* :class:`OptimistixLM` (``"optimistix"``): ``optimistix.least_squares`` with
+  ``optimistix.LevenbergMarquardt`` (trust-region LM, QR solves) under ``vmap``,
+  ``throw=False``; its ``RESULTS`` are mapped to our codes (successful -> CONVERGED, max
+  steps -> MAX_ITERATIONS, nonfinite -> NONFINITE_INPUT, any other failure ->
+  ILL_CONDITIONED).
+* :class:`JaxoptLM` (``"jaxopt"``): ``jaxopt.LevenbergMarquardt`` under ``vmap`` with
+  ``damping_parameter=1`` and ``solver="cholesky"`` (with its default damping of 1e-6 x max
+  diag(J^T J), nearly undamped Gauss-Newton steps send more GGX pixels into the "highlight
+  missed" local minimum; see :mod:`jaxrefl.fit._lm` on damping), Madsen-Nielsen stop test.
+  jaxopt is no longer maintained: it is imported only when asked for, its import-time
+  warnings are silenced, and a missing install raises an ImportError saying what to do.
 
-Whatever the backend, the status is then completed the same way (``_status.classify``): the
+Whatever the solver, the status is then completed the same way (``_status.classify``): the
 AT_BOUND test with ``space``, MASKED with ``n_usable``, ILL_CONDITIONED from J^T J at the
 solution. Library solvers run every pixel until the slowest one stops (a vmapped while
 loop), so they are slow on big batches; they are here as cross-checks.
@@ -25,9 +28,8 @@ loop), so they are slow on big batches; they are here as cross-checks.
 
 from __future__ import annotations
 
-import dataclasses
 import warnings
-from typing import Any, Literal
+from typing import Any, ClassVar
 
 import equinox as eqx
 import jax
@@ -35,12 +37,61 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
 from ._lm import LMOptions, _linearise, batched_lm
-from ._status import Status, classify, severity
+from ._options import Option
+from ._status import Status, classify, default_cond_max, severity
 from ._transform import ParamSpace
 
-__all__ = ["FitInfo", "solve"]
+__all__ = ["FitInfo", "JaxoptLM", "OptimistixLM", "Solver", "solve"]
 
-Backend = Literal["lean", "optimistix", "jaxopt"]
+
+class _LibraryLM(Option):
+    """The options common to the library solvers (hashable; every field is static).
+
+    max_iters:  iteration budget, >= 1; default 256 (optimistix's default)
+    rtol, atol: relative and absolute tolerances; None = dtype default (1e-4 / 1e-6 in
+                float32, 1e-6 / 1e-8 in float64). optimistix: Cauchy termination on cost
+                and step; jaxopt: step xtol = rtol and gradient gtol = atol
+    cond_max:   equilibrated condition number of J^T J above which a pixel is
+                ILL_CONDITIONED; None = 1e7 (float32) / 1e10 (float64)
+    bound_rtol: tolerance of :meth:`ParamSpace.at_bound`; default 1e-3
+    """
+
+    max_iters: int = eqx.field(default=256, static=True)
+    rtol: float | None = eqx.field(default=None, static=True)
+    atol: float | None = eqx.field(default=None, static=True)
+    cond_max: float | None = eqx.field(default=None, static=True)
+    bound_rtol: float = eqx.field(default=1e-3, static=True)
+
+    def __check_init__(self):
+        if self.max_iters < 1:
+            raise ValueError(f"{type(self).__name__} needs max_iters >= 1, got {self.max_iters}")
+
+    def tolerances(self, dtype) -> tuple[float, float, float]:
+        """(rtol, atol, cond_max) for ``dtype``."""
+        single = jnp.finfo(dtype).bits <= 32
+        rtol = (1e-4 if single else 1e-6) if self.rtol is None else float(self.rtol)
+        atol = (1e-6 if single else 1e-8) if self.atol is None else float(self.atol)
+        return rtol, atol, default_cond_max(dtype, self.cond_max)
+
+
+class OptimistixLM(_LibraryLM):
+    """``optimistix.LevenbergMarquardt`` under ``vmap`` (module docstring); a cross-check of
+    the lean solver. Fields: ``max_iters`` (default 256), ``rtol``, ``atol``, ``cond_max``,
+    ``bound_rtol`` as described on the library solvers' common base (``_LibraryLM``)."""
+
+    kind: ClassVar[str] = "optimistix"
+
+
+class JaxoptLM(_LibraryLM):
+    """``jaxopt.LevenbergMarquardt`` under ``vmap`` (module docstring; needs the optional
+    jaxopt package). Fields: ``max_iters`` (default 256), ``rtol`` (step xtol), ``atol``
+    (gradient gtol), ``cond_max``, ``bound_rtol``, as for :class:`OptimistixLM`."""
+
+    kind: ClassVar[str] = "jaxopt"
+
+
+Solver = LMOptions | OptimistixLM | JaxoptLM
+"""A batched least-squares solver: the lean LM or one of the library solvers."""
 
 
 class FitInfo(eqx.Module):
@@ -63,8 +114,8 @@ def _import_jaxopt():
             import jaxopt
     except ImportError as err:  # pragma: no cover - depends on the environment
         raise ImportError(
-            "backend='jaxopt' needs the jaxopt package: pip install jaxopt "
-            "(or use backend='lean' or 'optimistix')"
+            "JaxoptLM needs the jaxopt package: pip install jaxopt "
+            "(or use fit.LMOptions() or fit.OptimistixLM())"
         ) from err
     return jaxopt
 
@@ -86,10 +137,14 @@ def _status(residual_fn, theta, theta0, data, converged, valid, space, n_usable,
 
 
 @eqx.filter_jit
-def _solve_optimistix(residual_fn, theta0, data, n_usable, space, max_iters, rtol, atol, opts):
+def _solve_optimistix(residual_fn, theta0, data, n_usable, space, opts, tol_dtype):
     import optimistix as optx
 
+    # The tolerances are those of the dtype asked for (``tol_dtype``), the condition limit
+    # that of the dtype the solver runs in.
+    rtol, atol, _ = opts.tolerances(tol_dtype)
     _, _, cond_max = opts.tolerances(theta0.dtype)
+    max_iters = opts.max_iters
 
     def one(t0, d, n):
         solver: optx.LevenbergMarquardt[Array, Array, None]
@@ -131,9 +186,10 @@ def _solve_optimistix(residual_fn, theta0, data, n_usable, space, max_iters, rto
 
 
 @eqx.filter_jit
-def _solve_jaxopt_jit(residual_fn, theta0, data, n_usable, space, max_iters, rtol, atol, opts):
+def _solve_jaxopt_jit(residual_fn, theta0, data, n_usable, space, opts):
     jaxopt = _import_jaxopt()
-    _, _, cond_max = opts.tolerances(theta0.dtype)
+    rtol, atol, cond_max = opts.tolerances(theta0.dtype)
+    max_iters = opts.max_iters
 
     def one(t0, d, n):
         solver = jaxopt.LevenbergMarquardt(
@@ -174,41 +230,29 @@ def solve(
     residual_fn: Any,
     theta0: Float[Array, "N P"],
     data: Any,
-    backend: Backend = "lean",
+    solver: Solver = LMOptions(),
     *,
-    options: LMOptions | None = None,
-    max_iters: int | None = None,
-    rtol: float | None = None,
-    atol: float | None = None,
     space: ParamSpace | None = None,
     n_usable: Int[Array, " N"] | None = None,
 ) -> tuple[Float[Array, "N P"], FitInfo]:
-    """Solve N independent least-squares problems with the chosen backend.
+    """Solve N independent least-squares problems with ``solver``.
 
     ``residual_fn(theta (P,), data_n) -> r`` for one pixel; ``data`` carries a leading N
-    axis. ``options`` configures the lean solver (``max_iters`` overrides its iteration
-    count). For the libraries: ``max_iters`` (default 256, optimistix's default) and
-    ``rtol``/``atol`` (defaults 1e-6 / 1e-8 in float64, 1e-4 / 1e-6 in float32;
-    optimistix: Cauchy termination on cost and step, jaxopt: step xtol = rtol and gradient
-    gtol = atol). ``space`` and ``n_usable`` complete the status (AT_BOUND, MASKED).
+    axis. ``solver``: :class:`~jaxrefl.fit.LMOptions` (the lean LM, default),
+    :class:`OptimistixLM` or :class:`JaxoptLM`, each with its own iteration budget and
+    tolerances. ``space`` and ``n_usable`` complete the status (AT_BOUND, MASKED).
     """
-    opts = LMOptions() if options is None else options
     theta0 = jnp.asarray(theta0)
     if theta0.ndim != 2:
         raise ValueError(f"theta0 must have shape (N, P), got {theta0.shape}")
     n = theta0.shape[0]
     nu = jnp.full((n,), jnp.iinfo(jnp.int32).max, jnp.int32) if n_usable is None else n_usable
-    if backend == "lean":
-        if max_iters is not None:
-            opts = dataclasses.replace(opts, max_iters=int(max_iters))
-        theta, res = batched_lm(residual_fn, theta0, data, opts, space=space, n_usable=nu)
+    if isinstance(solver, LMOptions):
+        theta, res = batched_lm(residual_fn, theta0, data, solver, space=space, n_usable=nu)
         info = FitInfo(res.status, res.iterations, res.cost, res.converged, res.jtj, res.active)
         return theta, info
-    single = jnp.finfo(theta0.dtype).bits <= 32
-    rtol = (1e-4 if single else 1e-6) if rtol is None else float(rtol)
-    atol = (1e-6 if single else 1e-8) if atol is None else float(atol)
-    steps = 256 if max_iters is None else int(max_iters)
-    if backend == "optimistix":
+    if isinstance(solver, OptimistixLM):
+        single = jnp.finfo(theta0.dtype).bits <= 32
         if single and jax.config.read("jax_enable_x64"):
             # optimistix's LM builds its damping term in the default float (float64 under
             # jax_enable_x64), and lineax then refuses the float32 system ("Vector and operator
@@ -219,14 +263,16 @@ def solve(
                 data,
             )
             theta, info = _solve_optimistix(
-                residual_fn, theta0.astype(jnp.float64), d64, nu, space, steps, rtol, atol, opts
+                residual_fn, theta0.astype(jnp.float64), d64, nu, space, solver, theta0.dtype
             )
             return theta.astype(theta0.dtype), eqx.tree_at(
                 lambda i: (i.cost, i.jtj),
                 info,
                 (info.cost.astype(theta0.dtype), info.jtj.astype(theta0.dtype)),
             )
-        return _solve_optimistix(residual_fn, theta0, data, nu, space, steps, rtol, atol, opts)
-    if backend == "jaxopt":
-        return _solve_jaxopt(residual_fn, theta0, data, nu, space, steps, rtol, atol, opts)
-    raise ValueError(f"unknown backend {backend!r}; choose 'lean', 'optimistix' or 'jaxopt'")
+        return _solve_optimistix(residual_fn, theta0, data, nu, space, solver, theta0.dtype)
+    if isinstance(solver, JaxoptLM):
+        return _solve_jaxopt(residual_fn, theta0, data, nu, space, solver)
+    raise TypeError(
+        f"solver must be fit.LMOptions, fit.OptimistixLM or fit.JaxoptLM, not {solver!r}"
+    )

@@ -64,7 +64,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import Any
+from typing import Any, ClassVar
 
 import equinox as eqx
 import jax
@@ -72,7 +72,8 @@ import jax.numpy as jnp
 from jax import lax
 from jaxtyping import Array, Bool, Float, Int
 
-from ._status import classify
+from ._options import Option
+from ._status import classify, default_cond_max
 from ._transform import ParamSpace
 
 __all__ = [
@@ -96,18 +97,22 @@ _MIN_COMPACT = 64
 _MIN_BLOCK = 512
 
 
-class LMOptions(eqx.Module):
-    """Options of the lean LM (hashable; every field is static).
+class LMOptions(Option):
+    """The lean LM solver and its options (hashable; every field is static). It is the
+    default ``solver`` of :func:`~jaxrefl.fit.solve` and :class:`~jaxrefl.fit.FitConfig`
+    (kind ``"lean"``).
 
-    max_iters:  fixed number of steps (30-50 is plenty for P <= 10 from a good init).
-    lam0:       initial damping relative to mean(diag(J^T J)) at theta0.
+    max_iters:  fixed number of steps, >= 1; default 40 (30-50 is plenty for P <= 10 from
+                a good init).
+    lam0:       initial damping relative to mean(diag(J^T J)) at theta0; default 0.01.
     lam_min, lam_max: absolute clamps of lam relative to the same scale (keep lam * I from
-                underflowing to a singular system or overflowing to a zero step).
+                underflowing to a singular system or overflowing to a zero step); defaults
+                1e-12, 1e12.
     xtol, ftol: step and relative-cost tolerances; None = dtype default (module docstring).
     cond_max:   equilibrated condition number of J^T J above which a pixel is
                 ILL_CONDITIONED; None = 1e7 (float32) / 1e10 (float64).
-    bound_rtol: tolerance of :meth:`ParamSpace.at_bound`.
-    unroll_max: largest P for the unrolled Cholesky (else jnp.linalg.cholesky).
+    bound_rtol: tolerance of :meth:`ParamSpace.at_bound`; default 1e-3.
+    unroll_max: largest P for the unrolled Cholesky (else jnp.linalg.cholesky); default 8.
     max_step:   cap on |delta|_inf per step (4: alpha x e^4 = 55, a logit 0.5 -> 0.98).
     compact_after, compact_stages, chunk: how :func:`batched_lm` organises the work
                 (results per pixel do not depend on them). The default stages follow how
@@ -124,6 +129,7 @@ class LMOptions(eqx.Module):
                 step).
     """
 
+    kind: ClassVar[str] = "lean"
     max_iters: int = eqx.field(default=40, static=True)
     lam0: float = eqx.field(default=0.01, static=True)
     lam_min: float = eqx.field(default=1e-12, static=True)
@@ -145,8 +151,7 @@ class LMOptions(eqx.Module):
         single = jnp.finfo(dtype).bits <= 32
         xtol = self.xtol if self.xtol is not None else (1e-5 if single else 1e-8)
         ftol = self.ftol if self.ftol is not None else (1e-4 if single else 1e-8)
-        cond = self.cond_max if self.cond_max is not None else (1e7 if single else 1e10)
-        return xtol, ftol, cond
+        return xtol, ftol, default_cond_max(dtype, self.cond_max)
 
 
 class LMState(eqx.Module):

@@ -4,7 +4,9 @@
 Pipeline: a :class:`ParamSpace` (bounds, fixed values, unconstrained theta), a
 :class:`Residual` (noise whitening, robust loss, censoring, defensive masking), a start
 (:func:`initial_theta` by default: closed-form colours on a roughness grid), and a batched
-least-squares backend (:func:`solve`: ``"lean"``, ``"optimistix"`` or ``"jaxopt"``).
+least-squares solver (:func:`solve`: :class:`LMOptions`, :class:`OptimistixLM` or
+:class:`JaxoptLM`). :class:`FitConfig` bundles the solver, noise model, loss and dtype of a
+fit: every fitting entry point of the library takes one.
 
 Failures are values (``Status``), never exceptions in the middle of a batch:
 
@@ -19,9 +21,10 @@ Failures are values (``Status``), never exceptions in the middle of a batch:
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 import equinox as eqx
 import jax
@@ -31,9 +34,10 @@ from jaxtyping import Array, ArrayLike, Float, Int
 
 from jaxrefl.brdf import BRDF
 
-from ._backends import Backend, solve
+from ._backends import Solver, solve
 from ._init import initial_theta
 from ._lm import LMOptions
+from ._options import Option
 from ._residual import (
     L2,
     GaussianNoise,
@@ -49,9 +53,56 @@ from ._shard import device_count, map_sharded
 from ._status import Status, describe, has_estimate
 from ._transform import ParamSpace
 
-__all__ = ["FitResult", "Linearisation", "fit_pixels", "fit_samples", "sample_arrays"]
+__all__ = [
+    "FitConfig",
+    "FitResult",
+    "Linearisation",
+    "fit_pixels",
+    "fit_samples",
+    "sample_arrays",
+]
 
 Init = Literal["auto", "defaults"] | ArrayLike | Mapping[str, ArrayLike]
+
+
+def _as_dtype(dtype: Any) -> np.dtype | None:
+    return None if dtype is None else np.dtype(dtype)
+
+
+class FitConfig(Option):
+    """How a fit is computed: solver, noise model, robust loss and dtype (immutable).
+
+    Every fitting entry point takes one (:func:`fit_pixels`, :func:`fit_samples`,
+    :class:`jaxrefl.svbrdf.FitJob`, :func:`jaxrefl.measured.fit_brdf` and the other
+    measured fits, :func:`jaxrefl.ps.fit_normal_brdf`); :meth:`to_json` records it in
+    reports and resume manifests.
+
+    solver: :class:`LMOptions` (the lean LM, default), :class:`OptimistixLM` or
+            :class:`JaxoptLM`; each carries its iteration budget and tolerances
+    noise:  :class:`GaussianNoise` (default: sigma unknown, the fit uses 1) or
+            :class:`ShotNoise`; robust-loss thresholds are in its units
+    loss:   :class:`L2`, :class:`Huber` or :class:`Cauchy`; None (default): the entry
+            point's default (:class:`L2` for :func:`fit_pixels`; the model's own for
+            :class:`jaxrefl.svbrdf.FitJob`)
+    dtype:  computation dtype, any form ``np.dtype`` accepts (``jnp.float32``), stored as a
+            ``np.dtype``; None (default): the entry point's default (:func:`fit_pixels`:
+            that of the data; :func:`fit_samples`: float64 if JAX has it enabled, else
+            float32). float32 is the fast one.
+    """
+
+    kind: ClassVar[str] = "fit"
+    solver: Solver = eqx.field(default_factory=LMOptions)
+    noise: NoiseModel = eqx.field(default_factory=GaussianNoise)
+    loss: Loss | None = None
+    dtype: np.dtype | None = eqx.field(default=None, static=True, converter=_as_dtype)
+
+    def __check_init__(self):
+        if self.dtype is not None and not np.issubdtype(self.dtype, np.floating):
+            raise ValueError(f"FitConfig needs a floating dtype, got {self.dtype}")
+
+    def replace(self, **changes: Any) -> FitConfig:
+        """A copy with ``changes`` (field names as keywords)."""
+        return dataclasses.replace(self, **changes)
 
 
 @dataclass(frozen=True, eq=False)
@@ -83,6 +134,7 @@ class FitResult:
     cost:       (...) final 1/2 |r|^2 (whitened, robust); NaN where there is no estimate
     iterations: (...) solver iterations
     n_used:     (...) usable observations (entries of the K x C grid)
+    backend:    the kind of solver that ran (``"lean"``, ``"optimistix"``, ``"jaxopt"``)
     linearisation: the solver's J^T J at theta (:class:`Linearisation`), for
                 :func:`laplace`; None where the result was assembled otherwise
     """
@@ -139,8 +191,9 @@ def _finalise(theta, status, cost, n_used, nonfinite, p):
     return jnp.where(none[:, None], jnp.nan, theta), status, jnp.where(none, jnp.nan, cost)
 
 
-def _run(model, data, space, noise, loss, backend, init, max_iters, options, devices, prior):
-    res = make_residual(model, space, noise, loss, prior)
+def _run(model, data, space, config, init, devices, prior):
+    loss = L2() if config.loss is None else config.loss
+    res = make_residual(model, space, config.noise, loss, prior)
     dtype = data.obs.dtype
     n_used, nonfinite = _data_checks(res, data)
     ndev = device_count(devices)
@@ -151,16 +204,7 @@ def _run(model, data, space, noise, loss, backend, init, max_iters, options, dev
         theta0 = _theta0(res, data, init, dtype)
 
     def solve_batch(theta0, data, n_used):
-        return solve(
-            res,
-            theta0,
-            data,
-            backend,
-            options=options,
-            max_iters=max_iters,
-            space=space,
-            n_usable=n_used,
-        )
+        return solve(res, theta0, data, config.solver, space=space, n_usable=n_used)
 
     theta, info = map_sharded(solve_batch, (theta0, data, n_used), ndev)
     theta, status, cost = _finalise(theta, info.status, info.cost, n_used, nonfinite, space.size)
@@ -172,14 +216,9 @@ def fit_pixels(
     model: BRDF,
     data: PixelData,
     *,
+    config: FitConfig = FitConfig(),
     space: ParamSpace | None = None,
-    noise: NoiseModel | None = None,
-    loss: Loss | None = None,
-    backend: Backend = "lean",
     init: Init = "auto",
-    max_iters: int | None = None,
-    dtype=None,
-    options: LMOptions | None = None,
     bounds: Mapping[str, tuple[float, float]] | None = None,
     fixed: Mapping[str, ArrayLike] | None = None,
     devices: int | None = None,
@@ -187,22 +226,22 @@ def fit_pixels(
 ) -> FitResult:
     """Fit ``model`` to every pixel of ``data`` (:class:`PixelData` with a leading N axis).
 
+    config:   solver, noise model, loss (None: :class:`L2`) and dtype (None: that of
+              ``data.obs``) as a :class:`FitConfig`; the default is the lean LM, Gaussian
+              noise of unknown sigma, L2
     space:    the parameter space (default ``ParamSpace(model, C, bounds, fixed)``)
-    noise:    :class:`GaussianNoise` (default, sigma 1) or :class:`ShotNoise`
-    loss:     :class:`L2` (default), :class:`Huber` or :class:`Cauchy`
-    backend:  ``"lean"`` (default), ``"optimistix"`` or ``"jaxopt"`` (see :func:`solve`)
     init:     ``"auto"`` (closed-form colours on a roughness grid), ``"defaults"`` (the
               model's defaults), a theta array ((P,) or (N, P)) or a dict of natural values
-    max_iters: iteration budget (lean default 40, libraries 256)
-    dtype:    computation dtype (default: that of ``data.obs``); float32 is the fast one
     prior:    a :class:`GaussianPrior` on natural parameters (MAP fit; see ``_residual``)
     devices:  how many of JAX's devices share the pixels (default all); results agree up
               to rounding (``_shard`` says how far)
     """
+    if not isinstance(config, FitConfig):
+        raise TypeError(f"config must be a fit.FitConfig, not {type(config).__name__}")
     if data.obs.ndim != 3:
         raise ValueError(f"fit_pixels expects data of shape (N, K, C); got {data.obs.shape}")
-    if dtype is not None:
-        data = data.astype(dtype)
+    if config.dtype is not None:
+        data = data.astype(config.dtype)
     c = data.obs.shape[-1]
     if space is None:
         space = ParamSpace(model, channels=c, bounds=bounds, fixed=fixed)
@@ -210,21 +249,10 @@ def fit_pixels(
         raise ValueError("give bounds/fixed through the ParamSpace when passing space")
     if space.channels != c:
         raise ValueError(f"space has {space.channels} channels, data has {c}")
-    theta, status, cost, iters, n_used, lin = _run(
-        model,
-        data,
-        space,
-        GaussianNoise() if noise is None else noise,
-        L2() if loss is None else loss,
-        backend,
-        init,
-        max_iters,
-        options,
-        devices,
-        prior,
-    )
+    theta, status, cost, iters, n_used, lin = _run(model, data, space, config, init, devices, prior)
+    kind = config.solver.kind
     return FitResult(
-        space.to_natural(theta), theta, status, cost, iters, n_used, space, model, backend, lin
+        space.to_natural(theta), theta, status, cost, iters, n_used, space, model, kind, lin
     )
 
 
@@ -269,14 +297,9 @@ def fit_samples(
     *,
     channels: Literal["joint", "separate"] = "joint",
     cosine: bool = False,
+    config: FitConfig = FitConfig(),
     space: ParamSpace | None = None,
-    noise: NoiseModel | None = None,
-    loss: Loss | None = None,
-    backend: Backend = "lean",
     init: Init = "auto",
-    max_iters: int | None = None,
-    dtype=None,
-    options: LMOptions | None = None,
     bounds: Mapping[str, tuple[float, float]] | None = None,
     fixed: Mapping[str, ArrayLike] | None = None,
 ) -> FitResult:
@@ -291,7 +314,8 @@ def fit_samples(
               parameters as (C,)).
     cosine:   fit f_r cos(theta_i) instead of f_r (scale = cos_i), which down-weights the
               noisy grazing samples.
-    dtype:    default float64 if enabled in JAX, else float32.
+    config:   as for :func:`fit_pixels`; its dtype None means float64 if enabled in JAX,
+              else float32.
 
     The other arguments are those of :func:`fit_pixels`; with the default L2 loss and
     sigma 1 the cost is in (1/sr)^2.
@@ -302,8 +326,7 @@ def fit_samples(
     else:
         wi, wo, values = measured.wi, measured.wo, measured.values
         names = tuple(measured.channels)
-    if dtype is None:
-        dtype = jnp.asarray(0.0).dtype
+    dtype = jnp.asarray(0.0).dtype if config.dtype is None else config.dtype
     values, scale, weight = sample_arrays(wi, wo, values, cosine=cosine, dtype=dtype)
     k, c = values.shape
     wi = jnp.asarray(wi, dtype)
@@ -328,17 +351,7 @@ def fit_samples(
         if ch_names is not None and len(ch_names) != n_ch:
             ch_names = None
         space = ParamSpace(model, channels=n_ch, bounds=bounds, fixed=fixed, channel_names=ch_names)
-    r = fit_pixels(
-        model,
-        data,
-        space=space,
-        noise=noise,
-        loss=loss,
-        backend=backend,
-        init=init,
-        max_iters=max_iters,
-        options=options,
-    )
+    r = fit_pixels(model, data, config=config.replace(dtype=None), space=space, init=init)
     if channels == "joint":
         return FitResult(
             jax.tree.map(lambda x: x[0], r.params),
@@ -349,7 +362,7 @@ def fit_samples(
             r.n_used[0],
             r.space,
             model,
-            backend,
+            r.backend,
         )
     kinds = {q.name: q.kind for q in model.params}
     params = {n: (v[:, 0] if kinds[n] == "color" else v) for n, v in r.params.items()}
@@ -362,6 +375,6 @@ def fit_samples(
         r.n_used,
         r.space,
         model,
-        backend,
+        r.backend,
         r.linearisation,
     )

@@ -27,8 +27,8 @@ Jacobian. Callers should still zero-weight bad observations themselves.
 
 from __future__ import annotations
 
-import numbers
 from collections.abc import Mapping
+from typing import ClassVar
 
 import equinox as eqx
 import jax
@@ -38,6 +38,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from jaxrefl.brdf import BRDF
 
+from ._options import Option, check_number
 from ._transform import ParamSpace
 
 __all__ = [
@@ -189,7 +190,7 @@ def _check_unit(name: str, w: Array, weight: Array) -> None:
 
 
 # ---------------------------------------------------------------------------- noise models
-class NoiseModel(eqx.Module):
+class NoiseModel(Option):
     """Standard deviation of each observation, used to whiten residuals."""
 
     def std(self, obs: Float[Array, "K C"]) -> Float[Array, "K C"]:
@@ -207,9 +208,16 @@ class GaussianNoise(NoiseModel):
     depend on a common sigma) and sigma can be estimated afterwards from the residuals
     (:func:`jaxrefl.fit.laplace` with ``noise="estimate"``). Robust-loss thresholds are in
     units of sigma, so give sigma when using Huber or Cauchy.
+
+    sigma: noise std in the units of the observations, > 0 and finite (a number, or an
+           array of one per channel (C,)); default None (unknown)
     """
 
+    kind: ClassVar[str] = "gaussian"
     sigma: float | Array | None = None
+
+    def __check_init__(self):
+        check_number("GaussianNoise", "sigma", self.sigma, positive=True)
 
     def std(self, obs):
         if self.sigma is None:
@@ -225,18 +233,19 @@ class ShotNoise(NoiseModel):
     that moves with the prediction adds a log-determinant term and a second, competing
     gradient, and lets the solver "explain" residuals by inflating the predicted variance).
     For well-exposed pixels obs ~ pred, so the two differ by O(1/sqrt(counts)).
-    ``read`` > 0 (in the units of obs) keeps the variance positive at obs <= 0; ``gain`` in
-    units of obs per photo-electron.
+
+    read: read-noise std in the units of obs, finite and > 0 (it keeps the variance positive
+          at obs <= 0); a number or one per channel (C,); default 0.01
+    gain: units of obs per photo-electron, finite and >= 0; default 0
     """
 
+    kind: ClassVar[str] = "shot"
     read: float | Array = 0.01
     gain: float | Array = 0.0
 
     def __check_init__(self):
-        if isinstance(self.read, numbers.Real) and not self.read > 0:
-            raise ValueError(f"ShotNoise needs read > 0 (the variance at obs = 0), got {self.read}")
-        if isinstance(self.gain, numbers.Real) and self.gain < 0:
-            raise ValueError(f"ShotNoise needs gain >= 0, got {self.gain}")
+        check_number("ShotNoise", "read", self.read, positive=True, why="the variance at obs = 0")
+        check_number("ShotNoise", "gain", self.gain)
 
     def std(self, obs):
         read = _lift(jnp.asarray(self.read, dtype=obs.dtype), obs)
@@ -247,7 +256,7 @@ class ShotNoise(NoiseModel):
 
 
 # ---------------------------------------------------------------------------- robust losses
-class Loss(eqx.Module):
+class Loss(Option):
     """A robust loss rho(z) on whitened residuals, applied as r = sign(z) sqrt(2 rho(z))."""
 
     def rho(self, z: Float[Array, "*b"]) -> Float[Array, "*b"]:
@@ -261,6 +270,8 @@ class Loss(eqx.Module):
 class L2(Loss):
     """rho(z) = z^2 / 2: ordinary least squares (r = z)."""
 
+    kind: ClassVar[str] = "l2"
+
     def rho(self, z):
         return 0.5 * z * z
 
@@ -273,9 +284,15 @@ class Huber(Loss):
 
     r = z inside, sign(z) sqrt(2 delta |z| - delta^2) outside: quadratic near 0, the cost
     grows linearly beyond delta (r grows like sqrt|z|).
+
+    delta: threshold in units of the noise std (whitened residual), > 0; default 1
     """
 
+    kind: ClassVar[str] = "huber"
     delta: float = 1.0
+
+    def __check_init__(self):
+        check_number("Huber", "delta", self.delta, positive=True)
 
     def rho(self, z):
         a = jnp.abs(z)
@@ -295,9 +312,15 @@ class Cauchy(Loss):
 
     r = z sqrt(log1p(t)/t) with t = (z/c)^2, equal to sign(z) c sqrt(log1p(t)); the ratio
     log1p(t)/t -> 1 - t/2 is used for tiny t, so r and dr/dz are finite at z = 0.
+
+    c: scale in units of the noise std (whitened residual), > 0; default 1
     """
 
+    kind: ClassVar[str] = "cauchy"
     c: float = 1.0
+
+    def __check_init__(self):
+        check_number("Cauchy", "c", self.c, positive=True)
 
     def rho(self, z):
         return 0.5 * self.c * self.c * jnp.log1p((z / self.c) ** 2)

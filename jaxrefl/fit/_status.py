@@ -162,6 +162,14 @@ def equilibrated_condition(jtj: Float[Array, "*b P P"]) -> Float[Array, "*b"]:
     return jnp.where(zero_col, jnp.inf, cond)
 
 
+def default_cond_max(dtype, cond_max: float | None = None) -> float:
+    """``cond_max``, or where None the default for ``dtype``: 1e7 (float32 and narrower),
+    1e10 (float64); the threshold of :func:`ill_conditioned` every solver applies."""
+    if cond_max is not None:
+        return float(cond_max)
+    return 1e7 if jnp.finfo(dtype).bits <= 32 else 1e10
+
+
 def ill_conditioned(jtj: Float[Array, "*b P P"], cond_max: float) -> Bool[Array, "*b"]:
     """``equilibrated_condition(jtj) > cond_max``, decided without an eigensolver.
 

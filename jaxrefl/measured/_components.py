@@ -54,7 +54,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from jaxrefl.brdf import BRDF, CookTorrance, Lambert, Param, Sum
-from jaxrefl.fit import Exp, FitResult, ParamSpace, PixelData, fit_pixels
+from jaxrefl.fit import Bijection, Exp, FitConfig, FitResult, ParamSpace, PixelData, fit_pixels
 
 __all__ = [
     "COMPONENT_NAMES",
@@ -222,15 +222,25 @@ def _stem(name: str) -> str:
     return name[: -len("_2")] if name.endswith("_2") else name
 
 
-def param_space(model: BRDF, channels: int = 3, **kw: Any) -> ParamSpace:
+def param_space(
+    model: BRDF,
+    channels: int = 3,
+    *,
+    bounds: Mapping[str, tuple[float, float]] | None = None,
+    fixed: Mapping[str, Any] | None = None,
+    transforms: Mapping[str, Bijection] | None = None,
+    grey: tuple[str, ...] = (),
+) -> ParamSpace:
     """:class:`~jaxrefl.fit.ParamSpace` of an assembled model: renamed widths (``alpha_2``)
-    get ``Exp(lower)`` as ``alpha`` does; ``kw`` goes to ParamSpace."""
-    transforms = dict(kw.pop("transforms", {}) or {})
-    fixed = kw.get("fixed") or {}
+    get ``Exp(lower)`` as ``alpha`` does; ``bounds``, ``fixed``, ``transforms`` (taking
+    precedence over those) and ``grey`` are those of ParamSpace."""
+    trans = dict(transforms or {})
     for q in model.params:
-        if q.name != _stem(q.name) and _stem(q.name) in _LOG_STEMS and q.name not in fixed:
-            transforms.setdefault(q.name, Exp(q.lower))
-    return ParamSpace(model, channels=channels, transforms=transforms, **kw)
+        if q.name != _stem(q.name) and _stem(q.name) in _LOG_STEMS and q.name not in (fixed or {}):
+            trans.setdefault(q.name, Exp(q.lower))
+    return ParamSpace(
+        model, channels=channels, bounds=bounds, fixed=fixed, transforms=trans, grey=grey
+    )
 
 
 def core(spec: Components) -> Components:
@@ -283,15 +293,18 @@ def fit_components(
     data: PixelData,
     *,
     init: Mapping[str, Any] | None = None,
-    **kw: Any,
+    config: FitConfig = FitConfig(),
+    devices: int | None = None,
 ) -> FitResult:
-    """Fit assembly ``spec`` to every pixel of ``data`` with :func:`jaxrefl.fit.fit_pixels`.
+    """Fit assembly ``spec`` to every pixel of ``data`` with :func:`jaxrefl.fit.fit_pixels`
+    in :func:`param_space`.
 
-    init: natural starting values (e.g. :func:`start_from` a richer fit); default: the
-          automatic start when ``spec`` is its own :func:`core`, else a fit of the core
-          followed by :func:`start_from` it.
-    kw:   further arguments of ``fit_pixels`` (``backend``, ``max_iters``, ``dtype``...);
-          ``space`` is built by :func:`param_space`.
+    init:    natural starting values (e.g. :func:`start_from` a richer fit); default: the
+             automatic start when ``spec`` is its own :func:`core`, else a fit of the core
+             followed by :func:`start_from` it.
+    config:  solver, noise, loss and dtype of the fits (:class:`jaxrefl.fit.FitConfig`;
+             dtype None: that of ``data.obs``)
+    devices: as for ``fit_pixels`` (default all)
     """
     model = spec.build()
     c = data.obs.shape[-1]
@@ -300,9 +313,11 @@ def fit_components(
     if init is None:
         base = core(spec)
         if base == spec:
-            return fit_pixels(model, data, space=space, **kw)
-        r0 = fit_pixels(base.build(), data, space=param_space(base.build(), c), **kw)
+            return fit_pixels(model, data, config=config, space=space, devices=devices)
+        r0 = fit_pixels(
+            base.build(), data, config=config, space=param_space(base.build(), c), devices=devices
+        )
         init = start_from(r0.params, spec, n, c)
-    dtype = kw.get("dtype") or data.obs.dtype
+    dtype = data.obs.dtype if config.dtype is None else config.dtype
     init_j = {k: jnp.asarray(np.nan_to_num(np.asarray(v), nan=0.1), dtype) for k, v in init.items()}
-    return fit_pixels(model, data, space=space, init=init_j, **kw)
+    return fit_pixels(model, data, config=config, space=space, init=init_j, devices=devices)

@@ -1,7 +1,8 @@
 """Fit analytic models to one measured material and report error, parameters and time.
 
 :func:`fit_model` fits one model with :func:`jaxrefl.fit.fit_samples` (lean batched
-Levenberg-Marquardt by default; ``backend`` picks optimistix or jaxopt) and returns a
+Levenberg-Marquardt by default; a :class:`jaxrefl.fit.FitConfig` picks the solver, noise,
+loss and dtype) and returns a
 :class:`ModelFit`; :func:`fit_brdf` prepares the samples once (spectra to RGB or per band,
 angle limit, solid-angle weights) and fits a whole set of models into a :class:`FitReport`
 whose :meth:`FitReport.to_dict` is the ``report.json`` of ``jaxrefl fit-brdf``.
@@ -32,7 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxrefl.brdf import BRDF
-from jaxrefl.fit import FitResult, Status, fit_samples
+from jaxrefl.fit import FitConfig, FitResult, Status, fit_samples
 from jaxrefl.io import MeasuredBRDF
 
 from ._data import restrict, to_rgb
@@ -42,24 +43,30 @@ from ._retry import choose, float64_enabled, float64_reasons, x64
 
 __all__ = ["FitReport", "ModelFit", "fit_brdf", "fit_model", "predict"]
 
-DType = Literal["float32", "float64"]
 Channels = Literal["joint", "separate"]
+_FLOAT32 = np.dtype(np.float32)
+_FLOAT64 = np.dtype(np.float64)
+_MEASURED_CONFIG = FitConfig(dtype=np.float32)
 
 
-def _jnp_dtype(name: str):
-    if name not in ("float32", "float64"):
-        raise ValueError(f"dtype must be 'float32' or 'float64', not {name!r}")
-    return jnp.float32 if name == "float32" else jnp.float64
+def _check_dtype(config: FitConfig) -> np.dtype:
+    """The config's dtype (None: float32), refusing any other than float32 or float64."""
+    dt = _FLOAT32 if config.dtype is None else config.dtype
+    if dt not in (_FLOAT32, _FLOAT64):
+        raise ValueError(f"dtype must be float32 or float64, not {dt}")
+    return dt
 
 
-def _run(name: str, fn: Callable[[], FitResult]) -> FitResult:
-    if name == "float64" and not float64_enabled():
+def _run(dtype: np.dtype, fn: Callable[[], FitResult]) -> FitResult:
+    if dtype == _FLOAT64 and not float64_enabled():
         with x64():
             return fn()
     return fn()
 
 
-def _timed(dtype: str, fn: Callable[[], FitResult], timing: bool) -> tuple[FitResult, float, float]:
+def _timed(
+    dtype: np.dtype, fn: Callable[[], FitResult], timing: bool
+) -> tuple[FitResult, float, float]:
     t0 = time.perf_counter()
     r = _run(dtype, fn)
     jax.block_until_ready(r.theta)
@@ -131,7 +138,9 @@ class ModelFit:
     fit_time_s:     wall time of the fit without compilation (both fits if retried)
     compile_time_s: the extra time of the first call (compilation), NaN if not timed
     n_params:       free parameters per problem (P), times C problems when per channel
-    dtype:          precision of the kept result
+    dtype:          precision of the kept result (``np.dtype``, float32 or float64)
+    channels:       ``"joint"`` or ``"separate"`` (see :func:`fit_model`)
+    config:         the fit's configuration (solver, noise, loss; its dtype the one asked for)
     retry:          None, or what the float64 retry found (reasons, costs, which was kept)
     """
 
@@ -144,9 +153,9 @@ class ModelFit:
     fit_time_s: float
     compile_time_s: float
     n_params: int
-    dtype: str
+    dtype: np.dtype
     channels: Channels
-    backend: str
+    config: FitConfig
     retry: dict[str, Any] | None = None
 
     @property
@@ -166,9 +175,9 @@ class ModelFit:
             "iterations": np.asarray(self.result.iterations).tolist(),
             "fit_time_s": self.fit_time_s,
             "compile_time_s": self.compile_time_s,
-            "dtype": self.dtype,
+            "dtype": self.dtype.name,
             "channels": self.channels,
-            "backend": self.backend,
+            "backend": self.result.backend,
             "retry": self.retry,
         }
 
@@ -180,10 +189,8 @@ def fit_model(
     name: str | None = None,
     channels: Channels = "joint",
     cosine: bool = True,
-    backend: str = "lean",
-    dtype: DType = "float32",
+    config: FitConfig = _MEASURED_CONFIG,
     retry_float64: bool = True,
-    max_iters: int | None = None,
     max_theta_deg: float | None = 80.0,
     weight: np.ndarray | None = None,
     timing: bool = True,
@@ -192,8 +199,10 @@ def fit_model(
 
     channels:      ``"joint"`` (colour parameters per channel, shared roughness) or
                    ``"separate"`` (each channel its own problem, e.g. spectral bands)
-    dtype:         ``"float32"`` (default, fast) or ``"float64"``; float64 works whether or
-                   not JAX runs with x64 enabled (it is switched on around the fit)
+    config:        solver, noise, loss and dtype (:class:`jaxrefl.fit.FitConfig`); dtype
+                   float32 (default; None means float32 here, the fast one) or float64,
+                   which works whether or not JAX runs with x64 enabled (it is switched on
+                   around the fit)
     retry_float64: redo a float32 fit in float64 when it has a non-finite cost or parameter
                    or a NONFINITE_INPUT / ILL_CONDITIONED status, and keep the float64
                    result when it is finite and no worse (see ``_retry``)
@@ -209,17 +218,12 @@ def fit_model(
     f = np.asarray(data.values)
     cos_i = data.wi[:, 2]
 
-    def run(dt: str) -> tuple[FitResult, float, float]:
+    dtype = _check_dtype(config)
+
+    def run(dt: np.dtype) -> tuple[FitResult, float, float]:
         def fn() -> FitResult:
-            return fit_samples(
-                model,
-                data,
-                channels=channels,
-                cosine=cosine,
-                backend=backend,  # type: ignore[arg-type]
-                dtype=_jnp_dtype(dt),
-                max_iters=max_iters,
-            )
+            cfg = config.replace(dtype=dt)
+            return fit_samples(model, data, channels=channels, cosine=cosine, config=cfg)
 
         return _timed(dt, fn, timing)
 
@@ -228,27 +232,27 @@ def fit_model(
     f_hat = predict(result, data.wi, data.wo, channels)
     cost = _cost64(f_hat, f, cos_i, cosine)
     retry = None
-    if retry_float64 and dtype == "float32":
+    if retry_float64 and dtype == _FLOAT32:
         reasons = float64_reasons(result)
         if not np.isfinite(cost) and "non-finite cost" not in reasons:
             reasons.append("non-finite cost")
         if reasons:
-            r64, t64, c64 = run("float64")
+            r64, t64, c64 = run(_FLOAT64)
             f_hat64 = predict(r64, data.wi, data.wo, channels)
             cost64 = _cost64(f_hat64, f, cos_i, cosine)
-            kept = choose(cost, cost64)
+            kept = np.dtype(choose(cost, cost64))
             retry = {
                 "reasons": reasons,
                 "float32_status": _status_summary(result),
                 "float32_cost": cost,
                 "float64_status": _status_summary(r64),
                 "float64_cost": cost64,
-                "kept": kept,
+                "kept": kept.name,
                 "float64_fit_time_s": t64,
             }
             t_fit += t64
             t_comp = t_comp + c64
-            if kept == "float64":
+            if kept == _FLOAT64:
                 result, f_hat, cost = r64, f_hat64, cost64
     metrics = error_metrics(f, f_hat, data.wi, data.wo, weight=w, max_theta_deg=None)
     params = {k: np.asarray(v, dtype=np.float64) for k, v in result.params.items()}
@@ -265,7 +269,7 @@ def fit_model(
         n_params=int(result.space.size) * n_problems,
         dtype=kept,
         channels=channels,
-        backend=backend,
+        config=config,
         retry=retry,
     )
 
@@ -336,10 +340,8 @@ def fit_brdf(
     illuminant: Literal["D65", "E"] = "D65",
     max_theta_deg: float | None = 80.0,
     cosine: bool = True,
-    backend: str = "lean",
-    dtype: DType = "float32",
+    config: FitConfig = _MEASURED_CONFIG,
     retry_float64: bool = True,
-    max_iters: int | None = None,
     timing: bool = True,
     progress: Callable[[str], None] | None = None,
 ) -> FitReport:
@@ -378,10 +380,8 @@ def fit_brdf(
             name=name,
             channels=channels,
             cosine=cosine,
-            backend=backend,
-            dtype=dtype,
+            config=config,
             retry_float64=retry_float64,
-            max_iters=max_iters,
             max_theta_deg=None,
             weight=weight,
             timing=timing,
@@ -392,9 +392,7 @@ def fit_brdf(
         "channels": channels,
         "max_theta_deg": max_theta_deg,
         "cosine": cosine,
-        "backend": backend,
-        "dtype": dtype,
+        "config": config.to_json(),
         "retry_float64": retry_float64,
-        "max_iters": max_iters,
     }
     return FitReport(prepared, fits, settings, weight)

@@ -150,7 +150,7 @@ def sample_posterior(
         m,
         name=model,
         cosine=True,
-        dtype="float64",
+        config=fit.FitConfig(dtype=np.float64),
         max_theta_deg=max_theta_deg,
         timing=False,
     )

@@ -51,7 +51,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxrefl.fit import FitResult, PixelData, make_residual, pixel_data, sample_arrays
+from jaxrefl.fit import (
+    FitConfig,
+    FitResult,
+    PixelData,
+    make_residual,
+    pixel_data,
+    sample_arrays,
+)
 
 from ._compact import Compacted, compact
 from ._components import Components, fit_components, param_space, start_from
@@ -321,21 +328,22 @@ def prune(
     noise: Literal["estimate", "known"] = "estimate",
     prior_width: float = 3.0,
     seed: int = 0,
-    fit_options: Mapping[str, Any] | None = None,
+    config: FitConfig = FitConfig(),
     cache: Mapping[str, tuple[Components, FitResult, dict[str, np.ndarray]]] | None = None,
 ) -> PruneReport:
     """Prune ``rich`` for every group of the pixels of ``data`` (module docstring).
 
     data:        :class:`~jaxrefl.fit.PixelData` (N, K, C); a measured material is one pixel
                  (:func:`measured_pixel_data`)
-    fit_options: further arguments of :func:`jaxrefl.fit.fit_pixels` (``max_iters``...)
-    cache:       :attr:`PruneReport.fits` of an earlier call on the same data, rich model
-                 and noise settings (e.g. to compare criteria or groupings without refitting)
+    config:      solver, noise, loss and dtype of every fit (:class:`jaxrefl.fit.FitConfig`,
+                 as :func:`fit_components` takes it)
+    cache:       :attr:`PruneReport.fits` of an earlier call on the same data, rich model,
+                 fit configuration and noise settings (e.g. to compare criteria or
+                 groupings without refitting)
     The compaction options are those of :func:`~jaxrefl.measured._compact.compact`.
     """
     if criterion not in CRITERIA:
         raise ValueError(f"criterion must be one of {CRITERIA}, not {criterion!r}")
-    opts = dict(fit_options or {})
     c = data.obs.shape[-1]
     p_rich = param_space(rich.build(), c).size
     comp = compact(data, mask, min_obs=p_rich + 1, saturation=saturation, noise_floor=noise_floor)
@@ -347,7 +355,7 @@ def prune(
     if rich.label in fits:
         rich_fit, var = fits[rich.label][1], fits[rich.label][2]["noise_var"]
     else:
-        rich_fit = fit_components(rich, d, **opts)
+        rich_fit = fit_components(rich, d, config=config)
         # The rich fit's residual variance is every candidate's s^2 (module docstring).
         base = criteria(rich_fit, d, noise_var=1.0 if noise == "known" else None)
         var = base["noise_var"]
@@ -358,7 +366,7 @@ def prune(
     def get(spec: Components) -> dict[str, np.ndarray]:
         if spec.label not in fits:
             init = start_from(init_params, spec, n, c)
-            r = fit_components(spec, d, init=init, **opts)
+            r = fit_components(spec, d, init=init, config=config)
             fits[spec.label] = (spec, r, criteria(r, d, noise_var=var, prior_width=prior_width))
         return fits[spec.label][2]
 
@@ -411,7 +419,7 @@ def measured_pixel_data(measured: Any, cosine: bool = True, dtype=None) -> Pixel
     obs, scale, weight = sample_arrays(
         wi, wo, np.where(finite, f, 0.0), cosine=cosine, keep=np.all(finite, axis=-1)
     )
-    dt = dtype or jnp.asarray(0.0).dtype
+    dt = jnp.asarray(0.0).dtype if dtype is None else dtype
     return pixel_data(
         obs[None],
         wi[None],

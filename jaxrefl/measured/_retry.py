@@ -33,7 +33,7 @@ from __future__ import annotations
 
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Literal
 
 import equinox as eqx
 import jax
@@ -42,7 +42,9 @@ import numpy as np
 
 from jaxrefl.brdf import BRDF
 from jaxrefl.fit import (
+    FitConfig,
     FitResult,
+    ParamSpace,
     PixelData,
     Residual,
     Status,
@@ -220,17 +222,25 @@ class RetryResult:
         return self.result.theta
 
 
-def fit_pixels_retry(model: BRDF, data: PixelData, **kw: Any) -> RetryResult:
+def fit_pixels_retry(
+    model: BRDF,
+    data: PixelData,
+    *,
+    config: FitConfig = FitConfig(),
+    space: ParamSpace | None = None,
+) -> RetryResult:
     """:func:`jaxrefl.fit.fit_pixels` in float32, then the flagged problems again in float64.
 
     Only the problems of :func:`retry_mask` (with ``data``: flags and float64 step gain)
     are refitted (a batch of that size); per problem
     the float64 result is kept when :func:`choose` prefers it (costs re-evaluated in
-    float64). Keyword arguments go to both fits (not ``dtype``).
+    float64). ``config`` (solver, noise, loss) and ``space`` are those of both fits (each
+    starts at :func:`jaxrefl.fit.initial_theta`); ``config.dtype`` must be None (the dtypes
+    are float32, then float64).
     """
-    if "dtype" in kw:
+    if config.dtype is not None:
         raise ValueError("fit_pixels_retry chooses the dtypes itself (float32, then float64)")
-    r32 = fit_pixels(model, data.astype(jnp.float32), **kw)
+    r32 = fit_pixels(model, data, config=config.replace(dtype=np.float32), space=space)
     retried = retry_mask(r32, data)
     kept = np.zeros_like(retried)
     with x64():
@@ -244,7 +254,8 @@ def fit_pixels_retry(model: BRDF, data: PixelData, **kw: Any) -> RetryResult:
         idx = np.flatnonzero(retried)
         if idx.size:
             sub = jax.tree.map(lambda x: x[idx], data.astype(jnp.float64))
-            r64 = fit_pixels(model, sub, dtype=jnp.float64, **kw)
+            cfg64 = config.replace(dtype=np.float64)
+            r64 = fit_pixels(model, sub, config=cfg64, space=space)
             c32 = cost64(r32, data)[idx]
             c64 = cost64(r64, sub)
             take = np.asarray([choose(a, b) == "float64" for a, b in zip(c32, c64, strict=True)])

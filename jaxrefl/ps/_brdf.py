@@ -17,8 +17,9 @@ and non-singular for tilts below 90 degrees (a unit vector needs no constraint t
 and x the model's unconstrained parameters (:class:`jaxrefl.fit.ParamSpace`). The residual
 of the fitting engine (:func:`jaxrefl.fit.make_residual`: noise whitening, robust loss,
 censoring of saturated observations, defensive masking) is evaluated on the directions
-rotated into the current frame, and the lean batched Levenberg-Marquardt (or another
-backend of :func:`jaxrefl.fit.solve`) minimises it for every pixel at once.
+rotated into the current frame, and the solver of the :class:`jaxrefl.fit.FitConfig` (the
+lean batched Levenberg-Marquardt by default; see :func:`jaxrefl.fit.solve`) minimises it
+for every pixel at once.
 
 Start: n0 and rho from robust Lambertian PS (:func:`jaxrefl.ps.robust`); the BRDF start is
 :func:`jaxrefl.fit.initial_theta` at n0 (closed-form colours on a roughness grid).
@@ -122,9 +123,7 @@ def fit_normal_brdf(
     *,
     model: BRDF | None = None,
     space: jf.ParamSpace | None = None,
-    loss: jf.Loss | None = None,
-    backend: str = "lean",
-    max_iters: int = 40,
+    config: jf.FitConfig = jf.FitConfig(),
     shadow: float = 0.05,
     init: str = "diffuse",
     batch: int = 2048,
@@ -132,6 +131,8 @@ def fit_normal_brdf(
 ) -> BRDFFit:
     """Fit normal + BRDF per pixel (module docstring). ``saturated`` (N, K, C) bool marks
     censored observations; ``space`` defaults to the model's with a grey ``specular``.
+    ``config``: solver, noise (in the units of ``obs`` divided by the per-pixel scale s),
+    loss (None: L2) and dtype (None: that of ``obs``) of the fit.
 
     ``init``: ``"diffuse"`` (default: the robust Lambertian albedo and the model's other
     defaults) or ``"grid"`` (:func:`jaxrefl.fit.initial_theta` at n0: closed-form colours
@@ -143,6 +144,8 @@ def fit_normal_brdf(
     be absorbing a model error than a highlight); None keeps every fitted normal.
     """
     obs, lights, e, w = prepare_inputs(obs, lights, intensities, weight)
+    if config.dtype is not None:
+        obs, lights, e, w = (jnp.asarray(a, config.dtype) for a in (obs, lights, e, w))
     n, k, c = obs.shape
     if saturated is not None and tuple(jnp.shape(saturated)) != (n, k, c):
         raise PSInputError(
@@ -154,7 +157,6 @@ def fit_normal_brdf(
     pad = -n % size
     if pad:
         obs, w, sat = (jnp.pad(a, [(0, pad), (0, 0), (0, 0)]) for a in (obs, w, sat))
-    kw = dict(model=model, space=space, loss=loss, backend=backend, max_iters=max_iters)
     parts = [
         _fit_batch(
             obs[i : i + size],
@@ -162,10 +164,12 @@ def fit_normal_brdf(
             e,
             w[i : i + size],
             sat[i : i + size],
+            model=model,
+            space=space,
+            config=config,
             shadow=shadow,
             init=init,
             select=select,
-            **kw,
         )
         for i in range(0, n + pad, size)
     ]
@@ -173,9 +177,7 @@ def fit_normal_brdf(
     return out
 
 
-def _fit_batch(
-    obs, lights, e, w, sat, *, model, space, loss, backend, max_iters, shadow, init, select
-):
+def _fit_batch(obs, lights, e, w, sat, *, model, space, config, shadow, init, select):
     dt = obs.dtype
     n, k, c = obs.shape
     finite = jnp.isfinite(obs) & jnp.isfinite(w)
@@ -201,7 +203,7 @@ def _fit_batch(
         jnp.broadcast_to(lights, (n, k, 3)),
         jnp.broadcast_to(e, (n, k, c)),
     )
-    residual = NormalBRDFResidual(jf.make_residual(model, space, jf.GaussianNoise(), loss))
+    residual = NormalBRDFResidual(jf.make_residual(model, space, config.noise, config.loss))
     if init == "grid":
         local0 = _batched_local(residual, jnp.zeros((n, 2 + space.size), dt), data)
         x0 = jf.initial_theta(residual.res, local0)
@@ -211,7 +213,7 @@ def _fit_batch(
         raise ValueError(f"init must be 'grid' or 'diffuse', not {init!r}")
     theta0 = jnp.concatenate([jnp.zeros((n, 2), dt), x0], axis=-1)
     n_usable = jnp.sum(w_fit > 0, axis=(1, 2)).astype(jnp.int32)
-    theta, info = jf.solve(residual, theta0, data, backend, max_iters=max_iters, n_usable=n_usable)
+    theta, info = jf.solve(residual, theta0, data, config.solver, n_usable=n_usable)
     normals = tilt_normal(theta[:, :2], n0)
     params = space.to_natural(theta[:, 2:])
     # The Lambertian alternative in the same residual: the start with no specular lobe.

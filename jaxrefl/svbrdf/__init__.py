@@ -3,8 +3,9 @@
 Quick use::
 
     import jax
+    import numpy as np
     from jaxrefl.io import load_capture
-    from jaxrefl import posterior, svbrdf
+    from jaxrefl import fit, posterior, svbrdf
 
     cap = load_capture("bath_tile")                          # any of the three layouts
     result = svbrdf.fit_capture(cap, svbrdf.FitJob(model="ggx", holdout=(0,)), "out")
@@ -13,7 +14,8 @@ Quick use::
 
     jax.config.update("jax_enable_x64", True)               # posteriors are float64
     opts = posterior.AdaptiveOptions(hmc=posterior.MAP_OPTIONS)
-    u = svbrdf.uncertainty_maps(cap, svbrdf.FitJob(dtype="float64"), opts)
+    job64 = svbrdf.FitJob(config=fit.FitConfig(dtype=np.float64))
+    u = svbrdf.uncertainty_maps(cap, job64, opts)
     svbrdf.write_uncertainty(u, "post")                     # uncertainty.exr, posterior.nc
     u.map.std, u.report()["uncertainty"]["method_counts"]
 

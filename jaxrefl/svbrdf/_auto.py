@@ -138,7 +138,7 @@ def choose_model(
         first = next((m for m in candidates if m != "lambert"), candidates[0])
         return ModelChoice(first, {}, 0, (), {})
     per_fold = max(256, max_pixels // len(train))
-    data = _subsample(capture, per_fold, seed, np.dtype(job.dtype))
+    data = _subsample(capture, per_fold, seed, job.dtype)
     size = job.tile_pixels
     stacked, mask, held = _stack(data, train, k, size)
     cv: dict[str, float] = {}

@@ -25,7 +25,7 @@ import json
 import os
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
 
@@ -44,12 +44,11 @@ from ._pooled import PoolChoice, choose_pooled
 
 __all__ = ["DEFAULT_LOSS", "CaptureFit", "FitJob", "fit_capture", "map_name"]
 
-_NOISES = ("gaussian", "shot")
 # Models whose default loss is not L2. Huber's threshold is one noise std (the pooled model
 # estimates that std): a glint or a misregistered edge in one photo then pulls the shared
 # lobe and the pixel's F0 linearly, not quadratically.
-DEFAULT_LOSS: dict[str, str] = {"pooled": "huber"}
-_LOSS = {"l2": fit.L2, "huber": fit.Huber, "cauchy": fit.Cauchy}
+DEFAULT_LOSS: dict[str, fit.Loss] = {"pooled": fit.Huber()}
+_DTYPES = (np.dtype(np.float32), np.dtype(np.float64))
 
 
 @dataclass(frozen=True)
@@ -61,17 +60,22 @@ class FitJob:
                 (:func:`jaxrefl.svbrdf.choose_model`; the report's ``auto`` says why)
     holdout:    photo indices left out of the fit and used to measure prediction error
     tile_pixels: pixels per tile (memory is constant in the image size, about 1 kB a pixel)
-    backend:    ``lean`` (default), ``optimistix`` or ``jaxopt``
-    dtype:      ``float32`` (default) or ``float64``
-    noise:      ``gaussian`` (constant ``sigma``; None: unknown, the Laplace step
-                estimates its scale per pixel) or ``shot`` (variance read^2 + gain * obs)
-    sigma, read, gain: the noise model's parameters (linear radiance units); robust-loss
-                thresholds are in these units
-    loss:       ``l2``, ``huber`` or ``cauchy`` (robust to highlights/outliers); None (the
-                default): the model's own, :data:`jaxrefl.svbrdf.DEFAULT_LOSS` (``huber`` for
-                ``pooled``, whose one lobe should not bend to a glint or a misregistered
-                edge in one photo; ``l2`` otherwise)
-    max_iters:  LM iteration budget (None: the backend's default)
+    config:     a :class:`jaxrefl.fit.FitConfig`:
+
+                * ``solver``: :class:`~jaxrefl.fit.LMOptions` (default), or a library solver
+                  (:class:`~jaxrefl.fit.OptimistixLM`, :class:`~jaxrefl.fit.JaxoptLM`),
+                  with its iteration budget
+                * ``noise``: :class:`~jaxrefl.fit.GaussianNoise` (default: sigma unknown, the
+                  Laplace step estimates its scale per pixel) or
+                  :class:`~jaxrefl.fit.ShotNoise` (variance read^2 + gain * obs), in linear
+                  radiance units; robust-loss thresholds are in these units
+                * ``loss``: :class:`~jaxrefl.fit.L2`, :class:`~jaxrefl.fit.Huber` or
+                  :class:`~jaxrefl.fit.Cauchy` (robust to highlights/outliers); None (the
+                  default): the model's own, :data:`jaxrefl.svbrdf.DEFAULT_LOSS`
+                  (:class:`~jaxrefl.fit.Huber` for ``pooled``, whose one lobe should not bend
+                  to a glint or a misregistered edge in one photo; L2 otherwise); ``auto``
+                  keeps None until it has chosen the model
+                * ``dtype``: float32 (default; None means float32 here) or float64
     alpha_min:  lower bound of alpha; None: the capture's resolvable width
                 (:func:`jaxrefl.svbrdf.resolvable_alpha`); 1e-3 lets lobes be as narrow
                 as the models allow
@@ -84,29 +88,24 @@ class FitJob:
     model: str = "auto"
     holdout: tuple[int, ...] = ()
     tile_pixels: int = 4096
-    backend: str = "lean"
-    dtype: str = "float32"
-    noise: str = "gaussian"
-    loss: str | None = None
-    max_iters: int | None = None
+    config: fit.FitConfig = field(default_factory=fit.FitConfig)
     alpha_min: float | None = None
-    sigma: float | None = None
-    read: float = 0.002
-    gain: float = 0.002
     tilt_std: float = 0.1
 
     def __post_init__(self) -> None:
         if self.model != "auto":
             capture_model(self.model)  # raises for an unknown name
-        if self.noise not in _NOISES:
-            raise ValueError(f"noise must be one of {sorted(_NOISES)}, not {self.noise!r}")
+        cfg = self.config
+        if not isinstance(cfg, fit.FitConfig):
+            raise TypeError(f"config must be a fit.FitConfig, not {type(cfg).__name__}")
+        if cfg.dtype is None:
+            cfg = cfg.replace(dtype=np.float32)
+        if cfg.dtype not in _DTYPES:
+            raise ValueError(f"dtype must be float32 or float64, not {cfg.dtype}")
         # ``auto`` leaves the loss to the model it chooses (None stays None until then).
-        if self.loss is None and self.model != "auto":
-            object.__setattr__(self, "loss", DEFAULT_LOSS.get(self.model, "l2"))
-        if self.loss is not None and self.loss not in _LOSS:
-            raise ValueError(f"loss must be one of {sorted(_LOSS)}, not {self.loss!r}")
-        if self.dtype not in ("float32", "float64"):
-            raise ValueError(f"dtype must be float32 or float64, not {self.dtype!r}")
+        if cfg.loss is None and self.model != "auto":
+            cfg = cfg.replace(loss=DEFAULT_LOSS.get(self.model, fit.L2()))
+        object.__setattr__(self, "config", cfg)
         if self.tile_pixels < 1:
             raise ValueError(f"tile_pixels must be positive, got {self.tile_pixels}")
         if not self.tilt_std > 0:
@@ -114,13 +113,25 @@ class FitJob:
         lo, hi = ALPHA_RANGE
         if self.alpha_min is not None and not lo <= self.alpha_min <= hi:
             raise ValueError(f"alpha_min must be in [{lo:g}, {hi:g}], got {self.alpha_min}")
-        if self.sigma is not None and not (np.isfinite(self.sigma) and self.sigma > 0):
-            raise ValueError(f"sigma must be a positive number, got {self.sigma}")
-        for name in ("read", "gain"):
-            v = getattr(self, name)
-            if not (np.isfinite(v) and v >= 0):
-                raise ValueError(f"{name} must be a finite number >= 0, got {v}")
         object.__setattr__(self, "holdout", tuple(sorted({int(i) for i in self.holdout})))
+
+    @property
+    def dtype(self) -> np.dtype:
+        """The computation dtype (``config.dtype``, float32 or float64)."""
+        assert self.config.dtype is not None  # __post_init__ sets it
+        return self.config.dtype
+
+    def to_json(self) -> dict[str, Any]:
+        """The job as plain JSON values (the resume manifest's and report's ``job``); the
+        fit configuration's objects as their ``to_json`` (``{"type": "shot", ...}``)."""
+        return {
+            "model": self.model,
+            "holdout": list(self.holdout),
+            "tile_pixels": self.tile_pixels,
+            "config": self.config.to_json(),
+            "alpha_min": self.alpha_min,
+            "tilt_std": self.tilt_std,
+        }
 
 
 @dataclass
@@ -248,11 +259,7 @@ class _TileFitter:
             alpha_min=self.alpha_min,
             alpha=None if self.pooled is None else self.pooled.alpha,
         )
-        self.noise: fit.NoiseModel
-        if job.noise == "shot":
-            self.noise = fit.ShotNoise(read=job.read, gain=job.gain)
-        else:
-            self.noise = fit.GaussianNoise(sigma=job.sigma)
+        self.noise: fit.NoiseModel = job.config.noise
         self.prior = None
         self.known_noise = None  # noise variance the Laplace step takes as known
         if self.pooled is not None and self.pooled.alpha is not None:
@@ -262,7 +269,7 @@ class _TileFitter:
                 # An array, not a float: equinox's jit would treat a float as static and
                 # compile again for every capture or leave-one-out fold.
                 assert self.pooled.sigma is not None  # choose_pooled sets it with alpha
-                sigma = jnp.asarray(self.pooled.sigma, jnp.dtype(job.dtype))
+                sigma = jnp.asarray(self.pooled.sigma, job.dtype)
                 self.noise = fit.GaussianNoise(sigma=sigma)
                 self.known_noise = float(self.pooled.sigma) ** 2
             chans = [
@@ -277,10 +284,11 @@ class _TileFitter:
                     )
                 },
             )
-        assert job.loss is not None  # FitJob gives a named (not auto) model its loss
-        self.loss = _LOSS[job.loss]()
+        assert job.config.loss is not None  # FitJob gives a named (not auto) model its loss
+        self.loss: fit.Loss = job.config.loss
         self.residual = fit.make_residual(self.model, self.space, self.noise, self.loss, self.prior)
-        self.dtype = jnp.dtype(job.dtype)
+        self.config = job.config.replace(noise=self.noise, loss=self.loss)
+        self.dtype = job.dtype
         self.first = None  # (model, space) of the first stage of a two-stage model
         if job.model in TWO_STAGE:
             self.first = capture_model(
@@ -288,11 +296,9 @@ class _TileFitter:
             )
 
     def data(self, start: int, stop: int):
-        return pixel_block(
-            self.capture, start, stop, self.job.tile_pixels, dtype=np.dtype(self.job.dtype)
-        )
+        return pixel_block(self.capture, start, stop, self.job.tile_pixels, dtype=self.job.dtype)
 
-    def _two_stage(self, fit_data, kw):
+    def _two_stage(self, fit_data):
         """The flat model's fit, then the tilted model's MAP fit from the flat optimum with
         each slope of ``_TILT_STARTS`` (per pixel the lowest cost wins).
 
@@ -302,7 +308,7 @@ class _TileFitter:
         where the Laplace step should estimate it)."""
         assert self.first is not None  # called for two-stage models only
         model1, space1 = self.first
-        r1 = fit.fit_pixels(model1, fit_data, space=space1, **kw)
+        r1 = fit.fit_pixels(model1, fit_data, config=self.config, space=space1)
         noise = self.noise
         sigma = None
         if isinstance(noise, fit.GaussianNoise) and noise.sigma is None:
@@ -316,16 +322,15 @@ class _TileFitter:
             noise = fit.GaussianNoise(sigma=jnp.asarray(sigma, fit_data.obs.dtype))
         t = float(self.job.tilt_std)
         prior = fit.gaussian_prior(self.space, {"tilt_x": (0.0, t), "tilt_y": (0.0, t)})
-        kw2 = {
-            **kw,
-            "noise": noise,
-            "max_iters": max(kw["max_iters"] or 0, _STAGE2_ITERS),
-        }
+        solver = self.config.solver
+        config2 = self.config.replace(
+            noise=noise, solver=replace(solver, max_iters=max(solver.max_iters, _STAGE2_ITERS))
+        )
         best = None
         for tilt in _TILT_STARTS:
             init = _extend_start(r1, self.space, fit_data.obs.dtype, tilt)
             r = fit.fit_pixels(
-                self.model, fit_data, space=self.space, init=init, prior=prior, **kw2
+                self.model, fit_data, config=config2, space=self.space, init=init, prior=prior
             )
             best = r if best is None else _keep_lower(best, r)
         res = fit.make_residual(self.model, self.space, noise, self.loss, prior)
@@ -339,17 +344,13 @@ class _TileFitter:
         else:
             train_w = jnp.asarray(train, data.weight.dtype)[:, :, None]
         fit_data = eqx.tree_at(lambda d: d.weight, data, data.weight * train_w)
-        kw = dict(
-            noise=self.noise,
-            loss=self.loss,
-            backend=self.job.backend,
-            max_iters=self.job.max_iters,
-        )
         res, noise_var = self.residual, self.known_noise
         if self.first is None:
-            r = fit.fit_pixels(self.model, fit_data, space=self.space, prior=self.prior, **kw)  # type: ignore[arg-type]
+            r = fit.fit_pixels(
+                self.model, fit_data, config=self.config, space=self.space, prior=self.prior
+            )
         else:
-            r, res, noise_var = self._two_stage(fit_data, kw)
+            r, res, noise_var = self._two_stage(fit_data)
         # A prior's scale is tied to the noise scale: that one is then known, not re-estimated.
         known: Literal["known", "estimate"] = "known" if noise_var is not None else "estimate"
         lap = fit.laplace(r, fit_data, residual=res, noise=known)
@@ -445,7 +446,7 @@ def _manifest(job: FitJob, capture, n_tiles: int) -> dict[str, Any]:
     from jaxrefl import __version__
 
     return {
-        "job": asdict(job),
+        "job": job.to_json(),
         "capture": _capture_fingerprint(capture),
         "n_tiles": n_tiles,
         "jaxrefl": __version__,
@@ -660,7 +661,7 @@ def _report(fitter, cat, capture, job, maps, compile_s, times, n_tiles, loaded) 
         },
         "alpha_min": fitter.alpha_min if "alpha" in fitter.space.labels else None,
         "pooled": None if fitter.pooled is None else fitter.pooled.as_dict(),
-        "job": asdict(job),
+        "job": job.to_json(),
         "capture": {
             "layout": capture.layout,
             "source": None if capture.source is None else str(capture.source),

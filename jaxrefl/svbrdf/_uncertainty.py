@@ -141,7 +141,8 @@ def uncertainty_maps(
     capture:  a :class:`jaxrefl.io.Capture`, or a folder :func:`jaxrefl.io.load_capture`
               reads
     job:      the fit (:class:`FitJob`; None: the default model); it must be float64
-              (``FitJob(dtype="float64")``, the default here), and ``jax_enable_x64`` on:
+              (``FitJob(config=fit.FitConfig(dtype=np.float64))``, the default here), and
+              ``jax_enable_x64`` on:
               log densities of thousands of observations differ by less than float32's
               resolution between nearby draws. Its ``tile_pixels`` is capped at the pixel
               count (one tile, no padding, for a small capture or crop)
@@ -153,9 +154,9 @@ def uncertainty_maps(
             "uncertainty_maps computes posteriors in float64: enable it first with "
             'jax.config.update("jax_enable_x64", True)'
         )
-    job = FitJob(dtype="float64") if job is None else job
-    if np.dtype(job.dtype) != np.float64:
-        raise ValueError(f"uncertainty_maps needs FitJob(dtype='float64'), not {job.dtype!r}")
+    job = FitJob(config=fit.FitConfig(dtype=np.float64)) if job is None else job
+    if job.dtype != np.float64:
+        raise ValueError(f"uncertainty_maps needs a float64 FitJob, not {job.dtype}")
     options = jp.AdaptiveOptions() if options is None else options
     if isinstance(capture, (str, Path)):
         from jaxrefl.io import load_capture
