@@ -37,7 +37,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxrefl.brdf import BRDF, BlinnPhong, CookTorrance
-from jaxrefl.fit import FitResult, PixelData, fit_pixels, has_estimate, pixel_data
+from jaxrefl.fit import (
+    FitConfig,
+    FitResult,
+    LMOptions,
+    PixelData,
+    fit_pixels,
+    has_estimate,
+    pixel_data,
+)
 from jaxrefl.measured import RetryResult, cost64, fit_pixels_retry, x64
 
 __all__ = ["STIFF_CASES", "StiffProblem", "StiffRow", "run_stiff", "stiff_problems"]
@@ -48,6 +56,7 @@ STIFF_CASES = ("sharp_highlight", "grazing_only", "exponent_1e4", "collinear_lig
 OPTIMUM_RTOL = 1e-3
 # Iteration budget of every fit here (the lean solver's default).
 MAX_ITERS = 40
+CONFIG = FitConfig(solver=LMOptions(max_iters=MAX_ITERS))
 
 
 @dataclass(frozen=True, eq=False)
@@ -212,7 +221,7 @@ def run_stiff(
         model, data = pr.model, pr.data
         with x64():
             r64, t64 = _timed_fit(
-                lambda m=model, d=data: fit_pixels(m, d, dtype=jnp.float64, max_iters=MAX_ITERS)
+                lambda m=model, d=data: fit_pixels(m, d, config=CONFIG.replace(dtype=jnp.float64))
             )
             r_truth = fit_pixels(
                 model,
@@ -224,9 +233,9 @@ def run_stiff(
         c_truth = cost64(r_truth, data)
         best = np.fmin(c_auto, c_truth)
         r32, t32 = _timed_fit(
-            lambda m=model, d=data: fit_pixels(m, d.astype(jnp.float32), max_iters=MAX_ITERS)
+            lambda m=model, d=data: fit_pixels(m, d.astype(jnp.float32), config=CONFIG)
         )
-        rr, trr = _timed_fit(lambda m=model, d=data: fit_pixels_retry(m, d, max_iters=MAX_ITERS))
+        rr, trr = _timed_fit(lambda m=model, d=data: fit_pixels_retry(m, d, config=CONFIG))
         for mode, res, t, retried, kept in (
             ("float32", r32, t32, None, None),
             ("float64", r64, t64, None, None),

@@ -29,8 +29,10 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import machine, table
 
-from jaxrefl.fit import fit_pixels, pixel_data
+from jaxrefl.fit import FitConfig, LMOptions, fit_pixels, pixel_data
 from jaxrefl.measured import Components, param_space
+
+CONFIG = FitConfig(solver=LMOptions(max_iters=20))
 
 
 def _timed(fn, repeats: int = 5) -> tuple[float, float]:
@@ -91,7 +93,7 @@ def main() -> int:
         c_eval, t_eval = _timed(lambda m=ev, p=params: m(p, wi, wo))
         space = param_space(model, 3, fixed=fixed or None)
         c_fit, t_fit = _timed(
-            lambda m=model, s=space: fit_pixels(m, data, space=s, max_iters=20).theta, repeats=3
+            lambda m=model, s=space: fit_pixels(m, data, config=CONFIG, space=s).theta, repeats=3
         )
         if base is None:
             base = (t_eval, t_fit)

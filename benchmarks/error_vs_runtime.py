@@ -37,7 +37,8 @@ from _common import machine, table
 
 from jaxrefl import measured as jm
 from jaxrefl.brdf import CookTorrance, Lafortune
-from jaxrefl.fit import Status, fit_samples
+from jaxrefl.cli._options import solver_from_flags
+from jaxrefl.fit import FitConfig, Status, fit_samples
 from jaxrefl.io import MeasuredBRDF
 from jaxrefl.measured import _retry as jm_retry
 
@@ -114,11 +115,13 @@ def _fit(model, m: MeasuredBRDF, backend: str, dtype: str):
     # float64 only inside its own block: with x64 on globally, the optimistix backend mixes
     # float64 into float32 fits (lineax structure mismatch; reported, jaxrefl.fit).
     if dtype == "float32":
-        r = fit_samples(model, m, cosine=True, backend=backend, dtype=jnp.float32)  # type: ignore[arg-type]
+        cfg = FitConfig(solver=solver_from_flags(backend), dtype=jnp.float32)
+        r = fit_samples(model, m, cosine=True, config=cfg)
         jax.block_until_ready(r.theta)
         return r
     with jm_retry.x64():
-        r = fit_samples(model, m, cosine=True, backend=backend, dtype=jnp.float64)  # type: ignore[arg-type]
+        cfg = FitConfig(solver=solver_from_flags(backend), dtype=jnp.float64)
+        r = fit_samples(model, m, cosine=True, config=cfg)
         jax.block_until_ready(r.theta)
         return r
 

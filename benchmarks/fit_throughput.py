@@ -17,9 +17,11 @@ Measured, in one run and on the same data:
 
 * ``initial_theta`` (closed-form colours on a roughness grid): the start shared by every
   solver below, timed on its own;
-* the lean batched LM (``fit_pixels(backend="lean", init=theta0)``) on all N pixels;
+* the lean batched LM (``fit_pixels(init=theta0)``, solver ``fit.LMOptions()``) on all N
+  pixels;
 * ``fit_pixels`` end to end (default ``init="auto"``: start + lean LM), all N pixels;
-* optimistix LM and jaxopt LM under vmap (``fit_pixels(backend=...)``, same start) on the
+* optimistix LM and jaxopt LM under vmap (``fit.OptimistixLM()``, ``fit.JaxoptLM()``, same
+  start) on the
   first ``--lib-pixels`` pixels; a vmapped while loop runs every pixel until the slowest
   stops, so their per-pixel throughput is, if anything, flattered by the smaller batch;
 * ``scipy.optimize.least_squares(method="lm")`` (MINPACK) in a per-pixel Python loop, on the
@@ -394,7 +396,7 @@ def main() -> int:
 
     # 2. Lean batched LM from that start.
     def lean():
-        return fit.fit_pixels(model, data, space=space, backend="lean", init=theta0)
+        return fit.fit_pixels(model, data, space=space, init=theta0)
 
     r_lean, first, best, cores = timed(lean, args.repeats)
     row("lean LM (batched)", n, first - best, best, cores)
@@ -406,7 +408,7 @@ def main() -> int:
     one_stage = fit.LMOptions(compact_after=10, compact_stages=((40, 0.125),))
     r_one, first, best, cores = timed(
         lambda: fit.fit_pixels(
-            model, data, space=space, backend="lean", init=theta0, options=one_stage
+            model, data, config=fit.FitConfig(solver=one_stage), space=space, init=theta0
         ),
         args.repeats,
     )
@@ -427,9 +429,13 @@ def main() -> int:
 
     # 5. Library LMs under vmap on the first n_lib pixels.
     d_lib, t_lib = head(data, n_lib), theta0[:n_lib]
-    for be, label in (("optimistix", "optimistix LM (vmap)"), ("jaxopt", "jaxopt LM (vmap)")):
+    for be, label in (
+        (fit.OptimistixLM(), "optimistix LM (vmap)"),
+        (fit.JaxoptLM(), "jaxopt LM (vmap)"),
+    ):
+        cfg = fit.FitConfig(solver=be)
         r, first, best, cores = timed(
-            lambda be=be: fit.fit_pixels(model, d_lib, space=space, backend=be, init=t_lib),
+            lambda cfg=cfg: fit.fit_pixels(model, d_lib, config=cfg, space=space, init=t_lib),
             args.repeats,
         )
         row(label, n_lib, first - best, best, cores, "same start")

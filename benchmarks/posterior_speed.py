@@ -44,6 +44,7 @@ from jaxrefl import fit, svbrdf  # noqa: E402
 from jaxrefl import posterior as jp  # noqa: E402
 
 K = 32
+F64 = fit.FitConfig(dtype=np.float64)
 SIGMA = 0.01
 
 
@@ -223,7 +224,7 @@ def map_run(args, cap, name):
     _k, h, w, c = cap.shape
     n = h * w
     t0 = time.perf_counter()
-    job = svbrdf.FitJob(model="ggx", dtype="float64", tile_pixels=min(4096, n))
+    job = svbrdf.FitJob(model="ggx", config=F64, tile_pixels=min(4096, n))
     cf = svbrdf.fit_capture(cap, job)
     t_fit = time.perf_counter() - t0
     t_fit_warm = t_fit
@@ -397,7 +398,7 @@ def part_mixing(args) -> None:
         d = Path(tmp) / "demo"
         cli(["demo", "--out", str(d), "--size", str(args.mixing_size), "--no-fit"])
         cap = load_capture(d)
-    cf = svbrdf.fit_capture(cap, svbrdf.FitJob(model="ggx", dtype="float64", tile_pixels=4096))
+    cf = svbrdf.fit_capture(cap, svbrdf.FitJob(model="ggx", config=F64, tile_pixels=4096))
     c = cap.shape[-1]
     model, space = svbrdf.capture_model("ggx", channels=c, alpha_min=cf.extra["alpha_min"])
     lp = jp.log_posterior(model, space, fit.GaussianNoise(None))

@@ -3,7 +3,7 @@
     python paper_figures/fit_throughput.py [--out paper_figures]
 
 Writes ``fit_throughput.csv`` and ``fit_throughput.png``: pixels/s of the lean LM
-(``fit_pixels(backend="lean", init=theta0)`` from the ``initial_theta`` start) and of
+(``fit_pixels(init=theta0)``, the lean LM, from the ``initial_theta`` start) and of
 ``fit_pixels`` end to end (start included), for N = 1k, 4k, 16k, 64k pixels at K = 32, and
 for K = 8, 16, 32, 64 observations per pixel at N = 16k; all from the public API. The
 problem is that of ``benchmarks/fit_throughput.py``: GGX + Lambert, free (albedo, specular,
