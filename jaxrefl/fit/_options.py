@@ -13,6 +13,7 @@ writes itself as JSON (:meth:`Option.to_json`: ``{"type": "shot", "read": 0.002,
 from __future__ import annotations
 
 import dataclasses
+import math
 import numbers
 from typing import Any, ClassVar
 
@@ -48,7 +49,8 @@ def check_number(
     The message names ``owner`` and ``name`` and adds ``why`` (a reason in parentheses)."""
     if not isinstance(value, numbers.Real):
         return
-    ok = bool(np.isfinite(value)) and (value > 0 if positive else value >= 0)
+    v = float(value)
+    ok = math.isfinite(v) and (v > 0 if positive else v >= 0)
     if not ok:
         rel = "> 0" if positive else ">= 0"
         note = f" ({why})" if why else ""

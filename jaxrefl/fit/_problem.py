@@ -31,6 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
+from numpy.typing import DTypeLike
 
 from jaxrefl.brdf import BRDF
 
@@ -94,7 +95,8 @@ class FitConfig(Option):
     solver: Solver = eqx.field(default_factory=LMOptions)
     noise: NoiseModel = eqx.field(default_factory=GaussianNoise)
     loss: Loss | None = None
-    dtype: np.dtype | None = eqx.field(default=None, static=True, converter=_as_dtype)
+    # Typed as what it accepts; the converter stores a ``np.dtype`` (or None).
+    dtype: DTypeLike = eqx.field(default=None, static=True, converter=_as_dtype)
 
     def __check_init__(self):
         if self.dtype is not None and not np.issubdtype(self.dtype, np.floating):
@@ -326,7 +328,7 @@ def fit_samples(
     else:
         wi, wo, values = measured.wi, measured.wo, measured.values
         names = tuple(measured.channels)
-    dtype = jnp.asarray(0.0).dtype if config.dtype is None else config.dtype
+    dtype = jnp.asarray(0.0).dtype if config.dtype is None else np.dtype(config.dtype)
     values, scale, weight = sample_arrays(wi, wo, values, cosine=cosine, dtype=dtype)
     k, c = values.shape
     wi = jnp.asarray(wi, dtype)

@@ -318,6 +318,6 @@ def fit_components(
             base.build(), data, config=config, space=param_space(base.build(), c), devices=devices
         )
         init = start_from(r0.params, spec, n, c)
-    dtype = data.obs.dtype if config.dtype is None else config.dtype
+    dtype = data.obs.dtype if config.dtype is None else np.dtype(config.dtype)
     init_j = {k: jnp.asarray(np.nan_to_num(np.asarray(v), nan=0.1), dtype) for k, v in init.items()}
     return fit_pixels(model, data, config=config, space=space, init=init_j, devices=devices)

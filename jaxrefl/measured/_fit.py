@@ -51,7 +51,7 @@ _MEASURED_CONFIG = FitConfig(dtype=np.float32)
 
 def _check_dtype(config: FitConfig) -> np.dtype:
     """The config's dtype (None: float32), refusing any other than float32 or float64."""
-    dt = _FLOAT32 if config.dtype is None else config.dtype
+    dt = _FLOAT32 if config.dtype is None else np.dtype(config.dtype)
     if dt not in (_FLOAT32, _FLOAT64):
         raise ValueError(f"dtype must be float32 or float64, not {dt}")
     return dt

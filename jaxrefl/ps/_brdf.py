@@ -36,6 +36,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from jaxrefl import fit as jf
@@ -145,7 +146,8 @@ def fit_normal_brdf(
     """
     obs, lights, e, w = prepare_inputs(obs, lights, intensities, weight)
     if config.dtype is not None:
-        obs, lights, e, w = (jnp.asarray(a, config.dtype) for a in (obs, lights, e, w))
+        dt = np.dtype(config.dtype)
+        obs, lights, e, w = (jnp.asarray(a, dt) for a in (obs, lights, e, w))
     n, k, c = obs.shape
     if saturated is not None and tuple(jnp.shape(saturated)) != (n, k, c):
         raise PSInputError(

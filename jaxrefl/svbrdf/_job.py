@@ -118,8 +118,7 @@ class FitJob:
     @property
     def dtype(self) -> np.dtype:
         """The computation dtype (``config.dtype``, float32 or float64)."""
-        assert self.config.dtype is not None  # __post_init__ sets it
-        return self.config.dtype
+        return np.dtype(self.config.dtype)  # __post_init__ sets float32 or float64
 
     def to_json(self) -> dict[str, Any]:
         """The job as plain JSON values (the resume manifest's and report's ``job``); the
