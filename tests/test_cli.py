@@ -55,3 +55,21 @@ def test_models_lists_every_model(capsys):
     text = capsys.readouterr().out
     for name in ("lambert", "cook_torrance", "lafortune", "ward", "dichromatic"):
         assert name in text
+
+
+def test_fit_flags_map_to_the_option_objects():
+    """--backend, --dtype, --noise, --loss and --max-iters become the fit's objects."""
+    from jaxrefl import fit
+    from jaxrefl.cli._options import fit_config
+
+    default = fit_config()
+    assert default == fit.FitConfig(dtype=np.float32)
+    assert default.loss is None and default.noise == fit.GaussianNoise()
+    cfg = fit_config("optimistix", "float64", "shot", "huber", max_iters=7)
+    assert cfg.solver == fit.OptimistixLM(max_iters=7)
+    assert cfg.noise == fit.ShotNoise(read=0.002, gain=0.002)
+    assert cfg.loss == fit.Huber() and cfg.dtype == np.float64
+    assert isinstance(fit_config("jaxopt").solver, fit.JaxoptLM)
+    assert fit_config("lean", max_iters=12).solver == fit.LMOptions(max_iters=12)
+    assert fit_config(loss="cauchy").loss == fit.Cauchy()
+    assert fit_config(loss="l2").loss == fit.L2()
