@@ -469,7 +469,8 @@ def _prepare_dir(out_dir: Path, manifest: dict[str, Any], restart: bool) -> Path
         if not same:
             raise ValueError(
                 f"{mpath}: the tiles in {tiles} belong to a different fit (another model, "
-                "holdout, tile size or capture); use another --out folder or --restart"
+                "holdout, tile size, fit configuration or capture); use another --out "
+                "folder or --restart"
             )
         return tiles
     for old_tile in tiles.glob("tile_*.npz"):
