@@ -149,7 +149,8 @@ def choose_model(
         if base in cv and cv[base] > min(cv.values()) * (1.0 + TOLERANCE):
             skipped[m] = f"refines {base}, which is not the best so far"
             continue
-        fitter = _TileFitter(capture, replace(job, model=m))
+        # One tile of rows: compaction stages would cost more to compile than they save.
+        fitter = _TileFitter(capture, replace(job, model=m), compact=False)
         pool = fitter.pooled if m == "pooled" else pool
         sse = cnt = 0.0
         for s in range(0, mask.shape[0], size):

@@ -49,6 +49,12 @@ __all__ = ["DEFAULT_LOSS", "CaptureFit", "FitJob", "fit_capture", "map_name"]
 # lobe and the pixel's F0 linearly, not quadratically.
 DEFAULT_LOSS: dict[str, fit.Loss] = {"pooled": fit.Huber()}
 _DTYPES = (np.dtype(np.float32), np.dtype(np.float64))
+# Captures of fewer pixels than this are fitted by the lean LM in one plain loop of steps
+# rather than in compaction stages (fit.LMOptions.compact_stages; per-pixel results do not
+# depend on it). Each stage is one more compiled copy of the LM step, several seconds of
+# compile for a capture model; the steps compaction saves (it stops iterating the converged
+# pixels of a block) only repay that over some tens of 4096-pixel tiles.
+COMPACT_MIN_PIXELS = 1 << 17
 
 
 @dataclass(frozen=True)
@@ -234,10 +240,15 @@ def _load_tile(path: Path, n: int) -> dict[str, np.ndarray] | None:
 class _TileFitter:
     """Fit one tile: fit, Laplace, held-out error; pure function of the tile's data."""
 
-    def __init__(self, capture, job: FitJob, pooled: PoolChoice | None = None):
-        """``pooled``: ``pooled``'s choice when already made for these training photos."""
+    def __init__(
+        self, capture, job: FitJob, pooled: PoolChoice | None = None, *, compact: bool = True
+    ):
+        """``pooled``: ``pooled``'s choice when already made for these training photos.
+        ``compact``: the lean LM gathers its slow pixels into compaction stages (a job of
+        fewer than :data:`COMPACT_MIN_PIXELS` pixels runs one plain loop instead)."""
         self.capture = capture
         self.job = job
+        self.compact = compact
         k = capture.n_photos
         bad = [i for i in job.holdout if not 0 <= i < k]
         if bad:
@@ -287,6 +298,8 @@ class _TileFitter:
         self.loss: fit.Loss = job.config.loss
         self.residual = fit.make_residual(self.model, self.space, self.noise, self.loss, self.prior)
         self.config = job.config.replace(noise=self.noise, loss=self.loss)
+        if not compact and isinstance(self.config.solver, fit.LMOptions):
+            self.config = self.config.replace(solver=replace(self.config.solver, compact_stages=()))
         self.dtype = job.dtype
         self.first = None  # (model, space) of the first stage of a two-stage model
         if job.model in TWO_STAGE:
@@ -321,7 +334,10 @@ class _TileFitter:
             noise = fit.GaussianNoise(sigma=jnp.asarray(sigma, fit_data.obs.dtype))
         t = float(self.job.tilt_std)
         prior = fit.gaussian_prior(self.space, {"tilt_x": (0.0, t), "tilt_y": (0.0, t)})
-        solver = self.config.solver
+        # The tilted fit runs up to _STAGE2_ITERS steps: in one plain loop every pixel of a
+        # block would take the slowest pixel's steps, so it keeps the job's solver (with its
+        # compaction stages) whatever the size of the job.
+        solver = self.job.config.solver
         config2 = self.config.replace(
             noise=noise, solver=replace(solver, max_iters=max(solver.max_iters, _STAGE2_ITERS))
         )
@@ -504,7 +520,13 @@ def fit_capture(
     if job.model == "auto":
         choice = choose_model(capture, job)
         job = replace(job, model=choice.model)
-    fitter = _TileFitter(capture, job, pooled=None if choice is None else choice.pooled)
+    h, w = capture.shape[1:3]
+    fitter = _TileFitter(
+        capture,
+        job,
+        pooled=None if choice is None else choice.pooled,
+        compact=h * w >= COMPACT_MIN_PIXELS,
+    )
     tiles = _tiles(h, w, job.tile_pixels)
     tdir = None
     if out_dir is not None:
