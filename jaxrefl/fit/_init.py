@@ -69,6 +69,8 @@ ALPHA_FAMILY = ("alpha", "alpha_u", "alpha_v")
 _EDGE_MARGIN = 1e-2
 # Pixels per block of the variable projection (its working set: G x K x C values a pixel).
 _VARPRO_CHUNK = 256
+# At most this many (pixel, grid value, observation, channel) entries in a block.
+_VARPRO_ELEMS = 1 << 21
 # Pixels per chunk in the multi-start initialisation (bounds memory: G x (1 + m) x K x C each).
 _CHUNK = 2048
 
@@ -456,9 +458,13 @@ def _initial_theta_jit(res, data, plan, exclude_brightest, refine):
     grid = np.asarray(grid)
     n = data.obs.shape[0]
     if how == "varpro":
-        # Blocks of _VARPRO_CHUNK pixels (lax.map), each solved as one array problem; a short
-        # last block is padded with copies of pixel 0 and cut off after.
-        chunk = max(1, min(n, _VARPRO_CHUNK))
+        # Blocks of pixels (lax.map), each solved as one array problem; the last block is
+        # padded with copies of pixel 0, cut off after. The block size depends on K and C
+        # only, never on N: every pixel then goes through the same compiled block, and its
+        # start does not depend on the batch it came in (nor on how devices split it).
+        k, c = data.obs.shape[-2:]
+        per_pixel = max(1, len(grid)) * k * c
+        chunk = max(1, min(_VARPRO_CHUNK, _VARPRO_ELEMS // per_pixel))
         blocks = -(-n // chunk)
         pad = blocks * chunk - n
 
@@ -492,8 +498,8 @@ def initial_theta(
     ``res`` supplies the model, the parameter space (bounds, fixed values) and the noise
     model used to whiten. See the module docstring for the method: ``grid_size`` coarse
     values of the gridded parameter, then ``refine`` values strictly between the
-    neighbours of the best one (0: no second grid); the multi-start fallback uses neither. ``devices``: how many of
-    JAX's devices share the pixels (None: all; see ``_shard``).
+    neighbours of the best one (0: no second grid); the multi-start fallback uses neither.
+    ``devices``: how many of JAX's devices share the pixels (None: all; see ``_shard``).
     """
     from ._shard import device_count, map_sharded
 
