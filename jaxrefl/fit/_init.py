@@ -30,9 +30,9 @@ variable projection (Golub & Pereyra 1973) turns a P-dimensional search into a 1
    model being affine in them), both from one forward-mode pass (``jax.linearize``) in
    which every term that does not depend on alpha (the geometry of the K directions) is
    computed once per pixel, not once per grid value. With y = obs - f0 and w the weights,
-   the moments A_ij = sum_k w F_i F_j, b_i = sum_k w F_i y and s = sum_k w y^2 give the
-   cost at the constrained solution x without a second pass over the observations:
-   s + x^T A x - 2 b^T x (clamped at 0 against rounding). Pixels are solved in blocks of
+   the moments A_ij = sum_k w F_i F_j and b_i = sum_k w F_i y give the constrained
+   solution x, and the cost is that of the residual y - sum_j x_j F_j (not the expanded
+   form, a small difference of large sums in float32). Pixels are solved in blocks of
    ``_VARPRO_CHUNK`` as one array problem (pixel x grid value x observation x channel).
 3. Otherwise (a parameter that is neither affine nor a gridable scalar, e.g. ``eta``,
    Lafortune lobes, a non-affine model) falls back to multi-start: the model defaults, with
@@ -380,8 +380,14 @@ def _varpro_block(res, lin, grid_names, grid, refine, d):
             q = _quad(a, mom[..., :m, m], x)
         else:
             xs, q = [], jnp.zeros_like(yy)
-        # The expanded cost can round below 0 at an exact fit.
-        cost = jnp.sum(jnp.maximum(yy + q, 0.0), axis=-1)
+        # The cost from the residual itself: the expanded form s + x^T A x - 2 b^T x loses
+        # the digits of a good fit in float32 (it is a small difference of large sums), and
+        # near-equal grid values would then be ranked by rounding.
+        r = y
+        for j in range(m):
+            r = r - xs[j][:, :, None] * fs[j]
+        cost = jnp.sum(w[:, None] * r * r, axis=(-2, -1))
+        del q
         return xs, jnp.where(jnp.isfinite(cost), cost, jnp.inf)
 
     # No nonlinear parameter: one "grid value" (unused) and a single linear solve.
