@@ -45,6 +45,20 @@ allocated up front and scale with H * W; the peak RSS above that while tiles are
 per-tile working set) should not. For the larger sides only the first ``--mem-tiles`` tiles
 are fitted (the working set of a tile does not depend on its position). Targets are reported
 PASS / FALL SHORT, never asserted.
+
+End to end (``--e2e-side``, default 1024; ``--no-e2e`` skips it): the library path of
+``jaxrefl fit``, :func:`jaxrefl.svbrdf.fit_capture`, on a synthetic capture: the demo's
+procedural SVBRDF (:mod:`jaxrefl.demo`, GGX + Lambert) rendered at side x side pixels in
+its nine co-located flash photos, with the demo's sensor noise (1% relative + 0.2% of full
+scale, Gaussian), kept in float (no 8-bit encoding). Rows: ``FitJob(model="ggx")`` and,
+with ``--e2e-auto``, ``model="auto"`` (the default, which first chooses the model on held-out
+photos); compile time apart (the job's own warm-up), pixels/s from the run's tile times.
+In the same run and on the same capture's pixels (``--e2e-lm-pixels``, tile-shaped
+blocks of ``pixel_block``): the lean LM alone from the automatic start, and the start
+alone. Printed: px/s end to end, its ratio to the LM alone (target >= 50%, and >= 25,000
+px/s), and the job's stage split (read, fit = start + LM, Laplace, errors + copy to host,
+write; the fit stage split into start and LM by the start's share measured on the same
+pixels).
 """
 
 from __future__ import annotations
@@ -70,6 +84,7 @@ import jaxrefl
 from jaxrefl import fit
 
 TARGET_PX_S = 30_000
+TARGET_E2E_RATIO, TARGET_E2E_PX_S = 0.5, 25_000
 TARGET_LAPLACE = 0.25
 OPT_RTOL, OPT_ATOL = 1e-3, 1e-12
 SEED = 20240611
@@ -338,6 +353,164 @@ def memory_table(sides, tile: int, max_tiles: int, k: int) -> list[dict]:
     return recs
 
 
+# ---------------------------------------------------------------------------- end to end
+def demo_capture(side: int, seed: int = 0):
+    """The demo scene rendered at side x side (9 flash photos, float, demo sensor noise)."""
+    from jaxrefl.cli._demo import _NOISE_ABS, _NOISE_REL
+    from jaxrefl.demo import demo_scene, render_demo
+    from jaxrefl.io import Capture
+
+    scene = demo_scene(size=side, seed=seed)
+    lin = np.asarray(jax.jit(lambda: render_demo(scene, encode=False))(), np.float32)
+    rng = np.random.default_rng(seed + 1)
+    noisy = lin * (1 + _NOISE_REL * rng.standard_normal(lin.shape, np.float32))
+    noisy = np.clip(noisy + _NOISE_ABS * rng.standard_normal(lin.shape, np.float32), 0.0, 1.0)
+    k = lin.shape[0]
+    return Capture(
+        images=noisy,
+        status=np.zeros(lin.shape, np.uint8),
+        light_pos=scene.positions,
+        light_dir=None,
+        light_power=np.full((k, 3), scene.light_power),
+        camera_pos=scene.positions,
+        side=scene.side_cm,
+        points=np.asarray(scene.points),
+    )
+
+
+def end_to_end(side: int, lm_pixels: int, repeats: int, auto: bool) -> list[dict]:
+    """fit_capture rows on a side x side demo capture, with the LM and the start alone on
+    the same capture's pixels (module docstring)."""
+    from jaxrefl import svbrdf
+    from jaxrefl.svbrdf._data import pixel_block
+    from jaxrefl.svbrdf._job import COMPACT_MIN_PIXELS, _TileFitter
+
+    t0 = time.perf_counter()
+    cap = demo_capture(side)
+    print(
+        f"capture: {side} x {side}, {cap.n_photos} photos, rendered in "
+        f"{time.perf_counter() - t0:.1f} s"
+    )
+    n_px = side * side
+    recs = []
+    lm_ref: dict = {}
+    for model in ("ggx", "auto") if auto else ("ggx",):
+        job = svbrdf.FitJob(model=model)
+        t0 = time.perf_counter()
+        r = svbrdf.fit_capture(cap, job)
+        wall = time.perf_counter() - t0
+        tm = r.report["timings"]
+        rec = {
+            "model": model,
+            "chosen": r.job.model,
+            "pixels": n_px,
+            "compile_s": tm["compile_s"],
+            "run_s": tm["run_s"],
+            "choose_s": tm["choose_s"],
+            "wall_s": wall,
+            "px_per_s": n_px / tm["run_s"],
+            "stages_s": tm["stages_s"],
+            "tile_pixels": tm["tile_pixels"],
+            "status": r.report["status_counts"],
+        }
+        if r.job.model not in lm_ref:
+            # The LM alone and the start alone on the same pixels, tile-shaped blocks (the
+            # job's own compiled shapes), same model, space, noise and loss as the job.
+            fitter = _TileFitter(
+                cap,
+                r.job,
+                pooled=r.extra["pooled"],
+                compact=n_px >= COMPACT_MIN_PIXELS,
+            )
+            tile = r.job.tile_pixels
+            n_lm = min(lm_pixels, n_px) // tile * tile or tile
+            blocks = [
+                pixel_block(cap, s, min(s + tile, n_px), tile, dtype=np.float32)
+                for s in range(0, n_lm, tile)
+            ]
+            res = fitter.residual
+            kw = dict(space=fitter.space, config=fitter.config, prior=fitter.prior)
+            thetas = [jax.block_until_ready(fit.initial_theta(res, d)) for d in blocks]
+
+            def start_all(res=res, blocks=blocks):
+                return [fit.initial_theta(res, d) for d in blocks]
+
+            def lm_all(model=fitter.model, blocks=blocks, thetas=thetas, kw=kw):
+                return [
+                    fit.fit_pixels(model, d, init=t, **kw).theta
+                    for d, t in zip(blocks, thetas, strict=True)
+                ]
+
+            _, _, start_s, _ = timed(start_all, repeats)
+            _, _, lm_s, _ = timed(lm_all, repeats)
+            lm_ref[r.job.model] = {"pixels": len(blocks) * tile, "start_s": start_s, "lm_s": lm_s}
+        ref = lm_ref[r.job.model]
+        rec["lm_px_per_s"] = ref["pixels"] / ref["lm_s"]
+        rec["start_px_per_s"] = ref["pixels"] / ref["start_s"]
+        rec["lm_pixels"] = ref["pixels"]
+        recs.append(rec)
+    return recs
+
+
+def e2e_report(recs: list[dict]) -> None:
+    def f(v, spec):
+        return "-" if v is None else format(v, spec)
+
+    print(
+        table(
+            [
+                "fit_capture model",
+                "pixels",
+                "compile s",
+                "choose s",
+                "run s",
+                "px/s end to end",
+                "LM alone px/s",
+                "end to end / LM",
+                "start alone px/s",
+            ],
+            [
+                [
+                    r["model"] + ("" if r["model"] == r["chosen"] else f" -> {r['chosen']}"),
+                    r["pixels"],
+                    f"{r['compile_s']:.1f}",
+                    f"{r['choose_s']:.1f}",
+                    f"{r['run_s']:.2f}",
+                    f"{r['px_per_s']:,.0f}",
+                    f"{r['lm_px_per_s']:,.0f}",
+                    f"{r['px_per_s'] / r['lm_px_per_s']:.0%}",
+                    f"{r['start_px_per_s']:,.0f}",
+                ]
+                for r in recs
+            ],
+        )
+    )
+    print("\nstage split of the run (seconds; share of run s):")
+    for r in recs:
+        st = dict(r["stages_s"])
+        # The fit stage as start + LM, by their times alone on the same pixels.
+        share = (1 / r["start_px_per_s"]) / (1 / r["start_px_per_s"] + 1 / r["lm_px_per_s"])
+        parts = {
+            "read": st["read"],
+            "start (est.)": st["fit"] * share,
+            "LM (est.)": st["fit"] * (1 - share),
+            "laplace": st["laplace"],
+            "errors + to host": st["errors"],
+            "write": st["write"],
+        }
+        other = r["run_s"] - sum(st.values())
+        body = ", ".join(f"{k} {v:.2f} ({v / r['run_s']:.0%})" for k, v in parts.items())
+        print(f"  {r['model']}: {body}, other {other:.2f}")
+    for r in recs:
+        ratio = r["px_per_s"] / r["lm_px_per_s"]
+        ok = ratio >= TARGET_E2E_RATIO and r["px_per_s"] >= TARGET_E2E_PX_S
+        print(
+            f"target end to end >= {TARGET_E2E_RATIO:.0%} of the LM alone and >= "
+            f"{TARGET_E2E_PX_S:,} px/s, fit_capture model={r['model']}: {r['px_per_s']:,.0f}"
+            f" px/s, {ratio:.0%} of the LM -> {'PASS' if ok else 'FALL SHORT'}"
+        )
+
+
 # ---------------------------------------------------------------------------- main
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
@@ -349,6 +522,11 @@ def main() -> int:
     ap.add_argument("--mem-tiles", type=int, default=3, help="tiles fitted for larger sides")
     ap.add_argument("--tile", type=int, default=16384, help="pixels per tile (memory part)")
     ap.add_argument("--no-memory", action="store_true", help="skip the capture memory part")
+    ap.add_argument("--e2e-side", type=int, default=1024, help="side of the end-to-end capture")
+    ap.add_argument("--e2e-lm-pixels", type=int, default=65536, help="pixels for the LM alone")
+    ap.add_argument("--e2e-auto", action="store_true", help="also fit_capture with model=auto")
+    ap.add_argument("--no-e2e", action="store_true", help="skip the end-to-end part")
+    ap.add_argument("--e2e-only", action="store_true", help="only the end-to-end part")
     ap.add_argument("--quick", action="store_true", help="tiny sizes: a smoke run")
     ap.add_argument("--csv", type=Path, help="also write the rows as CSV")
     args = ap.parse_args()
@@ -357,6 +535,7 @@ def main() -> int:
         args.pixels, args.lib_pixels, args.scipy_pixels = 2000, 500, 100
         args.tile, args.mem_tiles, args.repeats = 4096, 2, 1
         sides = [128, 256, 512]
+        args.e2e_side, args.e2e_lm_pixels = min(args.e2e_side, 128), 8192
     n, k = args.pixels, args.k
     n_lib = min(args.lib_pixels, n)
     n_sp = min(args.scipy_pixels, n_lib)
@@ -367,6 +546,11 @@ def main() -> int:
         f"jax devices: {jax.device_count()}; XLA_FLAGS={os.environ.get('XLA_FLAGS', '')!r}; "
         f"load average at start: {load0[0]:.2f} (1 min)\n"
     )
+
+    if args.e2e_only:
+        print(f"## End to end: fit_capture on a {args.e2e_side} x {args.e2e_side} demo capture\n")
+        e2e_report(end_to_end(args.e2e_side, args.e2e_lm_pixels, args.repeats, args.e2e_auto))
+        return 0
 
     model = make_model()
     space = make_space(model)
@@ -596,6 +780,12 @@ def main() -> int:
                 )
             else:
                 print("peak RSS could not be reset on this system (/proc/self/clear_refs)")
+    e2e: list[dict] = []
+    if not args.no_e2e:
+        side = args.e2e_side
+        print(f"\n## End to end: fit_capture on a {side} x {side} demo capture\n")
+        e2e = end_to_end(side, args.e2e_lm_pixels, args.repeats, args.e2e_auto)
+        e2e_report(e2e)
     load1 = os.getloadavg()
     print(f"\nload average at end: {load1[0]:.2f} (1 min)")
 
@@ -634,6 +824,18 @@ def main() -> int:
             w.writerows(extra)
             for m in mem:
                 w.writerow({"section": "memory", "method": f"tiled {m['side']}", **m})
+            for r in e2e:
+                w.writerow(
+                    {
+                        "section": "end_to_end",
+                        "method": f"fit_capture {r['model']}",
+                        "pixels": r["pixels"],
+                        "compile_s": r["compile_s"],
+                        "run_s": r["run_s"],
+                        "px_per_s": r["px_per_s"],
+                        "note": f"LM alone {r['lm_px_per_s']:.0f} px/s; stages {r['stages_s']}",
+                    }
+                )
     return 0
 
 

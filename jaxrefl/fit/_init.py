@@ -13,15 +13,27 @@ variable projection (Golub & Pereyra 1973) turns a P-dimensional search into a 1
 
 1. Finds the free colour parameters in which the model is affine (:func:`linear_params`,
    checked numerically on random directions and several values of the other parameters).
-2. Grids the remaining free scalar parameter (``alpha``: 12 log-spaced values in [0.01, 1];
-   ``alpha_u``/``alpha_v`` tied together; ``exponent``: [1, 1e4]; ``sigma``: [0, 1.2] rad),
-   solves the colour scales exactly within their bounds for every grid value (a box-
-   constrained LS, exact for one or two parameters by enumerating the active sets; more
-   than two: unconstrained LS then clipping, not exact), then grids again (8 values)
-   between the neighbours of the best value, and keeps the value of lowest cost. The
-   coarse grid is that fine because the cost minimum in alpha of a rough, strong lobe is
-   only a few percent wide: a coarser grid starts more GGX pixels in the wrong basin, which
-   the fit then keeps.
+2. Grids the remaining free scalar parameter (``alpha``: ``grid_size`` = 12 log-spaced
+   values in [0.01, 1]; ``alpha_u``/``alpha_v`` tied together; ``exponent``: [1, 1e4];
+   ``sigma``: [0, 1.2] rad), solves the colour scales exactly within their bounds for every
+   grid value (a box-constrained LS, exact for one or two parameters by enumerating the
+   active sets; more than two: unconstrained LS then clipping, not exact), then grids again
+   (``refine`` = 6 values strictly between the neighbours of the best value, equally spaced
+   in log alpha, so the fine spacing is 1/7 of the coarse one), and keeps the value of
+   lowest cost. The grids are that fine because the cost minimum in alpha of a rough,
+   strong lobe is only a few percent wide, and the profiled cost of a pixel seen from few
+   directions can have several minima within one coarse step: a coarser search starts
+   more GGX pixels in a different basin, which the fit then keeps.
+
+   Cost per grid value: for alpha = a_g and zero colour scales the model gives f0 (K, C),
+   and its derivative along each colour scale gives the basis functions F_j (exact, the
+   model being affine in them), both from one forward-mode pass (``jax.linearize``) in
+   which every term that does not depend on alpha (the geometry of the K directions) is
+   computed once per pixel, not once per grid value. With y = obs - f0 and w the weights,
+   the moments A_ij = sum_k w F_i F_j and b_i = sum_k w F_i y give the constrained
+   solution x, and the cost is that of the residual y - sum_j x_j F_j (not the expanded
+   form, a small difference of large sums in float32). Pixels are solved in blocks of
+   ``_VARPRO_CHUNK`` as one array problem (pixel x grid value x observation x channel).
 3. Otherwise (a parameter that is neither affine nor a gridable scalar, e.g. ``eta``,
    Lafortune lobes, a non-affine model) falls back to multi-start: the model defaults, with
    the closed-form diffuse albedo where there is one, and a few grid values of the first free
@@ -55,9 +67,11 @@ __all__ = ["diffuse_albedo", "grid_values", "initial_theta", "linear_params"]
 ALPHA_FAMILY = ("alpha", "alpha_u", "alpha_v")
 # Start this fraction of a bounded range inside its edges (the sigmoid's slope is 0.01 there).
 _EDGE_MARGIN = 1e-2
-# Points of the refining grid between the neighbours of the best coarse value.
-_REFINE = 8
-# Pixels per chunk in the batched initialisation (bounds memory: G x (1 + m) x K x C each).
+# Pixels per block of the variable projection (its working set: G x K x C values a pixel).
+_VARPRO_CHUNK = 256
+# At most this many (pixel, grid value, observation, channel) entries in a block.
+_VARPRO_ELEMS = 1 << 21
+# Pixels per chunk in the multi-start initialisation (bounds memory: G x (1 + m) x K x C each).
 _CHUNK = 2048
 
 
@@ -180,31 +194,58 @@ def _box_ls(a: Array, b: Array, lo: ArrayLike, hi: ArrayLike) -> Array:
         ridge = 1e-6 * jnp.mean(jnp.diagonal(a, axis1=-2, axis2=-1), axis=-1) + tiny
         x = jnp.linalg.solve(a + ridge[..., None, None] * eye, b[..., None])[..., 0]
         return jnp.clip(x, lo.reshape((*lead, m)), hi.reshape((*lead, m)))
-    a11, a12, a22 = a[..., 0, 0], a[..., 0, 1], a[..., 1, 1]
-    b1, b2 = b[..., 0], b[..., 1]
+    x1, x2, _ = _box_ls2(a[..., 0, 0], a[..., 0, 1], a[..., 1, 1], b[..., 0], b[..., 1], lo, hi)
+    return jnp.stack([x1, x2], axis=-1)
+
+
+def _box_ls2(a11, a12, a22, b1, b2, lo, hi):
+    """The m = 2 case of :func:`_box_ls` on separate arrays: (x1, x2, q) with q the minimum
+    of x^T A x - 2 b^T x.
+
+    The minimiser is the interior solution of the 2 x 2 normal equations where that is well
+    conditioned and inside the box; otherwise it lies on an edge, where one coordinate is at
+    a bound and the other solves its 1-D problem (clipped into its range). The five
+    candidates (interior, four edges) are compared by q; elementwise arithmetic only (no
+    stacking, gathers or small matrices, which are slow on CPU), vectorised over any
+    leading axes.
+    """
+    dtype = b1.dtype
+    tiny = jnp.finfo(dtype).tiny
+    lo = [jnp.asarray(v, dtype) for v in (lo[0], lo[1])]
+    hi = [jnp.asarray(v, dtype) for v in (hi[0], hi[1])]
+
+    def quad(x1, x2):
+        return a11 * x1 * x1 + 2.0 * a12 * x1 * x2 + a22 * x2 * x2 - 2.0 * (b1 * x1 + b2 * x2)
+
     det = a11 * a22 - a12 * a12
     # Interior solution only where the 2 x 2 system is well conditioned.
     ok = det > 1e-6 * a11 * a22 + tiny
     det_s = jnp.where(ok, det, 1.0)
-    interior = jnp.stack([(a22 * b1 - a12 * b2) / det_s, (a11 * b2 - a12 * b1) / det_s], axis=-1)
-    inside = ok & jnp.all(
-        (interior >= lo.reshape((*lead, 2))) & (interior <= hi.reshape((*lead, 2))), axis=-1
-    )
-    cands, valid = [interior], [inside]
-    for i, j, aii_, ajj, bj in ((0, 1, a11, a22, b2), (1, 0, a22, a11, b1)):
-        del aii_
-        for v in (lo[i], hi[i]):
-            xj = jnp.where(ajj > tiny, (bj - a12 * v) / jnp.where(ajj > tiny, ajj, 1.0), lo[j])
-            xj = jnp.clip(xj, lo[j], hi[j])
-            pair = [xj, xj]
-            pair[i] = jnp.broadcast_to(v, xj.shape)
-            cands.append(jnp.stack(pair, axis=-1))
-            valid.append(jnp.ones_like(inside))
-    xs = jnp.stack(cands, axis=-2)  # (..., 5, 2)
-    q = jax.vmap(_quad, in_axes=(None, None, -2), out_axes=-1)(a, b, xs)
-    q = jnp.where(jnp.stack(valid, axis=-1), q, jnp.inf)
-    best = jnp.argmin(q, axis=-1)
-    return jnp.take_along_axis(xs, best[..., None, None], axis=-2)[..., 0, :]
+    x1 = (a22 * b1 - a12 * b2) / det_s
+    x2 = (a11 * b2 - a12 * b1) / det_s
+    inside = ok & (x1 >= lo[0]) & (x1 <= hi[0]) & (x2 >= lo[1]) & (x2 <= hi[1])
+    q = jnp.where(inside, quad(x1, x2), jnp.inf)
+    # Edges: one coordinate at a bound, the other the clipped 1-D solution. A basis function
+    # that is zero on every used observation carries no information: its lower bound.
+    a11_s, a22_s = jnp.where(a11 > tiny, a11, 1.0), jnp.where(a22 > tiny, a22, 1.0)
+    for first in (True, False):
+        for v in (lo[0], hi[0]) if first else (lo[1], hi[1]):
+            if first:
+                e1 = v
+                e2 = jnp.where(a22 > tiny, (b2 - a12 * v) / a22_s, lo[1])
+                e2 = jnp.clip(e2, lo[1], hi[1])
+            else:
+                e2 = v
+                e1 = jnp.where(a11 > tiny, (b1 - a12 * v) / a11_s, lo[0])
+                e1 = jnp.clip(e1, lo[0], hi[0])
+            qe = quad(e1, e2)
+            better = qe < q  # strict: the first of equal candidates wins
+            x1, x2, q = (
+                jnp.where(better, e1, x1),
+                jnp.where(better, e2, x2),
+                jnp.where(better, qe, q),
+            )
+    return x1, x2, q
 
 
 # ---------------------------------------------------------------------------- per pixel
@@ -259,75 +300,124 @@ def _inset(space: ParamSpace, name: str, x: Array) -> Array:
     return x
 
 
-def _varpro_pixel(res, lin, grid_names, grid, d):
-    """theta0 of one pixel by variable projection over the grid (see the module doc)."""
+def _varpro_block(res, lin, grid_names, grid, refine, d):
+    """theta0 (n, P) of a block of n pixels by variable projection over the grid (module doc).
+
+    Array axes: (n, G, K, C) = (pixel, grid value, observation, channel). Every parameter
+    and direction enters ``model.eval`` with unit axes where it does not vary, so each term
+    of the model is computed at the shape of what it depends on: the geometry once per
+    pixel and observation (n, 1, K), the roughness-dependent lobe once per grid value.
+    """
     space, model = res.space, res.model
     dtype = d.obs.dtype
     c = d.obs.shape[-1]
     m = len(lin)
-    b = 1 + m
     base = _natural_base(space, dtype)
-    wi = d.wi.astype(dtype)[None, None]
-    wo = wi if d.colocated else d.wo.astype(dtype)[None, None]
-    w, obs = _fit_weights(res, d)
+    wi = d.wi.astype(dtype)[:, None]  # (n, 1, K, 3)
+    wo = wi if d.colocated else d.wo.astype(dtype)[:, None]
+    w, obs = jax.vmap(lambda dd: _fit_weights(res, dd))(d)  # (n, K, C)
     scale = jnp.where(w > 0, d.scale, 0.0)
     lo = np.array([space.lower[space.index(n).start] for n in lin])
     hi = np.array([space.upper[space.index(n).start] for n in lin])
+    kinds = {q.name: q.kind for q in model.params}
+    p = {}
+    for q in model.params:
+        v = base[q.name]
+        rank = 3 if kinds[q.name] == "scalar" else 4
+        p[q.name] = v.reshape((1,) * (rank - v.ndim) + v.shape)
 
     def project(gvals):
-        """Best linear parameters (G, C, m) and cost (G,) for each grid value."""
-        g = gvals.shape[0]
-        p = {}
-        for q in model.params:
-            v = base[q.name]
-            p[q.name] = jnp.broadcast_to(v, (g, b, 1, *v.shape))
+        """Best linear parameters m x (n, G, C) and cost (n, G) for grid values (n | 1, G).
+
+        With the basis f0 (the model at zero colour scales) and f_j (its derivative along
+        colour scale j), y = obs - f0 and the moments A_ij = sum_k w f_i f_j,
+        b_i = sum_k w f_i y (per channel), the cost at the box-constrained solution x is
+        sum_k w y^2 + x^T A x - 2 b^T x: one pass over the observations."""
+        pg = dict(p)
         for name in grid_names:
-            p[name] = jnp.broadcast_to(gvals[:, None, None], (g, b, 1))
-        for j, name in enumerate(lin):
-            unit = (jnp.arange(b) == j + 1).astype(dtype)
-            p[name] = jnp.broadcast_to(unit[None, :, None, None], (g, b, 1, c))
-        pred = model.eval(p, wi, wo) * scale[None, None]  # (G, B, K, C)
-        f0 = pred[:, 0]
-        y = obs[None] - f0  # (G, K, C)
-        if m:
-            # Normal equations per grid value and channel, written out entry by entry as
-            # sums over K (batched small matmuls and transposes are slow on CPU).
-            fs = [pred[:, 1 + i] - f0 for i in range(m)]  # m x (G, K, C)
-            wf = [w[None] * f for f in fs]
-            rows = [[jnp.sum(wf[i] * fs[j], axis=1) for j in range(m)] for i in range(m)]
-            a = jnp.stack([jnp.stack(row, -1) for row in rows], axis=-2)  # (G, C, m, m)
-            bb = jnp.stack([jnp.sum(wf[i] * y, axis=1) for i in range(m)], axis=-1)  # (G, C, m)
-            x = _box_ls(a, bb, lo, hi)  # (G, C, m)
-            for i in range(m):
-                y = y - x[:, None, :, i] * fs[i]
+            pg[name] = gvals[:, :, None]
+
+        def pred_at(xs):
+            return model.eval({**pg, **dict(zip(lin, xs, strict=True))}, wi, wo) * scale[:, None]
+
+        # The basis from one forward pass (exact: the model is affine in the colour
+        # scales), sharing every term that does not depend on them.
+        zero = tuple(jnp.zeros((1, 1, 1, c), dtype) for _ in lin)
+        f0, tangent = jax.linearize(pred_at, zero)
+        ones = jnp.ones((1, 1, 1, c), dtype)
+        fs = [tangent(tuple(ones if i == j else z for i, z in enumerate(zero))) for j in range(m)]
+        y = obs[:, None] - f0  # (n, G, K, C)
+        # All moments at once, M = sum_k w [f, y] [f, y]^T per pixel, grid value and
+        # channel: one contraction over K (XLA's dot), which outruns separate sums.
+        # The moments M = sum_k w [f, y] [f, y]^T per pixel, grid value and channel, entry
+        # by entry, with K as the minor axis (batched small matmuls are slow on CPU).
+        vs = [jnp.swapaxes(v, -1, -2) for v in (*fs, y)]  # (n, G, C, K)
+        wt = jnp.swapaxes(w, -1, -2)[:, None]
+        wv = [wt * v for v in vs]
+        ent = {}
+        for i in range(m + 1):
+            for j in range(i, m + 1):
+                ent[i, j] = ent[j, i] = jnp.sum(wv[i] * vs[j], axis=-1)
+        mom = jnp.stack(
+            [jnp.stack([ent[i, j] for j in range(m + 1)], -1) for i in range(m + 1)], -2
+        )
+        yy = mom[..., m, m]  # (n, G, C)
+        bb = [mom[..., i, m] for i in range(m)]
+        if m == 1:
+            a11 = mom[..., 0, 0]
+            x1 = _box_ls(a11[..., None, None], bb[0][..., None], lo, hi)[..., 0]
+            xs = [x1]
+            q = a11 * x1 * x1 - 2.0 * bb[0] * x1
+        elif m == 2:
+            x1, x2, q = _box_ls2(
+                mom[..., 0, 0], mom[..., 0, 1], mom[..., 1, 1], bb[0], bb[1], lo, hi
+            )
+            xs = [x1, x2]
+        elif m:
+            a = mom[..., :m, :m]  # (n, G, C, m, m)
+            x = _box_ls(a, mom[..., :m, m], lo, hi)  # (n, G, C, m)
+            xs = [x[..., i] for i in range(m)]
+            q = _quad(a, mom[..., :m, m], x)
         else:
-            x = jnp.zeros((g, c, 0), dtype)
-        cost = jnp.sum(w[None] * y * y, axis=(-2, -1))
-        return x, jnp.where(jnp.isfinite(cost), cost, jnp.inf)
+            xs, q = [], jnp.zeros_like(yy)
+        # The cost from the residual itself: the expanded form s + x^T A x - 2 b^T x loses
+        # the digits of a good fit in float32 (it is a small difference of large sums), and
+        # near-equal grid values would then be ranked by rounding.
+        r = y
+        for j in range(m):
+            r = r - xs[j][:, :, None] * fs[j]
+        cost = jnp.sum(w[:, None] * r * r, axis=(-2, -1))
+        del q
+        return xs, jnp.where(jnp.isfinite(cost), cost, jnp.inf)
 
     # No nonlinear parameter: one "grid value" (unused) and a single linear solve.
-    coarse = jnp.asarray(grid if grid_names else [0.0], dtype).reshape(-1)
-    x, cost = project(coarse)
-    if grid_names:
-        # Refine: a second grid between the neighbours of the best value.
-        i = jnp.argmin(cost)
-        n = coarse.shape[0]
-        g_lo, g_hi = coarse[jnp.maximum(i - 1, 0)], coarse[jnp.minimum(i + 1, n - 1)]
-        t = jnp.linspace(0.0, 1.0, _REFINE, dtype=dtype)
-        if np.all(np.asarray(grid) > 0):
+    coarse = jnp.asarray(grid if grid_names else [0.0], dtype).reshape(1, -1)
+    xs, cost = project(coarse)
+    vals = jnp.broadcast_to(coarse, cost.shape)
+    ng = coarse.shape[1]
+    positive = bool(np.all(np.asarray(grid) > 0))
+    if grid_names and ng > 1 and refine > 0:
+        i = jnp.argmin(cost, axis=-1)
+        # A fine grid of ``refine`` values strictly between the neighbours of the best value
+        # (equally spaced in log for a positive grid; the neighbours are grid values already).
+        g_lo = coarse[0, jnp.maximum(i - 1, 0)][:, None]
+        g_hi = coarse[0, jnp.minimum(i + 1, ng - 1)][:, None]
+        t = (jnp.arange(1, refine + 1, dtype=dtype) / (refine + 1))[None]
+        if positive:
             fine = jnp.exp(jnp.log(g_lo) + t * (jnp.log(g_hi) - jnp.log(g_lo)))
         else:
             fine = g_lo + t * (g_hi - g_lo)
-        x2, cost2 = project(fine)
-        coarse = jnp.concatenate([coarse, fine])
-        x = jnp.concatenate([x, x2])
-        cost = jnp.concatenate([cost, cost2])
-    best = jnp.argmin(cost)
+        xs2, cost2 = project(fine)
+        vals = jnp.concatenate([vals, fine], axis=1)
+        xs = [jnp.concatenate([a, b], axis=1) for a, b in zip(xs, xs2, strict=True)]
+        cost = jnp.concatenate([cost, cost2], axis=1)
+    best = jnp.argmin(cost, axis=-1)
     nat = {}
     for j, name in enumerate(lin):
-        nat[name] = _inset(space, name, x[best, :, j])
+        xb = jnp.take_along_axis(xs[j], best[:, None, None], axis=1)[:, 0]  # (n, C)
+        nat[name] = _inset(space, name, xb)
     for name in grid_names:
-        nat[name] = coarse[best]
+        nat[name] = jnp.take_along_axis(vals, best[:, None], axis=1)[:, 0]
     return space.from_natural(nat, dtype=dtype)
 
 
@@ -369,19 +459,34 @@ def _plan(res: Residual, grid_size: int):
 
 
 @eqx.filter_jit
-def _initial_theta_jit(res, data, plan, exclude_brightest):
+def _initial_theta_jit(res, data, plan, exclude_brightest, refine):
     how, lin, names, grid = plan
     grid = np.asarray(grid)
-    if how == "varpro":
-
-        def one(d):
-            return _varpro_pixel(res, lin, names, grid, d)
-    else:
-
-        def one(d):
-            return _multistart_pixel(res, names, grid, exclude_brightest, d)
-
     n = data.obs.shape[0]
+    if how == "varpro":
+        # Blocks of pixels (lax.map), each solved as one array problem; the last block is
+        # padded with copies of pixel 0, cut off after. The block size depends on K and C
+        # only, never on N: every pixel then goes through the same compiled block, and its
+        # start does not depend on the batch it came in (nor on how devices split it).
+        k, c = data.obs.shape[-2:]
+        per_pixel = max(1, len(grid)) * k * c
+        chunk = max(1, min(_VARPRO_CHUNK, _VARPRO_ELEMS // per_pixel))
+        blocks = -(-n // chunk)
+        pad = blocks * chunk - n
+
+        def padded(x):
+            if pad:
+                x = jnp.concatenate([x, jnp.broadcast_to(x[:1], (pad, *x.shape[1:]))])
+            return x.reshape((blocks, chunk, *x.shape[1:]))
+
+        theta = jax.lax.map(
+            lambda d: _varpro_block(res, lin, names, grid, refine, d), jax.tree.map(padded, data)
+        )
+        return theta.reshape((blocks * chunk, theta.shape[-1]))[:n]
+
+    def one(d):
+        return _multistart_pixel(res, names, grid, exclude_brightest, d)
+
     return jax.lax.map(one, data, batch_size=min(n, _CHUNK))
 
 
@@ -391,13 +496,16 @@ def initial_theta(
     *,
     exclude_brightest: float = 0.2,
     grid_size: int = 12,
+    refine: int = 6,
     devices: int | None = 1,
 ) -> Float[Array, "N P"]:
     """Unconstrained starting points (N, P) for the pixels of ``data`` (leading N axis).
 
     ``res`` supplies the model, the parameter space (bounds, fixed values) and the noise
-    model used to whiten. See the module docstring for the method. ``devices``: how many of
-    JAX's devices share the pixels (None: all; see ``_shard``).
+    model used to whiten. See the module docstring for the method: ``grid_size`` coarse
+    values of the gridded parameter, then ``refine`` values strictly between the
+    neighbours of the best one (0: no second grid); the multi-start fallback uses neither.
+    ``devices``: how many of JAX's devices share the pixels (None: all; see ``_shard``).
     """
     from ._shard import device_count, map_sharded
 
@@ -405,5 +513,8 @@ def initial_theta(
         raise ValueError(f"initial_theta expects batched data (N, K, C), got {data.obs.shape}")
     how, lin, names, grid = _plan(res, int(grid_size))  # eager: checks affinity numerically
     plan = (how, lin, names, tuple(float(v) for v in grid))
-    run = lambda d: _initial_theta_jit(res, d, plan, float(exclude_brightest))  # noqa: E731
+    if int(refine) < 0:
+        raise ValueError(f"refine must be >= 0, got {refine}")
+    ex = float(exclude_brightest)
+    run = lambda d: _initial_theta_jit(res, d, plan, ex, int(refine))  # noqa: E731
     return map_sharded(run, (data,), device_count(devices))

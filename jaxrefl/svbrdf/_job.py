@@ -15,7 +15,13 @@ lost, none recomputed); a different job or capture in the same folder is refused
 message, and a corrupt tile file is recomputed.
 
 Timings: ``compile_s`` is measured by a warm-up call on the first tile's data (time of that
-call minus the time of the same tile in the run), ``run_s`` is the sum of the tiles' times.
+call minus the time of the same tile in the run), ``run_s`` is the sum of the tiles' times
+(from reading its data to writing its file).
+``stages_s`` splits the tiles' time (warm-up excluded) into ``read`` (the tile's
+:class:`~jaxrefl.fit.PixelData` from the photos), ``fit`` (:func:`~jaxrefl.fit.fit_pixels`:
+start and solver), ``laplace``, ``errors`` (per-photo errors and the copy of the tile's
+results to the host) and ``write`` (the tile file); each stage waits for its results, so
+the split is exact up to the timer. ``choose_s`` is the time of ``auto``'s model choice.
 """
 
 from __future__ import annotations
@@ -44,6 +50,8 @@ from ._pooled import PoolChoice, choose_pooled
 
 __all__ = ["DEFAULT_LOSS", "CaptureFit", "FitJob", "fit_capture", "map_name"]
 
+# The stages of a tile, in order (module docstring, ``stages_s``).
+STAGES = ("read", "fit", "laplace", "errors", "write")
 # Models whose default loss is not L2. Huber's threshold is one noise std (the pooled model
 # estimates that std): a glint or a misregistered edge in one photo then pulls the shared
 # lobe and the pixel's F0 linearly, not quadratically.
@@ -301,6 +309,8 @@ class _TileFitter:
         if not compact and isinstance(self.config.solver, fit.LMOptions):
             self.config = self.config.replace(solver=replace(self.config.solver, compact_stages=()))
         self.dtype = job.dtype
+        # Seconds per stage of the tiles fitted so far (module docstring, ``stages_s``).
+        self.stage_s: dict[str, float] = dict.fromkeys(STAGES, 0.0)
         self.first = None  # (model, space) of the first stage of a two-stage model
         if job.model in TWO_STAGE:
             self.first = capture_model(
@@ -360,16 +370,21 @@ class _TileFitter:
             train_w = jnp.asarray(train, data.weight.dtype)[:, :, None]
         fit_data = eqx.tree_at(lambda d: d.weight, data, data.weight * train_w)
         res, noise_var = self.residual, self.known_noise
+        t0 = time.perf_counter()
         if self.first is None:
             r = fit.fit_pixels(
                 self.model, fit_data, config=self.config, space=self.space, prior=self.prior
             )
         else:
             r, res, noise_var = self._two_stage(fit_data)
+        jax.block_until_ready((r.theta, r.status))
+        t1 = time.perf_counter()
         # A prior's scale is tied to the noise scale: that one is then known, not re-estimated.
         known: Literal["known", "estimate"] = "known" if noise_var is not None else "estimate"
         lap = fit.laplace(r, fit_data, residual=res, noise=known)
         lap_noise = lap.noise_var if noise_var is None else jnp.full_like(lap.noise_var, noise_var)
+        jax.block_until_ready((lap.std, lap_noise))
+        t2 = time.perf_counter()
         sse, cnt = _errors(res, r.theta, data)
         out = {
             "theta": r.theta,
@@ -384,7 +399,12 @@ class _TileFitter:
             "sse": sse,
             "cnt": cnt,
         }
-        return {k: np.asarray(v)[:n] for k, v in out.items()}
+        out = {k: np.asarray(v)[:n] for k, v in out.items()}
+        t3 = time.perf_counter()
+        self.stage_s["fit"] += t1 - t0
+        self.stage_s["laplace"] += t2 - t1
+        self.stage_s["errors"] += t3 - t2
+        return out
 
 
 def _extend_start(r1, space, dtype, tilt) -> np.ndarray:
@@ -517,9 +537,11 @@ def fit_capture(
     job = FitJob() if job is None else job
     _k, h, w, c = capture.shape
     choice: ModelChoice | None = None
+    t_choose = time.perf_counter()
     if job.model == "auto":
         choice = choose_model(capture, job)
         job = replace(job, model=choice.model)
+    choose_s = time.perf_counter() - t_choose
     h, w = capture.shape[1:3]
     fitter = _TileFitter(
         capture,
@@ -550,6 +572,7 @@ def fit_capture(
         t0 = time.perf_counter()
         jax.block_until_ready(fitter(fitter.data(s0, e0), e0 - s0))
         warm = time.perf_counter() - t0
+        fitter.stage_s = dict.fromkeys(STAGES, 0.0)  # the warm-up call is not a tile
     iterator: Any = todo
     if progress and todo:
         from tqdm.auto import tqdm
@@ -558,10 +581,15 @@ def fit_capture(
     for i in iterator:
         s, e = tiles[i]
         t0 = time.perf_counter()
-        out = fitter(fitter.data(s, e), e - s)
-        times.append(time.perf_counter() - t0)
+        data = fitter.data(s, e)
+        fitter.stage_s["read"] += time.perf_counter() - t0
+        out = fitter(data, e - s)
+        t1 = time.perf_counter()
         if tdir is not None:
             _atomic_savez(tdir / f"tile_{i:05d}.npz", **out)
+        t2 = time.perf_counter()
+        fitter.stage_s["write"] += t2 - t1
+        times.append(t2 - t0)
         results[i] = out
         if on_tile is not None:
             on_tile(i, len(tiles))
@@ -572,6 +600,8 @@ def fit_capture(
     cat = {key: np.concatenate([r[key] for r in done]) for key in done[0]}
     maps = _maps(fitter, cat, h, w)
     report = _report(fitter, cat, capture, job, maps, compile_s, times, len(tiles), loaded)
+    report["timings"]["stages_s"] = dict(fitter.stage_s)
+    report["timings"]["choose_s"] = choose_s
     report["auto"] = None if choice is None else choice.as_dict()
     return CaptureFit(
         maps=maps,
