@@ -354,28 +354,17 @@ def memory_table(sides, tile: int, max_tiles: int, k: int) -> list[dict]:
 
 
 # ---------------------------------------------------------------------------- end to end
-def demo_capture(side: int, seed: int = 0):
+def noisy_demo_capture(side: int, seed: int = 0):
     """The demo scene rendered at side x side (9 flash photos, float, demo sensor noise)."""
     from jaxrefl.cli._demo import _NOISE_ABS, _NOISE_REL
-    from jaxrefl.demo import demo_scene, render_demo
-    from jaxrefl.io import Capture
+    from jaxrefl.demo import demo_capture, demo_scene, render_demo
 
     scene = demo_scene(size=side, seed=seed)
     lin = np.asarray(jax.jit(lambda: render_demo(scene, encode=False))(), np.float32)
     rng = np.random.default_rng(seed + 1)
     noisy = lin * (1 + _NOISE_REL * rng.standard_normal(lin.shape, np.float32))
     noisy = np.clip(noisy + _NOISE_ABS * rng.standard_normal(lin.shape, np.float32), 0.0, 1.0)
-    k = lin.shape[0]
-    return Capture(
-        images=noisy,
-        status=np.zeros(lin.shape, np.uint8),
-        light_pos=scene.positions,
-        light_dir=None,
-        light_power=np.full((k, 3), scene.light_power),
-        camera_pos=scene.positions,
-        side=scene.side_cm,
-        points=np.asarray(scene.points),
-    )
+    return demo_capture(scene, noisy)
 
 
 def end_to_end(side: int, lm_pixels: int, repeats: int, auto: bool) -> list[dict]:
@@ -386,7 +375,7 @@ def end_to_end(side: int, lm_pixels: int, repeats: int, auto: bool) -> list[dict
     from jaxrefl.svbrdf._job import COMPACT_MIN_PIXELS, _TileFitter
 
     t0 = time.perf_counter()
-    cap = demo_capture(side)
+    cap = noisy_demo_capture(side)
     print(
         f"capture: {side} x {side}, {cap.n_photos} photos, rendered in "
         f"{time.perf_counter() - t0:.1f} s"

@@ -26,7 +26,7 @@ from jaxtyping import Array, Float
 from . import brdf
 from .scene import GammaResponse, PinholeCamera, PointLight, planar_points, render
 
-__all__ = ["DemoScene", "demo_scene", "render_demo"]
+__all__ = ["DemoScene", "demo_capture", "demo_scene", "render_demo"]
 
 SIDE_CM = 11.136
 LIGHT_POWER = 1500.0
@@ -116,4 +116,25 @@ def render_demo(scene: DemoScene, encode: bool = True) -> Float[Array, "K H W 3"
         points=scene.points,
         response=response,
         cos4=False,  # the svbrdf-diff-renderer captures carry no vignetting
+    )
+
+
+def demo_capture(scene: DemoScene, images: Float[np.ndarray, "K H W 3"]):
+    """A :class:`jaxrefl.io.Capture` of ``scene``'s geometry (flash and camera positions,
+    light power, sample points) holding ``images``: (K, H, W, 3) linear radiance such as
+    ``render_demo(scene, encode=False)`` with noise added. The in-memory twin of the folder
+    ``jaxrefl demo`` writes, without its 8-bit encoding; every observation is usable."""
+    from .io import Capture
+
+    images = np.asarray(images)
+    k = images.shape[0]
+    return Capture(
+        images=images,
+        status=np.zeros(images.shape, np.uint8),
+        light_pos=scene.positions,
+        light_dir=None,
+        light_power=np.full((k, 3), scene.light_power),
+        camera_pos=scene.positions,
+        side=scene.side_cm,
+        points=np.asarray(scene.points, np.float64),
     )

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from jaxrefl import brdf, fit
-from jaxrefl.demo import demo_scene
+from jaxrefl.demo import demo_capture, demo_scene
 from jaxrefl.io._capture import Capture
 from jaxrefl.svbrdf import FitJob, fit_capture, leave_one_out
 from jaxrefl.svbrdf._pooled import choose_pooled
@@ -35,18 +35,8 @@ def shared_lobe_capture():
         "alpha": np.full((SIZE, SIZE), ALPHA),
     }
     model = scene.model  # Cook-Torrance GGX, height-correlated Smith, Schlick, Lambert base
-    points = np.asarray(scene.points, np.float64)
     k = len(scene.positions)
-    cap = Capture(
-        images=np.zeros((k, SIZE, SIZE, 3), np.float32),
-        status=np.zeros((k, SIZE, SIZE, 3), np.uint8),
-        light_pos=scene.positions,
-        light_dir=None,
-        light_power=np.full((k, 3), scene.light_power),
-        camera_pos=scene.positions,
-        side=scene.side_cm,
-        points=points,
-    )
+    cap = demo_capture(scene, np.zeros((k, SIZE, SIZE, 3), np.float32))
     geo = cap.per_pixel_geometry(dtype=np.float64)
     p = {n: jnp.asarray(v) for n, v in truth.items()}
     f = np.asarray(model.eval(p, jnp.asarray(geo["wi"]), jnp.asarray(geo["wo"])))

@@ -17,8 +17,8 @@ import pytest
 
 from jaxrefl import brdf, fit, svbrdf
 from jaxrefl.cli import main
-from jaxrefl.demo import demo_scene, render_demo
-from jaxrefl.io import Capture, load_capture, read_exr
+from jaxrefl.demo import demo_capture, demo_scene, render_demo
+from jaxrefl.io import load_capture, read_exr
 from jaxrefl.io._capture import ObsStatus
 from jaxrefl.scene import render
 
@@ -32,17 +32,7 @@ def _demo_capture(size=16, seed=0, noise=0.0):
     lin = np.asarray(render_demo(scene, encode=False), np.float64)
     if noise:
         lin = lin + noise * np.random.default_rng(seed).standard_normal(lin.shape)
-    k = lin.shape[0]
-    cap = Capture(
-        images=lin,
-        status=np.zeros(lin.shape, np.uint8),
-        light_pos=scene.positions,
-        light_dir=None,
-        light_power=np.full((k, 3), scene.light_power),
-        camera_pos=scene.positions,
-        side=scene.side_cm,
-        points=np.asarray(scene.points),
-    )
+    cap = demo_capture(scene, lin)
     return cap, scene
 
 
