@@ -78,7 +78,10 @@ class FitJob:
 
                 * ``solver``: :class:`~jaxrefl.fit.LMOptions` (default), or a library solver
                   (:class:`~jaxrefl.fit.OptimistixLM`, :class:`~jaxrefl.fit.JaxoptLM`),
-                  with its iteration budget
+                  with its iteration budget; captures of fewer than
+                  :data:`COMPACT_MIN_PIXELS` pixels, and the model selection, run the lean
+                  LM as one plain loop (its ``compact_stages`` dropped; per-pixel results
+                  are the same)
                 * ``noise``: :class:`~jaxrefl.fit.GaussianNoise` (default: sigma unknown, the
                   Laplace step estimates its scale per pixel) or
                   :class:`~jaxrefl.fit.ShotNoise` (variance read^2 + gain * obs), in linear
