@@ -6,7 +6,6 @@
 * Gradients: :func:`central_difference` and :func:`fd_check` (``jax.grad`` against it).
 * Edges: :data:`EDGE_WI`/:data:`EDGE_WO` and :func:`assert_finite_edges` (finite values and
   gradients at the normal, at grazing angles, on and below the horizon, in float32/64).
-* Captures: :func:`float_demo_capture` (the demo scene's photos as a float64 capture).
 
 Compiled evaluations are kept in one cache keyed by model (:data:`JIT`), so tests in different
 modules that evaluate the same model share one compilation.
@@ -151,17 +150,3 @@ def assert_finite_edges(m, p, dtype, wi=EDGE_WI, wo=EDGE_WO):
     assert np.all(np.asarray(f)[-3:] == 0.0)  # cos = 0 and below the horizon are exactly 0
     for leaf in jax.tree_util.tree_leaves(gr(p, wi, wo)):
         assert np.all(np.isfinite(np.asarray(leaf))), (p, leaf)
-
-
-def float_demo_capture(size: int = 16, seed: int = 0, noise: float = 0.0):
-    """(capture, scene): the demo scene rendered in float64 with additive Gaussian noise of
-    std ``noise``, as an in-memory capture (no 8-bit quantisation)."""
-    import numpy as np
-
-    from jaxrefl.demo import demo_capture, demo_scene, render_demo
-
-    scene = demo_scene(size=size, seed=seed, dtype=jax.numpy.float64)
-    lin = np.asarray(render_demo(scene, encode=False), np.float64)
-    if noise:
-        lin = lin + noise * np.random.default_rng(seed).standard_normal(lin.shape)
-    return demo_capture(scene, lin), scene

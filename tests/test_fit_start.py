@@ -8,7 +8,7 @@ neighbours of the best, ends included (the same points as the default's 12 + 6 i
 ones plus two repeats). The batched start must give the same fits: in float64, on a
 synthetic capture (the demo's GGX + Lambert surface, nine flash photos, noisy), the LM from
 either start ends at the same parameters within its tolerance and with the same statuses,
-except where the batched start reaches a lower cost.
+except where the new start reaches a lower cost.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
-from _helpers import float_demo_capture
+from test_svbrdf import _demo_capture
 
 from jaxrefl import fit
 from jaxrefl.fit._init import _box_ls, _fit_weights, _inset, _natural_base, grid_values
@@ -80,7 +80,7 @@ def _reference_start(res, data, grid):
 
 def test_batched_start_fits_like_the_reference_start():
     with jax.enable_x64(True):
-        cap, _ = float_demo_capture(size=16, noise=3e-3)
+        cap, _ = _demo_capture(size=16, noise=3e-3)
         n = 16 * 16
         data = pixel_block(cap, 0, n, dtype=np.float64)
         model, space = capture_model("ggx", channels=3, alpha_min=0.01)
@@ -94,7 +94,7 @@ def test_batched_start_fits_like_the_reference_start():
         r_new = fit.fit_pixels(model, data, space=space, init=theta_new)
         r_ref = fit.fit_pixels(model, data, space=space, init=theta_ref)
         c_new, c_ref = np.asarray(r_new.cost), np.asarray(r_ref.cost)
-        lower = c_new < c_ref * (1 - 1e-6)  # the batched start found a better optimum
+        lower = c_new < c_ref * (1 - 1e-6)  # the new start found a better optimum
         keep = ~lower
         np.testing.assert_array_equal(
             np.asarray(r_new.status)[keep], np.asarray(r_ref.status)[keep]
@@ -111,7 +111,7 @@ def test_batched_start_fits_like_the_reference_start():
 def test_start_options_and_coarse_grid_only():
     model, space = capture_model("ggx", channels=3, alpha_min=0.01)
     res = fit.make_residual(model, space)
-    cap, _ = float_demo_capture(size=8, noise=1e-3)
+    cap, _ = _demo_capture(size=8, noise=1e-3)
     data = pixel_block(cap, 0, 64, dtype=np.float32)
     t0 = np.asarray(fit.initial_theta(res, data, refine=0))
     assert t0.shape == (64, space.size) and np.isfinite(t0).all()

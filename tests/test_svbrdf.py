@@ -14,17 +14,26 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from _helpers import float_demo_capture as _demo_capture
 
 from jaxrefl import brdf, fit, svbrdf
 from jaxrefl.cli import main
-from jaxrefl.demo import demo_scene
+from jaxrefl.demo import demo_capture, demo_scene, render_demo
 from jaxrefl.io import load_capture, read_exr
 from jaxrefl.io._capture import ObsStatus
 from jaxrefl.scene import render
 
 BATH = "svbrdf_flash/bath_tile"
 GGX = dict(distribution="ggx", shadowing="smith_height_correlated", fresnel="schlick")
+
+
+def _demo_capture(size=16, seed=0, noise=0.0):
+    """The demo scene as an in-memory float capture (no 8-bit quantisation)."""
+    scene = demo_scene(size=size, seed=seed, dtype=jnp.float64)
+    lin = np.asarray(render_demo(scene, encode=False), np.float64)
+    if noise:
+        lin = lin + noise * np.random.default_rng(seed).standard_normal(lin.shape)
+    cap = demo_capture(scene, lin)
+    return cap, scene
 
 
 # ----------------------------------------------------------------------------- recovery
