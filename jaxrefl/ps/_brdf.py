@@ -40,7 +40,8 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from jaxrefl import fit as jf
-from jaxrefl.brdf import BRDF, safe_normalize
+from jaxrefl.brdf import BRDF
+from jaxrefl.brdf import tilt_normal as tilt_slopes
 from jaxrefl.brdf import get as get_brdf
 from jaxrefl.scene import orthonormal_basis
 
@@ -72,9 +73,11 @@ class PSPixel(eqx.Module):
 
 
 def tilt_normal(uv: Float[Array, "*b 2"], n0: Float[Array, "*b 3"]) -> Float[Array, "*b 3"]:
-    """n(u, v) of the module docstring."""
+    """n(u, v) of the module docstring: :func:`jaxrefl.brdf.tilt_normal` (slopes u, v)
+    expressed in the frame (t0, b0, n0) of the starting normal instead of the geometric one."""
     t0, b0 = orthonormal_basis(n0)
-    return safe_normalize(n0 + uv[..., :1] * t0 + uv[..., 1:2] * b0)
+    local = tilt_slopes(uv[..., 0], uv[..., 1])  # (u, v, 1) / |(u, v, 1)|
+    return local[..., :1] * t0 + local[..., 1:2] * b0 + local[..., 2:] * n0
 
 
 class NormalBRDFResidual(eqx.Module):
