@@ -41,8 +41,8 @@ from jaxtyping import Array, ArrayLike, Float, Int
 
 from jaxrefl import fit as jf
 from jaxrefl.brdf import BRDF
-from jaxrefl.brdf import tilt_normal as tilt_slopes
 from jaxrefl.brdf import get as get_brdf
+from jaxrefl.brdf import tilt_normal as tilt_slopes
 from jaxrefl.scene import orthonormal_basis
 
 from ._capture import PSInputError
@@ -250,8 +250,3 @@ def albedo_start(start: PSResult, s, has):
     # Clip inside (0, 1): the sigmoid of the albedo has no slope at its bounds.
     albedo0 = jnp.clip(jnp.pi * start.albedo / s[:, None], 0.02, 0.95)
     return jnp.where(has[:, None], albedo0, _ALBEDO_TARGET)
-
-
-def brdf_method(obs, lights, intensities, weight=None, saturated=None, **kw) -> PSResult:
-    """:func:`fit_normal_brdf` returning only the :class:`PSResult`."""
-    return fit_normal_brdf(obs, lights, intensities, weight, saturated, **kw).ps
