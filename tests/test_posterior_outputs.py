@@ -119,7 +119,9 @@ def test_cli_sample_capture_end_to_end(tmp_path):
     n_above = u["mcmc"]["pixels_rhat_above_1.1"]
     assert n_above <= u["mcmc"]["pixels_rhat_above_1.01"] and n_above < 8
     im = read_exr(out / "uncertainty.exr")
-    assert {"albedo_mean.R", "noise_scale_mean.Y", "rhat.Y", "ess_bulk.Y", "method.Y"} <= set(im.channels)
+    assert {"albedo_mean.R", "noise_scale_mean.Y", "rhat.Y", "ess_bulk.Y", "method.Y"} <= set(
+        im.channels
+    )
     assert np.all(np.isfinite(im.channels["rhat.Y"]))
     # the second pass: the pixels it reran are those above 1.1 after the first
     sp = u["mcmc"]["second_pass"]

@@ -475,7 +475,14 @@ def test_outputs_exr_report_previews(tmp_path):
     r = svbrdf.fit_capture(cap, svbrdf.FitJob(model="ggx", holdout=(0,), tile_pixels=_TILE))
     files = svbrdf.write_outputs(r, cap, tmp_path)
     exr = read_exr(tmp_path / "maps.exr")
-    for name in ("albedo.R", "specular.Y", "roughness.Y", "roughness_std.Y", "status.Y", "laplace_flag.Y"):
+    for name in (
+        "albedo.R",
+        "specular.Y",
+        "roughness.Y",
+        "roughness_std.Y",
+        "status.Y",
+        "laplace_flag.Y",
+    ):
         assert name in exr.channels, name
     assert exr.metadata["model"] == "ggx"
     np.testing.assert_array_equal(exr.channels["status.Y"], r.maps["status"])

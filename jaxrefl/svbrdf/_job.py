@@ -644,7 +644,8 @@ def _maps(fitter: _TileFitter, cat, h: int, w: int) -> dict[str, np.ndarray]:
         root = np.sqrt(np.maximum(nat[:, j], 0.0))
         maps["roughness"] = root
         # d sqrt(alpha) / d alpha = 1 / (2 sqrt(alpha)): the delta method, as for every map.
-        maps[map_name("roughness", "_std")] = cat["std"][:, j] / np.where(root > 0, 2.0 * root, np.nan)
+        slope = np.where(root > 0, 2.0 * root, np.nan)
+        maps[map_name("roughness", "_std")] = cat["std"][:, j] / slope
     if fitter.pooled is not None and fitter.pooled.alpha is not None:
         # The shared width: one value, the same map everywhere a pixel has an estimate.
         shared = np.where(ok, fitter.pooled.alpha, np.nan)
