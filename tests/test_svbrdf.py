@@ -491,6 +491,15 @@ def test_outputs_exr_report_previews(tmp_path):
     assert report["timings"]["compile_s"] >= 0 and report["timings"]["run_s"] > 0
     for p in files["previews"]:
         assert Path(p).stat().st_size > 1000
+    # every layer of a real fit's maps.exr splits into an RGB or a Y image in Mitsuba 3
+    mi = pytest.importorskip("mitsuba")
+    mi.set_variant("scalar_rgb")
+    layers = dict(mi.Bitmap(str(tmp_path / "maps.exr")).split())
+    formats = {lay.pixel_format() for lay in layers.values()}
+    assert formats == {mi.Bitmap.PixelFormat.RGB, mi.Bitmap.PixelFormat.Y}, formats
+    assert {"albedo", "albedo_std", "corr_albedo_R_alpha", "status", "roughness"} <= set(layers)
+    assert main(["export", str(tmp_path), "--format", "mitsuba"]) == 0
+    mi.load_file(str(tmp_path / "export_mitsuba" / "scene.xml"))
 
 
 def test_resolvable_alpha_from_photo_spacing(shared_data):

@@ -64,10 +64,10 @@ from jaxrefl.brdf._convert import DIELECTRIC_F0_DEFAULT
 from jaxrefl.io._channels import map_key
 
 __all__ = [
+    "F0_DIELECTRIC",
     "FlashView",
     "RendererMaps",
     "Textures",
-    "export_textures",
     "gltf_document",
     "mitsuba_scene",
     "mitsuba_xml",
@@ -196,19 +196,22 @@ def _quantise(x: np.ndarray, bits: int) -> np.ndarray:
 
 
 def write_textures(
-    maps: Mapping[str, np.ndarray] | RendererMaps, out_dir: str | Path, bits: int = 8
+    fit: str | Path | Mapping[str, np.ndarray] | RendererMaps, out_dir: str | Path, bits: int = 8
 ) -> Textures:
     """Write the texture files (module docstring) into ``out_dir`` (created if missing).
 
-    maps: a fit's maps (:attr:`CaptureFit.maps`, :func:`read_maps`) or their
-          :func:`renderer_maps`; bits: 8 or 16, the PNGs' sample depth.
+    fit: a ``jaxrefl fit`` output folder or its ``maps.exr`` (:func:`read_maps`), a fit's
+         maps (:attr:`CaptureFit.maps`) or their :func:`renderer_maps`;
+    bits: 8 or 16, the PNGs' sample depth.
     """
     from jaxrefl.io import write_exr, write_exr_rgb, write_png
     from jaxrefl.scene import SRGBResponse
 
     if bits not in (8, 16):
         raise ValueError(f"PNG textures are 8 or 16 bit, not {bits}")
-    rm = maps if isinstance(maps, RendererMaps) else renderer_maps(maps)
+    if isinstance(fit, str | Path):
+        fit = read_maps(fit)[0]
+    rm = fit if isinstance(fit, RendererMaps) else renderer_maps(fit)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     files: dict[str, str] = {}
@@ -527,11 +530,6 @@ def _atomic_text(path: Path, text: str) -> Path:
     return path
 
 
-def _textures(fit: str | Path | Mapping[str, np.ndarray], out: Path, bits: int) -> Textures:
-    maps = read_maps(fit)[0] if isinstance(fit, (str, Path)) else fit
-    return write_textures(maps, out, bits)
-
-
 def write_mitsuba(
     fit: str | Path | Mapping[str, np.ndarray],
     out_dir: str | Path,
@@ -541,7 +539,7 @@ def write_mitsuba(
     """The textures (:func:`write_textures`) and ``scene.xml`` (:func:`mitsuba_xml`) of a
     fit (a ``jaxrefl fit`` folder, a ``maps.exr`` or a maps dict) in ``out_dir``; returns
     the paths written. Render with ``mitsuba scene.xml`` or ``mi.load_file``."""
-    tex = _textures(fit, Path(out_dir), bits)
+    tex = write_textures(fit, out_dir, bits)
     xml = _atomic_text(tex.folder / "scene.xml", mitsuba_xml(tex, view))
     return [*(tex.folder / f for f in tex.files.values()), xml]
 
@@ -554,14 +552,6 @@ def write_gltf(
 ) -> list[Path]:
     """The textures and ``material.gltf`` (:func:`gltf_document`) of a fit in ``out_dir``;
     returns the paths written."""
-    tex = _textures(fit, Path(out_dir), bits)
+    tex = write_textures(fit, out_dir, bits)
     doc = _atomic_text(tex.folder / "material.gltf", json.dumps(gltf_document(tex, side), indent=1))
     return [*(tex.folder / f for f in tex.files.values()), doc]
-
-
-def export_textures(
-    fit: str | Path | Mapping[str, np.ndarray], out_dir: str | Path, bits: int = 8
-) -> list[Path]:
-    """The texture files alone (:func:`write_textures`) of a fit; returns the paths."""
-    tex = _textures(fit, Path(out_dir), bits)
-    return [tex.folder / f for f in tex.files.values()]
