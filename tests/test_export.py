@@ -61,7 +61,9 @@ def _maps(normals: bool) -> dict[str, np.ndarray]:
         n /= np.linalg.norm(n, axis=-1, keepdims=True)
         maps |= {f"normal.{a}": n[..., i] for i, a in enumerate("XYZ")}
     maps["status"] = np.zeros((N, N), np.uint32)
-    return {k: np.asarray(v, v.dtype if v.dtype == np.uint32 else np.float32) for k, v in maps.items()}
+    return {
+        k: np.asarray(v, v.dtype if v.dtype == np.uint32 else np.float32) for k, v in maps.items()
+    }
 
 
 def _jaxrefl_render(maps):
@@ -141,7 +143,8 @@ def test_metallic_view_and_principled_specular():
     """Grey dielectric F0 <= 0.04: metallic 0, the base colour the albedo (principled) or
     albedo / 0.96 (glTF); principled's specular is F0 / 0.08, clipped at 1."""
     h, w = 2, 3
-    maps = {f"albedo.{c}": np.full((h, w), v, np.float32) for c, v in zip("RGB", (0.5, 0.3, 0.2))}
+    rgb = zip("RGB", (0.5, 0.3, 0.2), strict=True)
+    maps = {f"albedo.{c}": np.full((h, w), v, np.float32) for c, v in rgb}
     maps["specular"] = np.array([[0.02, 0.04, 0.06], [0.2, 0.1, 0.03]], np.float32)
     maps["alpha"] = np.full((h, w), 0.25, np.float32)
     maps["albedo.R"][1, 2] = np.nan  # no estimate: black, rough (alpha 1), dielectric
