@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxrefl.io._channels import exr_channels, map_name
+from jaxrefl.io import exr_channels, map_name
 
 from ._adaptive import METHODS, UncertaintyMap
 from ._methods import MCMC_METHODS

@@ -60,8 +60,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxrefl import brdf
-from jaxrefl.brdf._convert import DIELECTRIC_F0_DEFAULT
-from jaxrefl.io._channels import map_key
+from jaxrefl.io import map_key
 
 __all__ = [
     "F0_DIELECTRIC",
@@ -78,7 +77,7 @@ __all__ = [
     "write_textures",
 ]
 
-F0_DIELECTRIC = DIELECTRIC_F0_DEFAULT  # glTF's and principled (specular = 0.5) F0_d
+F0_DIELECTRIC = brdf.DIELECTRIC_F0_DEFAULT  # glTF's and principled (specular = 0.5) F0_d
 _PRINCIPLED_F0_PER_SPECULAR = 0.08  # Mitsuba/Disney principled: F0 = 0.08 specular
 
 

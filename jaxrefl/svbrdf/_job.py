@@ -42,7 +42,7 @@ import numpy as np
 
 from jaxrefl import brdf, fit
 from jaxrefl.fit import Status
-from jaxrefl.io._channels import corr_name, map_name
+from jaxrefl.io import corr_name, map_name
 
 from ._auto import ModelChoice, choose_model
 from ._data import pixel_block, resolvable_alpha
