@@ -43,9 +43,9 @@ STD_MAPS = {  # parameter -> its std map
     "albedo.R": "albedo_std.R",
     "albedo.G": "albedo_std.G",
     "albedo.B": "albedo_std.B",
-    "specular": "specular.std",
-    "alpha": "alpha.std",
-    "roughness": "roughness.std",
+    "specular": "specular_std",
+    "alpha": "alpha_std",
+    "roughness": "roughness_std",
 }
 FLAG_COLORS = ["#2ca02c", "#1f1f1f", "#9467bd", "#1f77b4", "#ff7f0e", "#d62728"]
 
@@ -149,8 +149,8 @@ def figure(results, shot, pred, rows, factor: int):
     )
 
     show_std(axes[1, 0], ggx.maps["albedo_std.G"], "std albedo (G)")
-    show_std(axes[1, 1], ggx.maps["specular.std"], "std specular F0")
-    show_std(axes[1, 2], ggx.maps["roughness.std"], "std roughness")
+    show_std(axes[1, 1], ggx.maps["specular_std"], "std specular F0")
+    show_std(axes[1, 2], ggx.maps["roughness_std"], "std roughness")
     show(axes[1, 3], encode(rgb(lam)), "Lambert albedo (gamma 2.2)")
 
     k0 = HOLDOUT[0]

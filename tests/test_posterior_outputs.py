@@ -93,10 +93,10 @@ def test_adaptive_method_map_and_exr(lambert, tmp_path):
     np.testing.assert_allclose(u.std, np.asarray(lap.std), rtol=1e-8)
     path = jp.write_uncertainty_exr(tmp_path / "u.exr", u, 2, 3)
     im = read_exr(path)
-    for name in ("albedo.mean.R", "albedo.std.G", "albedo.q05.B", "albedo.q95.R", "method"):
+    for name in ("albedo_mean.R", "albedo_std.G", "albedo_q05.B", "albedo_q95.R", "method.Y"):
         assert name in im.channels, sorted(im.channels)
-    assert im.pixel_types["method"] == "UINT"
-    np.testing.assert_allclose(im.channels["albedo.mean.G"].reshape(-1), u.mean[:, 1], rtol=1e-6)
+    assert im.pixel_types["method.Y"] == "UINT"
+    np.testing.assert_allclose(im.channels["albedo_mean.G"].reshape(-1), u.mean[:, 1], rtol=1e-6)
     assert im.metadata["method_codes"]["1"] == "laplace"
 
 
@@ -119,12 +119,14 @@ def test_cli_sample_capture_end_to_end(tmp_path):
     n_above = u["mcmc"]["pixels_rhat_above_1.1"]
     assert n_above <= u["mcmc"]["pixels_rhat_above_1.01"] and n_above < 8
     im = read_exr(out / "uncertainty.exr")
-    assert {"albedo.mean.R", "noise_scale.mean", "rhat", "ess_bulk", "method"} <= set(im.channels)
-    assert np.all(np.isfinite(im.channels["rhat"]))
+    assert {"albedo_mean.R", "noise_scale_mean.Y", "rhat.Y", "ess_bulk.Y", "method.Y"} <= set(
+        im.channels
+    )
+    assert np.all(np.isfinite(im.channels["rhat.Y"]))
     # the second pass: the pixels it reran are those above 1.1 after the first
     sp = u["mcmc"]["second_pass"]
     assert rep["second_pass"]["rerun_rhat"] == 1.1 and rep["second_pass"]["options"]["thin"] == 4
-    passes = im.channels["mcmc_pass"]
+    passes = im.channels["mcmc_pass.Y"]
     assert set(np.unique(passes)) <= {1, 2} and int(np.sum(passes == 2)) == sp["pixels"]
     if sp["pixels"]:
         assert sp["max_rhat_before"]["min"] > 1.1

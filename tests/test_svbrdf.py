@@ -179,7 +179,7 @@ def test_capture_with_tilted_normals_is_recovered_by_ggx_normal():
     assert np.median(e_alpha) < 1e-4
     n = np.stack([r.maps[f"normal.{a}"] for a in "XYZ"], -1)
     np.testing.assert_allclose(np.linalg.norm(n, axis=-1), 1.0, rtol=1e-6)
-    assert {"tilt_x", "tilt_y.std", "corr.tilt_x.tilt_y"} <= set(r.maps)
+    assert {"tilt_x", "tilt_y_std", "corr_tilt_x_tilt_y"} <= set(r.maps)
     flat = svbrdf.fit_capture(cap, replace(job, model="ggx"))
     assert r.report["train_rmse"] < 0.5 * flat.report["train_rmse"]
 
@@ -416,7 +416,7 @@ def test_interrupted_run_resumes_without_recomputing(tmp_path):
     seen = []
     resumed = svbrdf.fit_capture(cap, job, tmp_path, on_tile=lambda i, n: seen.append(i))
     assert resumed.tiles_loaded == 2 and resumed.tiles_computed == 2 and seen == [2, 3]
-    for name in ("alpha", "albedo.G", "alpha.std", "status"):
+    for name in ("alpha", "albedo.G", "alpha_std", "status"):
         np.testing.assert_array_equal(resumed.maps[name], full.maps[name])
     # A corrupt tile is recomputed; another job in the same folder is refused.
     (tmp_path / "tiles" / "tile_00001.npz").write_bytes(b"truncated")
@@ -475,15 +475,31 @@ def test_outputs_exr_report_previews(tmp_path):
     r = svbrdf.fit_capture(cap, svbrdf.FitJob(model="ggx", holdout=(0,), tile_pixels=_TILE))
     files = svbrdf.write_outputs(r, cap, tmp_path)
     exr = read_exr(tmp_path / "maps.exr")
-    for name in ("albedo.R", "specular", "roughness", "roughness.std", "status", "laplace_flag"):
+    for name in (
+        "albedo.R",
+        "specular.Y",
+        "roughness.Y",
+        "roughness_std.Y",
+        "status.Y",
+        "laplace_flag.Y",
+    ):
         assert name in exr.channels, name
     assert exr.metadata["model"] == "ggx"
-    np.testing.assert_array_equal(exr.channels["status"], r.maps["status"])
+    np.testing.assert_array_equal(exr.channels["status.Y"], r.maps["status"])
     report = json.loads((tmp_path / "report.json").read_text())
     assert report["heldout_rmse"] == pytest.approx(r.report["heldout_rmse"])
     assert report["timings"]["compile_s"] >= 0 and report["timings"]["run_s"] > 0
     for p in files["previews"]:
         assert Path(p).stat().st_size > 1000
+    # every layer of a real fit's maps.exr splits into an RGB or a Y image in Mitsuba 3
+    mi = pytest.importorskip("mitsuba")
+    mi.set_variant("scalar_rgb")
+    layers = dict(mi.Bitmap(str(tmp_path / "maps.exr")).split())
+    formats = {lay.pixel_format() for lay in layers.values()}
+    assert formats == {mi.Bitmap.PixelFormat.RGB, mi.Bitmap.PixelFormat.Y}, formats
+    assert {"albedo", "albedo_std", "corr_albedo_R_alpha", "status", "roughness"} <= set(layers)
+    assert main(["export", str(tmp_path), "--format", "mitsuba"]) == 0
+    mi.load_file(str(tmp_path / "export_mitsuba" / "scene.xml"))
 
 
 def test_resolvable_alpha_from_photo_spacing(shared_data):

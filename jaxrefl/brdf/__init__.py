@@ -9,6 +9,7 @@ from ._base import Param as Param
 from ._base import Params as Params
 from ._base import check_directions as check_directions
 from ._base import set_validation as set_validation
+from ._convert import DIELECTRIC_F0_DEFAULT as DIELECTRIC_F0_DEFAULT
 from ._convert import alpha_to_phong_exponent as alpha_to_phong_exponent
 from ._convert import alpha_to_roughness as alpha_to_roughness
 from ._convert import metallic_to_specular as metallic_to_specular

@@ -128,7 +128,7 @@ def _fit_and_check(out: Path, truth: dict) -> None:
     err_alb = np.abs(alb - truth["albedo"])[ok]
     err_spec = np.abs(m["specular"] - truth["specular"][..., 0])[ok]
     rel_rough = np.abs(m["roughness"] / truth["roughness"] - 1.0)[ok]
-    z = ((m["roughness"] - truth["roughness"]) / m["roughness.std"])[ok & (m["laplace_flag"] == 0)]
+    z = ((m["roughness"] - truth["roughness"]) / m["roughness_std"])[ok & (m["laplace_flag"] == 0)]
     print("recovered maps against the truth (pixels with an estimate):")
     print(f"  diffuse albedo  median |error| {np.median(err_alb):.4f}")
     print(f"  specular F0     median |error| {np.median(err_spec):.4f}")

@@ -29,6 +29,7 @@ _COMMANDS = {
     "ps": "jaxrefl.cli._ps",
     "fit-brdf": "jaxrefl.cli._fit_brdf",
     "models": "jaxrefl.cli._models",
+    "export": "jaxrefl.cli._export",
 }
 
 

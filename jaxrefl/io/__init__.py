@@ -12,6 +12,11 @@ from ._capture import CaptureError as CaptureError
 from ._capture import ObsStatus as ObsStatus
 from ._capture_layouts import load_capture as load_capture
 from ._capture_layouts import save_generic_capture as save_generic_capture
+from ._channels import corr_name as corr_name
+from ._channels import exr_channel as exr_channel
+from ._channels import exr_channels as exr_channels
+from ._channels import map_key as map_key
+from ._channels import map_name as map_name
 from ._cornell import read_cornell as read_cornell
 from ._curet import read_curet as read_curet
 from ._curet import read_curet_geometry as read_curet_geometry

@@ -425,10 +425,10 @@ def write_exr(
     Args:
         path: target file; its directory must exist. An existing file is replaced only
             once the new one is completely written.
-        channels: name -> (H, W) array, all the same shape. Use dotted layer names
-            (``albedo.R``, ``albedo.G``, ``albedo.B``, ``roughness``, ``roughness.std``,
-            ``status``). Floats -> FLOAT (HALF if selected by ``half``); bool/integers
-            -> UINT (0 ... 2**32 - 1).
+        channels: name -> (H, W) array, all the same shape. jaxrefl's own files name
+            them ``<layer>.<channel>`` (``albedo.R``, ``roughness.Y``, ``roughness_std.Y``,
+            ``status.Y``; :mod:`jaxrefl.io._channels`). Floats -> FLOAT (HALF if selected
+            by ``half``); bool/integers -> UINT (0 ... 2**32 - 1).
         metadata: JSON-serialisable values stored under ``jaxrefl/<key>`` (see the module
             docstring); read them back with :attr:`ExrImage.metadata`.
         half: True to store every float channel as HALF, or the names of those to store

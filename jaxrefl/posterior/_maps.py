@@ -1,13 +1,14 @@
 """Uncertainty maps as EXR channels (through :func:`jaxrefl.io.write_exr`).
 
-For each parameter label and statistic ``mean``, ``std``, ``q05``, ``q95``: a colour label
-``albedo.R`` becomes the channel ``albedo.<stat>.R`` (layer ``albedo.mean`` with R, G, B,
-so viewers show it as a colour image), a scalar ``alpha`` becomes ``alpha.<stat>``. Then
-``method`` (UINT, :data:`~jaxrefl.posterior.METHODS`), ``rhat``, ``ess_bulk``, ``ess_tail``
-(FLOAT, NaN off the MCMC pixels), ``divergences`` (UINT) and ``mcmc_pass`` (UINT: 0 off
-MCMC, 1 the first pass, 2 the longer second pass of the pixels whose first chains
-disagreed). For GGX-type models
-``roughness.<stat>`` (perceptual roughness sqrt(alpha): quantiles and mean mapped through
+Channel names follow :mod:`jaxrefl.io._channels` (``<layer>.<channel>``, R/G/B for a
+colour, Y for a scalar). For each parameter label and statistic ``mean``, ``std``, ``q05``,
+``q95``: a colour label ``albedo.R`` becomes the channel ``albedo_<stat>.R`` (layer
+``albedo_mean`` with R, G, B, so viewers show it as a colour image), a scalar ``alpha``
+becomes ``alpha_<stat>.Y``. Then ``method.Y`` (UINT, :data:`~jaxrefl.posterior.METHODS`),
+``rhat.Y``, ``ess_bulk.Y``, ``ess_tail.Y`` (FLOAT, NaN off the MCMC pixels),
+``divergences.Y`` (UINT) and ``mcmc_pass.Y`` (UINT: 0 off MCMC, 1 the first pass, 2 the
+longer second pass of the pixels whose first chains disagreed). For GGX-type models
+``roughness_<stat>.Y`` (perceptual roughness sqrt(alpha): quantiles and mean mapped through
 the square root, std by the delta method std(alpha) / (2 sqrt(alpha))) is added. The
 method codes and labels go into the file's metadata.
 """
@@ -18,6 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxrefl.io import exr_channels, map_name
+
 from ._adaptive import METHODS, UncertaintyMap
 from ._methods import MCMC_METHODS
 
@@ -27,10 +30,7 @@ STATS = ("mean", "std", "q05", "q95")
 
 
 def _channel(label: str, stat: str) -> str:
-    if "." in label:
-        base, ch = label.rsplit(".", 1)
-        return f"{base}.{stat}.{ch}"
-    return f"{label}.{stat}"
+    return map_name(label, f"_{stat}")
 
 
 def uncertainty_channels(umap: UncertaintyMap, height: int, width: int) -> dict[str, np.ndarray]:
@@ -49,12 +49,12 @@ def uncertainty_channels(umap: UncertaintyMap, height: int, width: int) -> dict[
         j = umap.labels.index("alpha")
         a = umap.mean[:, j]
         root = np.sqrt(np.maximum(a, 0.0))
-        out["roughness.mean"] = img(root).astype(np.float32)
+        out["roughness_mean"] = img(root).astype(np.float32)
         # d sqrt(alpha) / d alpha = 1 / (2 sqrt(alpha)) (delta method), quantiles exactly.
-        out["roughness.std"] = img(umap.std[:, j] / np.where(root > 0, 2 * root, np.nan))
-        out["roughness.std"] = out["roughness.std"].astype(np.float32)
-        out["roughness.q05"] = img(np.sqrt(np.maximum(umap.q05[:, j], 0.0))).astype(np.float32)
-        out["roughness.q95"] = img(np.sqrt(np.maximum(umap.q95[:, j], 0.0))).astype(np.float32)
+        std = img(umap.std[:, j] / np.where(root > 0, 2 * root, np.nan))
+        out["roughness_std"] = std.astype(np.float32)
+        out["roughness_q05"] = img(np.sqrt(np.maximum(umap.q05[:, j], 0.0))).astype(np.float32)
+        out["roughness_q95"] = img(np.sqrt(np.maximum(umap.q95[:, j], 0.0))).astype(np.float32)
     out["method"] = img(umap.method).astype(np.uint32)
     out["rhat"] = img(umap.rhat).astype(np.float32)
     out["ess_bulk"] = img(umap.ess_bulk).astype(np.float32)
@@ -63,7 +63,7 @@ def uncertainty_channels(umap: UncertaintyMap, height: int, width: int) -> dict[
     sampled = np.isin(umap.method, MCMC_METHODS)
     rerun = np.zeros(sampled.shape, bool) if umap.rerun is None else umap.rerun
     out["mcmc_pass"] = img(np.where(rerun, 2, sampled)).astype(np.uint32)
-    return out
+    return exr_channels(out)
 
 
 def write_uncertainty_exr(

@@ -24,7 +24,8 @@ held-out photos), :mod:`._data` (capture pixels as least-squares
 data: weights, censoring, geometry), :mod:`._pooled` (one lobe shape per capture, chosen by
 held-out photos), :mod:`._job` (tiled fit with Laplace uncertainty and resume),
 :mod:`._holdout` (leave-one-photo-out against a baseline), :mod:`._outputs` (EXR maps,
-report, previews), :mod:`._uncertainty` (the fit's Laplace std, then MCMC where Laplace is
+report, previews), :mod:`._export` (textures, a Mitsuba 3 scene and a glTF 2.0 material
+for renderers), :mod:`._uncertainty` (the fit's Laplace std, then MCMC where Laplace is
 flagged: posterior uncertainty maps).
 """
 
@@ -34,6 +35,18 @@ from ._auto import choose_model as choose_model
 from ._data import is_colocated as is_colocated
 from ._data import pixel_block as pixel_block
 from ._data import resolvable_alpha as resolvable_alpha
+from ._export import F0_DIELECTRIC as F0_DIELECTRIC
+from ._export import FlashView as FlashView
+from ._export import RendererMaps as RendererMaps
+from ._export import Textures as Textures
+from ._export import gltf_document as gltf_document
+from ._export import mitsuba_scene as mitsuba_scene
+from ._export import mitsuba_xml as mitsuba_xml
+from ._export import read_maps as read_maps
+from ._export import renderer_maps as renderer_maps
+from ._export import write_gltf as write_gltf
+from ._export import write_mitsuba as write_mitsuba
+from ._export import write_textures as write_textures
 from ._holdout import LeaveOneOut as LeaveOneOut
 from ._holdout import leave_one_out as leave_one_out
 from ._job import DEFAULT_LOSS as DEFAULT_LOSS

@@ -42,6 +42,7 @@ import numpy as np
 
 from jaxrefl import brdf, fit
 from jaxrefl.fit import Status
+from jaxrefl.io import corr_name, map_name
 
 from ._auto import ModelChoice, choose_model
 from ._data import pixel_block, resolvable_alpha
@@ -154,9 +155,11 @@ class FitJob:
 class CaptureFit:
     """Result of :func:`fit_capture`: maps (H, W) by channel name, and a report.
 
-    maps:    ``albedo.R/G/B``, ``specular``, ``alpha``, ``roughness`` (= sqrt(alpha)), their
-             standard deviations (``albedo_std.R``, ``specular.std``, ``alpha.std``,
-             ``roughness.std``), correlations ``corr.<a>.<b>``, ``status`` (fit
+    maps:    keyed by :func:`jaxrefl.io.map_name` (the names of ``maps.exr``'s channels, a
+             scalar map without its ``.Y``; table in :mod:`jaxrefl.io._channels`):
+             ``albedo.R/G/B``, ``specular``, ``alpha``, ``roughness`` (= sqrt(alpha)), their
+             standard deviations (``albedo_std.R``, ``specular_std``, ``alpha_std``,
+             ``roughness_std``), correlations ``corr_<a>_<b>``, ``status`` (fit
              :class:`jaxrefl.fit.Status`), ``laplace_flag`` (:class:`jaxrefl.fit.LaplaceFlag`
              bits), ``noise_std`` (estimated), ``cost``, ``n_used``, ``iterations``
     report:  what ``report.json`` holds (timings, counts, held-out error, model)
@@ -625,16 +628,6 @@ def fit_capture(
     )
 
 
-def map_name(label: str, suffix: str = "") -> str:
-    """The name of parameter ``label``'s map in :attr:`CaptureFit.maps`: its value
-    (suffix ``""``: ``albedo.R``, ``alpha``) or its std (suffix ``"_std"``: ``albedo_std.R``,
-    ``alpha.std``); a channel stays the EXR layer's last component."""
-    if "." in label:
-        base, ch = label.rsplit(".", 1)
-        return f"{base}{suffix}.{ch}"
-    return f"{label}.{suffix[1:]}" if suffix else label
-
-
 def _maps(fitter: _TileFitter, cat, h: int, w: int) -> dict[str, np.ndarray]:
     space = fitter.space
     theta = cat["theta"]
@@ -651,7 +644,8 @@ def _maps(fitter: _TileFitter, cat, h: int, w: int) -> dict[str, np.ndarray]:
         root = np.sqrt(np.maximum(nat[:, j], 0.0))
         maps["roughness"] = root
         # d sqrt(alpha) / d alpha = 1 / (2 sqrt(alpha)): the delta method, as for every map.
-        maps["roughness.std"] = cat["std"][:, j] / np.where(root > 0, 2.0 * root, np.nan)
+        slope = np.where(root > 0, 2.0 * root, np.nan)
+        maps[map_name("roughness", "_std")] = cat["std"][:, j] / slope
     if fitter.pooled is not None and fitter.pooled.alpha is not None:
         # The shared width: one value, the same map everywhere a pixel has an estimate.
         shared = np.where(ok, fitter.pooled.alpha, np.nan)
@@ -675,8 +669,7 @@ def _maps(fitter: _TileFitter, cat, h: int, w: int) -> dict[str, np.ndarray]:
             maps[f"normal.{axis}"] = n[:, j]
     for a in range(len(labels)):
         for b in range(a + 1, len(labels)):
-            name = f"corr.{labels[a].replace('.', '_')}.{labels[b].replace('.', '_')}"
-            maps[name] = cat["corr"][:, a, b]
+            maps[corr_name(labels[a], labels[b])] = cat["corr"][:, a, b]
     maps["status"] = cat["status"].astype(np.uint32)
     maps["laplace_flag"] = cat["flag"].astype(np.uint32)
     maps["noise_std"] = np.sqrt(cat["noise_var"])

@@ -1,9 +1,12 @@
 """Files of a capture fit: ``maps.exr``, ``report.json`` and PNG previews.
 
-``maps.exr`` (single part, float32 channels, ZIP): every map of
-:class:`~jaxrefl.svbrdf.CaptureFit` under its name (``albedo.R``, ``specular``,
-``roughness``, ``roughness.std``, ``status``, ...), with metadata ``jaxrefl/model``,
-``jaxrefl/units``, ``jaxrefl/status_codes``, ``jaxrefl/laplace_flags`` and
+``maps.exr`` (single part, float32 and uint32 channels, ZIP): every map of
+:class:`~jaxrefl.svbrdf.CaptureFit` as a ``<layer>.<channel>`` channel (``albedo.R``,
+``specular.Y``, ``roughness.Y``, ``roughness_std.Y``, ``corr_albedo_R_alpha.Y``,
+``status.Y``, ...; the table in :mod:`jaxrefl.io._channels`, which Mitsuba 3's
+``Bitmap(...).split()`` and OpenEXR layer readers split into RGB and Y images), with
+metadata ``jaxrefl/model``, ``jaxrefl/units``, ``jaxrefl/correlations`` (layer -> the two
+parameter labels), ``jaxrefl/status_codes``, ``jaxrefl/laplace_flags`` and
 ``jaxrefl/version``. Writes are atomic (:func:`jaxrefl.io.write_exr`).
 
 Previews (8-bit PNG, at most ``preview_side`` pixels a side, strided):
@@ -40,7 +43,7 @@ def _atomic_text(path: Path, text: str) -> None:
 
 def write_maps(result: CaptureFit, path: Path) -> Path:
     """The maps as one EXR file (module docstring)."""
-    from jaxrefl.io import write_exr
+    from jaxrefl.io import corr_name, exr_channels, write_exr
 
     meta = {
         "model": result.job.model,
@@ -55,15 +58,21 @@ def write_maps(result: CaptureFit, path: Path) -> Path:
             "normal": "unit shading normal in the sample frame (+z = the sample's normal)",
             "base_color, metallic": "the metallic-roughness view of a coloured F0 (glTF 2.0; "
             "jaxrefl.brdf.specular_to_metallic), 1",
-            "*.std": "Laplace standard deviation, same units",
+            "*_std": "Laplace standard deviation, same units",
+            "corr_*": "Laplace correlation of two parameters (jaxrefl/correlations), 1",
             "noise_std": "estimated noise std, radiance units of the capture",
+        },
+        "correlations": {
+            corr_name(a, b): [a, b]
+            for i, a in enumerate(result.labels)
+            for b in result.labels[i + 1 :]
         },
         "status_codes": status_meanings(),
         "laplace_flags": {b.name: int(b.value) for b in fit.LaplaceFlag},
     }
     if result.extra.get("pooled") is not None:
         meta["pooled"] = result.extra["pooled"].as_dict()
-    return write_exr(path, result.maps, metadata=meta)
+    return write_exr(path, exr_channels(result.maps), metadata=meta)
 
 
 def _strided(capture, step: int):
@@ -139,7 +148,7 @@ def write_previews(result: CaptureFit, capture, out: Path, preview_side: int = 3
     save(fig, "params.png")
 
     # Uncertainty maps.
-    std_names = [n for n in ("albedo_std.G", "specular.std", "roughness.std") if n in m]
+    std_names = [n for n in ("albedo_std.G", "specular_std", "roughness_std") if n in m]
     fig, axes = plt.subplots(1, len(std_names) + 1, figsize=(3.2 * (len(std_names) + 1), 3.4))
     axes = np.atleast_1d(axes)
     for ax, sn in zip(axes, std_names, strict=False):
