@@ -6,7 +6,8 @@ compilation cache, so a second identical run loads them instead:
 
 - on by default, in ``$XDG_CACHE_HOME/jaxrefl/jax`` (``~/.cache/jaxrefl/jax`` when
   ``XDG_CACHE_HOME`` is unset);
-- ``JAX_COMPILATION_CACHE_DIR``, when set, is JAX's own setting and is used as it is;
+- ``JAX_COMPILATION_CACHE_DIR``, when set, is JAX's own setting and is used as it is
+  (so is ``JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS``; otherwise every program is kept);
 - ``--no-compile-cache`` or ``JAXREFL_NO_COMPILE_CACHE=1`` turn it off.
 
 :class:`CompileClock` adds up JAX's own compile-duration events (``jax.monitoring``:
@@ -21,7 +22,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-__all__ = ["ENV_OFF", "CompileClock", "cache_dir", "enable_compile_cache"]
+__all__ = ["ENV_OFF", "CompileClock", "cache_dir", "chosen_cache_dir", "enable_compile_cache"]
 
 #: Environment variable that turns the cache off (any value but "", "0").
 ENV_OFF = "JAXREFL_NO_COMPILE_CACHE"
@@ -42,25 +43,36 @@ def cache_dir() -> Path:
     return Path(base) / "jaxrefl" / "jax"
 
 
-def enable_compile_cache(off: bool = False) -> Path | None:
-    """Turn on JAX's persistent compilation cache unless ``off`` or ``JAXREFL_NO_COMPILE_CACHE``
-    says not to; the folder in use, or None. A folder that cannot be created is reported on
-    stderr and the run goes on without the cache."""
+def chosen_cache_dir(off: bool = False) -> Path | None:
+    """The folder the cache should use (module docstring), or None when it is off; reads the
+    environment only."""
     if off or os.environ.get(ENV_OFF, "") not in ("", "0"):
         return None
-    import jax
-
     preset = os.environ.get("JAX_COMPILATION_CACHE_DIR")
-    path = Path(preset) if preset else cache_dir()
+    return Path(preset) if preset else cache_dir()
+
+
+def enable_compile_cache(off: bool = False) -> Path | None:
+    """Turn on JAX's persistent compilation cache in :func:`chosen_cache_dir`; the folder in
+    use, or None. A folder that cannot be created is reported on stderr and the run goes on
+    without the cache."""
+    path = chosen_cache_dir(off)
+    if path is None:
+        return None
     try:
         path.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         print(f"jaxrefl: compile cache off: cannot create {path} ({exc.strerror})", file=sys.stderr)
         return None
+    import jax
+
     jax.config.update("jax_compilation_cache_dir", str(path))
     # JAX keeps only programs that took >= 1 s to compile by default; the fit's many smaller
-    # programs add up to most of its start-up, and an entry costs tens of kB.
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.1)
+    # programs add up to most of its start-up (the demo's second run at 32 x 32: 17 s with
+    # every program kept, 27 s with those over 0.1 s), and an entry costs tens of kB. JAX's
+    # own environment variable, when set, decides.
+    if "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS" not in os.environ:
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     return path
 
 
