@@ -1,5 +1,7 @@
 """Run the main job on the embedded demo.
 
+    jaxrefl demo [--out DIR] [--size N] [--seed S] [--noise X] [--no-fit]
+
 Builds the procedural SVBRDF tile of :mod:`jaxrefl.demo`, renders its nine phone-flash
 photographs with sensor noise (1% relative plus 0.2% of full scale, Gaussian, seeded), writes
 them in the svbrdf-diff-renderer layout (``parameters.json`` +

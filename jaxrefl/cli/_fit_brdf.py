@@ -80,7 +80,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--sample",
         type=_curet_sample,
         default=None,
-        help="CURET sample number, 1..61 (required for a CURET file)",
+        help="CURET sample number, 1..61 (no default: required for a CURET file)",
     )
     p.add_argument(
         "--curet-table",

@@ -42,7 +42,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         type=Path,
         default=None,
         metavar="CHROME_DIR",
-        help="chrome-sphere capture under the same lights: calibrate the directions from it",
+        help="chrome-sphere capture under the same lights: calibrate the directions from it "
+        "(default: the capture's own light directions)",
     )
     p.add_argument(
         "--reference",
