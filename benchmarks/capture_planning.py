@@ -37,7 +37,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import machine, table  # noqa: E402
+from _common import machine, run_and_record, table  # noqa: E402
 
 from jaxrefl.fit import fit_pixels, pixel_data  # noqa: E402
 from jaxrefl.measured import (  # noqa: E402
@@ -204,4 +204,4 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_and_record("capture_planning", "Capture planning", main))

@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import machine, table
+from _common import machine, run_and_record, table
 
 from jaxrefl.fit import FitConfig, LMOptions, fit_pixels, pixel_data
 from jaxrefl.measured import Components, param_space
@@ -130,4 +130,4 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_and_record("components_cost", "What each model component costs", main))

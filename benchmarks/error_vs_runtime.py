@@ -33,7 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import machine, table
+from _common import machine, run_and_record, table
 
 from jaxrefl import measured as jm
 from jaxrefl.brdf import CookTorrance, Lafortune
@@ -304,4 +304,4 @@ def write_csv(path: Path, rows: list[dict]) -> None:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_and_record("error_vs_runtime", "Error against run time", main))

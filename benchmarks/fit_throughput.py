@@ -78,7 +78,7 @@ import jax.numpy as jnp
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import machine, table
+from _common import machine, run_and_record, table
 
 import jaxrefl
 from jaxrefl import fit
@@ -829,4 +829,4 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_and_record("fit_throughput", "Fit throughput", main))

@@ -38,7 +38,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import machine, table  # noqa: E402
+from _common import machine, run_and_record, table  # noqa: E402
 
 from jaxrefl import fit, svbrdf  # noqa: E402
 from jaxrefl import posterior as jp  # noqa: E402
@@ -559,4 +559,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_and_record("posterior_speed", "Posterior speed", main))

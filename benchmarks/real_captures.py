@@ -40,7 +40,7 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
-from _common import machine, table  # noqa: E402
+from _common import machine, table, write_section  # noqa: E402
 
 
 def _shared() -> Path:
@@ -233,25 +233,6 @@ def _targets(name: str, results: dict) -> str:
     return f"{name} ({tag}): " + "; ".join(lines)
 
 
-def _write(section: str, body: str) -> Path:
-    path = HERE.parent / "docs" / "benchmarks.md"
-    path.parent.mkdir(exist_ok=True)
-    start, end = f"<!-- {section}:start -->", f"<!-- {section}:end -->"
-    text = (
-        path.read_text()
-        if path.exists()
-        else "# Benchmarks\n\nWritten by the scripts in `benchmarks/`.\n"
-    )
-    block = f"{start}\n{body}\n{end}"
-    if start in text and end in text:
-        head, rest = text.split(start, 1)
-        text = head + block + rest.split(end, 1)[1]
-    else:
-        text = text.rstrip("\n") + "\n\n" + block + "\n"
-    path.write_text(text)
-    return path
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--size", type=int, default=256)
@@ -280,7 +261,7 @@ def main(argv=None) -> int:
         parts += [f"- {s}" for s in summary]
         print("\n".join(summary))
     if not args.no_write:
-        print(f"wrote {_write('real_captures', chr(10).join(parts))}")
+        print(f"wrote {write_section('real_captures', chr(10).join(parts))}")
     return 0
 
 

@@ -30,7 +30,7 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import machine, table  # noqa: E402
+from _common import machine, run_and_record, table  # noqa: E402
 from _stability_sweep import run_stability  # noqa: E402
 from _stiff_fits import run_stiff  # noqa: E402
 
@@ -121,4 +121,4 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_and_record("stability", "Stability at the edges", main))

@@ -54,10 +54,10 @@ FIELDS = [
 
 def _timed(cap, method):
     t = time.perf_counter()
-    maps = ps.solve_capture(cap, method)
+    maps = ps.solve_capture(cap, ps.METHODS[method]())
     first = time.perf_counter() - t
     t = time.perf_counter()
-    maps = ps.solve_capture(cap, method)
+    maps = ps.solve_capture(cap, ps.METHODS[method]())
     return maps, time.perf_counter() - t, first
 
 

@@ -54,7 +54,7 @@ def test_diligent_roundtrip_full_depth(diligent):
 def test_methods_on_diligent_layout(diligent, method):
     root, *_ = diligent
     cap = ps.load_capture(root)
-    maps = ps.solve_capture(cap, method)
+    maps = ps.solve_capture(cap, ps.METHODS[method]())
     ok = maps["status"] < jaxrefl.fit.Status.MASKED
     err = ps.angular_error(maps["normals"], cap.normals_gt)
     # Robust drops attached shadows; LS only on pixels lit in every image.
@@ -129,7 +129,7 @@ def test_bad_input_names_the_file(diligent, tmp_path):
     cap = ps.load_diligent(root)
     cap.images[:, 12, 14] = 0.0
     cap.usable[:, 12, 14] = False
-    maps = ps.solve_capture(cap, "ls")
+    maps = ps.solve_capture(cap, ps.LeastSquares())
     assert maps["status"][12, 14] == jaxrefl.fit.Status.MASKED
     assert np.all(np.isnan(maps["normals"][12, 14]))
 
@@ -155,7 +155,7 @@ def test_uw_gray_sphere_against_fitted_sphere(uw):
     assert cap.images.shape == (12, 114, 171, 3) and cap.bit_depth == 8
     means = {}
     for method in ("ls", "robust"):
-        maps = ps.solve_capture(cap, method)
+        maps = ps.solve_capture(cap, ps.METHODS[method]())
         _, stats, circle = ps.sphere_error(maps["normals"], cap.mask)
         means[method] = stats
     # Measured (downsample 3): LS mean 5.5 / median 4.5 deg; robust about 1 deg better.

@@ -286,3 +286,31 @@ def test_uncalibrated_and_shading_lights_refuse_degenerate_input():
     m[3, 2] = np.nan
     with pytest.raises(ps.PSInputError, match=r"^m: holds NaN"):
         ps.uncalibrated(m, use, calib, rng.normal(size=(5, 3)))
+
+
+def test_method_objects_name_and_validate_themselves():
+    """The PS methods are option objects: named by kind, written as JSON, checked when
+    built; solve_capture refuses a bare string with a message naming the objects."""
+    assert set(ps.METHODS) == {"ls", "robust", "brdf"}
+    assert ps.Robust(trim=0.1).to_json() == {
+        "type": "robust",
+        "shadow": 0.05,
+        "scale_floor": 1e-3,
+        "iters": 5,
+        "trim": 0.1,
+    }
+    j = ps.NormalBRDF(model=ps.default_model()).to_json()
+    assert j["type"] == "brdf" and j["model"] == "CookTorrance" and j["config"]["type"]
+    with pytest.raises(ValueError, match="Robust needs a finite shadow"):
+        ps.Robust(shadow=-1.0)
+    with pytest.raises(ValueError, match="init must be"):
+        ps.NormalBRDF(init="random")
+    cap = ps.PSCapture(
+        images=np.ones((3, 2, 2, 1), np.float32),
+        lights=ps.spiral_lights(3),
+        intensities=np.ones((3, 1)),
+        mask=np.ones((2, 2), bool),
+        usable=np.ones((3, 2, 2, 1), bool),
+    )
+    with pytest.raises(TypeError, match=r"ps\.METHODS\[name\]\(\)"):
+        ps.solve_capture(cap, "ls")

@@ -58,7 +58,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from jaxrefl.ps import run_ps
+    from jaxrefl.ps import METHODS, run_ps
 
     if not args.path.is_dir():
         raise FileNotFoundError(f"{args.path}: capture folder not found")
@@ -68,7 +68,7 @@ def run(args: argparse.Namespace) -> int:
     r = run_ps(
         args.path,
         args.out,
-        method=args.method,
+        method=METHODS[args.method](),
         calibrate_lights=args.calibrate_lights,
         reference=args.reference,
         downsample=args.downsample,

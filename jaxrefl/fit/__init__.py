@@ -48,6 +48,7 @@ from ._lm import lm_init as lm_init
 from ._lm import lm_solve as lm_solve
 from ._lm import lm_step as lm_step
 from ._options import Option as Option
+from ._options import check_number as check_number
 from ._problem import FitConfig as FitConfig
 from ._problem import FitResult as FitResult
 from ._problem import Linearisation as Linearisation

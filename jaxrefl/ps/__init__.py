@@ -7,7 +7,9 @@ unit vectors towards the light with intensities per image and channel; I = E rho
 
 * Calibrated: :func:`woodham` (least squares), :func:`robust` (shadows and highlights
   rejected by IRLS), :func:`fit_normal_brdf` (normal + microfacet BRDF per pixel with the
-  :mod:`jaxrefl.fit` engine).
+  :mod:`jaxrefl.fit` engine); as option objects for :func:`solve_capture` and
+  :func:`run_ps`: :class:`LeastSquares`, :class:`Robust`, :class:`NormalBRDF`
+  (``METHODS[name]`` by name).
 * Uncalibrated: :func:`factorize` (rank-3 SVD), :func:`gbr_matrix` / :func:`apply_gbr`
   (the bas-relief ambiguity), :func:`uncalibrated` (resolved by known normals in view).
 * Lights: :func:`chrome_sphere_lights`, :func:`lambertian_sphere_lights`,
@@ -37,7 +39,6 @@ from ._io import load_capture as load_capture
 from ._io import load_diligent as load_diligent
 from ._io import load_uw as load_uw
 from ._io import save_diligent as save_diligent
-from ._job import METHODS as METHODS
 from ._job import run_ps as run_ps
 from ._job import solve_capture as solve_capture
 from ._lights import LightCalibration as LightCalibration
@@ -46,6 +47,11 @@ from ._lights import lambertian_sphere_lights as lambertian_sphere_lights
 from ._lights import lights_from_shading as lights_from_shading
 from ._mat import read_mat as read_mat
 from ._mat import write_mat as write_mat
+from ._methods import METHODS as METHODS
+from ._methods import LeastSquares as LeastSquares
+from ._methods import NormalBRDF as NormalBRDF
+from ._methods import PSMethod as PSMethod
+from ._methods import Robust as Robust
 from ._robust import robust as robust
 from ._sphere import Circle as Circle
 from ._sphere import fit_circle as fit_circle

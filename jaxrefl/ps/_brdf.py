@@ -40,8 +40,9 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from jaxrefl import fit as jf
-from jaxrefl.brdf import BRDF, safe_normalize
+from jaxrefl.brdf import BRDF
 from jaxrefl.brdf import get as get_brdf
+from jaxrefl.brdf import tilt_normal as tilt_slopes
 from jaxrefl.scene import orthonormal_basis
 
 from ._capture import PSInputError
@@ -72,9 +73,11 @@ class PSPixel(eqx.Module):
 
 
 def tilt_normal(uv: Float[Array, "*b 2"], n0: Float[Array, "*b 3"]) -> Float[Array, "*b 3"]:
-    """n(u, v) of the module docstring."""
+    """n(u, v) of the module docstring: :func:`jaxrefl.brdf.tilt_normal` (slopes u, v)
+    expressed in the frame (t0, b0, n0) of the starting normal instead of the geometric one."""
     t0, b0 = orthonormal_basis(n0)
-    return safe_normalize(n0 + uv[..., :1] * t0 + uv[..., 1:2] * b0)
+    local = tilt_slopes(uv[..., 0], uv[..., 1])  # (u, v, 1) / |(u, v, 1)|
+    return local[..., :1] * t0 + local[..., 1:2] * b0 + local[..., 2:] * n0
 
 
 class NormalBRDFResidual(eqx.Module):
@@ -247,8 +250,3 @@ def albedo_start(start: PSResult, s, has):
     # Clip inside (0, 1): the sigmoid of the albedo has no slope at its bounds.
     albedo0 = jnp.clip(jnp.pi * start.albedo / s[:, None], 0.02, 0.95)
     return jnp.where(has[:, None], albedo0, _ALBEDO_TARGET)
-
-
-def brdf_method(obs, lights, intensities, weight=None, saturated=None, **kw) -> PSResult:
-    """:func:`fit_normal_brdf` returning only the :class:`PSResult`."""
-    return fit_normal_brdf(obs, lights, intensities, weight, saturated, **kw).ps

@@ -34,35 +34,33 @@ import numpy as np
 from jaxrefl._jsonsafe import report_json
 from jaxrefl.fit import Status, describe, has_estimate
 
-from ._brdf import brdf_method
 from ._capture import PSCapture, PSInputError
 from ._eval import angular_error, error_stats
 from ._integrate import poisson
 from ._io import load_capture
 from ._lights import chrome_sphere_lights
-from ._robust import robust
+from ._methods import LeastSquares, PSMethod
 from ._sphere import fit_circle, sphere_normals
-from ._woodham import woodham
 
-__all__ = ["METHODS", "run_ps", "solve_capture"]
-
-METHODS = ("ls", "robust", "brdf")
+__all__ = ["run_ps", "solve_capture"]
 
 
-def solve_capture(cap: PSCapture, method: str = "ls", **options) -> dict[str, np.ndarray]:
+def _check_method(method: PSMethod) -> None:
+    if not isinstance(method, PSMethod):
+        raise TypeError(
+            f"method must be a PS method object (ps.LeastSquares(), ps.Robust(), "
+            f"ps.NormalBRDF(); ps.METHODS[name]() by name), not {method!r}"
+        )
+
+
+def solve_capture(cap: PSCapture, method: PSMethod = LeastSquares()) -> dict[str, np.ndarray]:
     """Maps of one method: normals (H, W, 3), albedo (H, W, C), status (H, W) int32
     (MASKED outside the mask), n_used (H, W)."""
-    if method not in METHODS:
-        raise ValueError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
+    _check_method(method)
     obs, ok = cap.pixels()
     w = ok.astype(obs.dtype)
-    if method == "ls":
-        r = woodham(obs, cap.lights, cap.intensities, w, **options)
-    elif method == "robust":
-        r = robust(obs, cap.lights, cap.intensities, w, **options)
-    else:
-        sat = obs >= 1.0  # the top code: censored, not a measurement
-        r = brdf_method(obs, cap.lights, cap.intensities, w, sat, **options)
+    sat = obs >= 1.0  # the top code: censored (by the methods that model censoring)
+    r = method.solve(obs, cap.lights, cap.intensities, w, sat)
     h, wd = cap.shape
     c = obs.shape[-1]
     normals = np.full((h, wd, 3), np.nan, np.float32)
@@ -87,7 +85,7 @@ def _num(x) -> float | None:
 def run_ps(
     capture_dir: str | Path,
     out_dir: str | Path,
-    method: str = "ls",
+    method: PSMethod = LeastSquares(),
     calibrate_lights: str | Path | None = None,
     reference: str | None = None,
     downsample: int = 1,
@@ -96,8 +94,7 @@ def run_ps(
     the report."""
     from jaxrefl.io import write_exr, write_png
 
-    if method not in METHODS:
-        raise ValueError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
+    _check_method(method)
     if reference not in (None, "sphere"):
         raise ValueError(f"reference must be 'sphere' or None, not {reference!r}")
     if downsample < 1:
@@ -109,7 +106,8 @@ def run_ps(
     report: dict = {
         "capture": str(capture_dir),
         "name": cap.name,
-        "method": method,
+        "method": method.kind,
+        "method_options": method.to_json(),
         "image_size": [int(cap.shape[1]), int(cap.shape[0])],
         "n_images": int(cap.images.shape[0]),
         "n_pixels": int(cap.mask.sum()),
@@ -159,7 +157,7 @@ def run_ps(
             "normal.Z": n[..., 2],
             "status": maps["status"].astype(np.uint32),
         },
-        metadata={"frame": "camera: x right, y up, z towards the camera", "method": method},
+        metadata={"frame": "camera: x right, y up, z towards the camera", "method": method.kind},
     )
     write_png(out / "normals.png", _png8(np.where(has[..., None], (n + 1) / 2, 0.0)))
     alb = maps["albedo"]

@@ -57,29 +57,29 @@ def spiral_lights(k: int, max_zenith_deg: float = 60.0) -> np.ndarray:
 def render(model, params, normals, mask, lights, intensities) -> np.ndarray:
     """(K, H, W, C) images of the masked normals (module docstring); 0 outside the mask.
 
+    The image formation of :func:`jaxrefl.scene.render` with one
+    :class:`~jaxrefl.scene.DirectionalLight` per row of ``lights`` (irradiance
+    ``intensities[k]``), an orthographic camera looking down -z and no cos^4 falloff.
+
     params: natural parameters for ``model.eval`` broadcastable to (H, W) pixels, e.g.
     ``{"albedo": (H, W, C) or (C,)}``.
     """
-    from jaxrefl.scene import orthonormal_basis
+    from jaxrefl.scene import DirectionalLight, OrthographicCamera
+    from jaxrefl.scene import render as render_scene
 
-    n = jnp.asarray(np.where(mask[..., None], normals, np.array([0.0, 0.0, 1.0])))
-    t, b = orthonormal_basis(n)
-    lights = jnp.asarray(lights, n.dtype)
-    e = jnp.asarray(intensities, n.dtype)
-    v = jnp.array([0.0, 0.0, 1.0], n.dtype)
-    wo = jnp.stack([t @ v, b @ v, n @ v], axis=-1)
-    out = []
-    p = {
-        k: jnp.broadcast_to(jnp.asarray(val, n.dtype), (*n.shape[:2], *np.shape(val)[-1:]))
-        if np.ndim(val) >= 1
-        else jnp.broadcast_to(jnp.asarray(val, n.dtype), n.shape[:2])
-        for k, val in params.items()
-    }
-    for k in range(lights.shape[0]):
-        lk = lights[k]
-        wi = jnp.stack([t @ lk, b @ lk, n @ lk], axis=-1)
-        f = model.eval(p, wi, wo)
-        cos = jnp.maximum(wi[..., 2], 0.0)
-        out.append(f * (cos[..., None] * e[k][None, None, :]))
-    img = np.asarray(jnp.stack(out))
-    return np.where(mask[None, ..., None], img, 0.0)
+    normals = np.asarray(normals)
+    dt = jnp.asarray(normals).dtype
+    # Pixels outside the mask carry NaN normals: shade them as +z and zero them afterwards.
+    n = np.where(mask[..., None], normals, np.array([0.0, 0.0, 1.0]))
+    e = np.asarray(intensities)
+    lts = [DirectionalLight(np.asarray(lights[k]), e[k]) for k in range(len(lights))]
+    img = render_scene(
+        model,
+        {k: jnp.asarray(v, dt) for k, v in params.items()},
+        lts,
+        OrthographicCamera(),
+        points=jnp.zeros(n.shape, dt),
+        normals=jnp.asarray(n, dt),
+        cos4=False,
+    )
+    return np.where(mask[None, ..., None], np.asarray(img), 0.0)
