@@ -20,7 +20,6 @@ from __future__ import annotations
 import os
 import sys
 from pathlib import Path
-from typing import Any
 
 __all__ = ["ENV_OFF", "CompileClock", "cache_dir", "chosen_cache_dir", "enable_compile_cache"]
 
@@ -87,12 +86,12 @@ class CompileClock:
         self.misses = 0
         self._on = False
 
-    def _duration(self, event: str, duration: float, **_: Any) -> None:
+    def _duration(self, event: str, duration_secs: float, **_: str | int) -> None:
         if self._on and event in _COMPILE_EVENTS:
-            self.seconds += float(duration)
+            self.seconds += float(duration_secs)
             self.programs += event == _COMPILE_EVENTS[-1]
 
-    def _event(self, event: str, **_: Any) -> None:
+    def _event(self, event: str, **_: str | int) -> None:
         if self._on:
             self.hits += event == _HIT
             self.misses += event == _MISS
@@ -109,14 +108,11 @@ class CompileClock:
         from jax._src import monitoring  # the public module has no unregister
 
         self._on = False
-        for remove, fn in (
-            (monitoring.unregister_event_duration_listener, self._duration),
-            (monitoring.unregister_event_listener, self._event),
-        ):
-            try:
-                remove(fn)
-            except (AssertionError, ValueError):  # already gone
-                pass
+        try:
+            monitoring.unregister_event_duration_listener(self._duration)
+            monitoring.unregister_event_listener(self._event)
+        except (AssertionError, ValueError):  # already gone
+            pass
 
     def line(self, cache: Path | None) -> str:
         """``compiling: 24.1 s (312 programs; 290 loaded from the cache in DIR)``."""
