@@ -99,6 +99,8 @@ def main() -> int:
     args = ap.parse_args()
 
     py = sys.executable
+    load = ", ".join(f"{v:.1f}" for v in os.getloadavg())
+    print(f"Load average at the start (1, 5, 15 min): {load}; other processes share the cores.\n")
     rows = [
         ["jaxrefl --help", f"{_wall([py, '-m', 'jaxrefl.cli', '--help'], args.repeats):.2f}"],
         [
