@@ -159,6 +159,7 @@ def test_out_naming_a_file_is_one_line(tmp_path, capsys):
         ["fit", str(tmp_path), "--out", str(f), "--no-compile-cache"],
         ["demo", "--out", str(f), "--no-fit", "--no-compile-cache"],
         ["fit-brdf", str(tmp_path / "x.astm"), "--out", str(f), "--no-compile-cache"],
+        ["fit", str(tmp_path), "--out", str(f / "sub"), "--no-compile-cache"],
     ):
         assert main(argv) == 1
         err = capsys.readouterr().err.strip()

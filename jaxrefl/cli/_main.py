@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import re
 import sys
 from collections.abc import Sequence
@@ -237,9 +238,17 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def check_out_dir(path: Path, flag: str = "--out") -> Path:
-    """``path`` as an output folder: refused (one line) when it names an existing file."""
-    if path.exists() and not path.is_dir():
-        raise ValueError(f"{flag} {path}: exists and is not a folder; name a folder")
+    """``path`` as an output folder, checked before any work: refused (one line) when it, or
+    the nearest part of it that exists, is a file or a folder this user cannot write to."""
+    for part in (path, *path.parents):
+        if not part.exists():
+            continue
+        if not part.is_dir():
+            what = "exists" if part == path else f"is inside {part}, which exists"
+            raise ValueError(f"{flag} {path}: {what} and is not a folder; name a folder")
+        if not os.access(part, os.W_OK | os.X_OK):
+            raise ValueError(f"{flag} {path}: {part} is not writable")
+        break
     return path
 
 
