@@ -1,10 +1,11 @@
 """jaxrefl: probabilistic reflectance estimation in JAX.
 
-``import jaxrefl`` gives every subpackage: ``brdf``, ``fit``, ``io``, ``scene`` and
-``spectral`` are imported with it; ``measured``, ``posterior``, ``ps``, ``svbrdf``, ``cli``,
-``demo`` and ``plot`` on first attribute access (module ``__getattr__``, PEP 562), because
-they bring in BlackJAX, emcee, SciPy or Matplotlib, which ``jaxrefl --help`` and the light
-subpackages do not need.
+``import jaxrefl`` gives every subpackage (``brdf``, ``fit``, ``io``, ``scene``,
+``spectral``, ``measured``, ``posterior``, ``ps``, ``svbrdf``, ``cli``, ``demo``, ``plot``),
+each imported on first attribute access (module ``__getattr__``, PEP 562): ``import
+jaxrefl`` itself loads neither JAX nor anything heavier, so ``jaxrefl --help`` answers
+without importing JAX, and BlackJAX, emcee, SciPy or Matplotlib load only for the
+subpackages that use them.
 """
 
 from __future__ import annotations
@@ -13,26 +14,39 @@ import importlib
 from types import ModuleType
 from typing import TYPE_CHECKING
 
-from . import brdf as brdf
-from . import fit as fit
-from . import io as io
-from . import scene as scene
-from . import spectral as spectral
 from ._errors import JaxreflError as JaxreflError
 
 if TYPE_CHECKING:
+    from . import brdf as brdf
     from . import cli as cli
     from . import demo as demo
+    from . import fit as fit
+    from . import io as io
     from . import measured as measured
     from . import plot as plot
     from . import posterior as posterior
     from . import ps as ps
+    from . import scene as scene
+    from . import spectral as spectral
     from . import svbrdf as svbrdf
 
 __version__ = "0.1.0"
 
 #: Imported on first access: ``jaxrefl.svbrdf.fit_capture`` works after ``import jaxrefl``.
-_LAZY = ("cli", "demo", "measured", "plot", "posterior", "ps", "svbrdf")
+_LAZY = (
+    "brdf",
+    "cli",
+    "demo",
+    "fit",
+    "io",
+    "measured",
+    "plot",
+    "posterior",
+    "ps",
+    "scene",
+    "spectral",
+    "svbrdf",
+)
 
 
 def __getattr__(name: str) -> ModuleType:

@@ -5,7 +5,8 @@
 * The JAX persistent compilation cache is on for the run (``.pytest_cache/jax-compilation``,
   or ``JAXREFL_TEST_JAX_CACHE``; ``off`` disables it). Many tests compile the same solver on
   the same shapes in different processes (xdist workers, notebook kernels, CLI subprocesses);
-  the cache compiles each once. It is set through the environment so subprocesses inherit it.
+  the cache compiles each once. It is set through the environment so subprocesses inherit it,
+  and the command line (``jaxrefl/cli/_compile.py``) uses it rather than the user's folder.
 * ``shared_data`` locates ``../shared/data`` through ``JAXREFL_SHARED_DATA``. In CI
   (``CI`` set, as ``.ci/run`` does) a missing data folder is a failure, never a skip.
 * Every ``report.json`` a test leaves under its ``tmp_path`` must parse as strict JSON (no
@@ -36,6 +37,9 @@ if _cache != "off":
         float(os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"]),
     )
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+else:
+    # The command line would otherwise keep its programs in the user's cache folder.
+    os.environ.setdefault("JAXREFL_NO_COMPILE_CACHE", "1")
 
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")

@@ -46,8 +46,8 @@ def test_demo_highlight_follows_the_flash(tmp_path):
 
 
 def test_bad_size_is_a_clear_error(tmp_path, capsys):
-    assert main(["demo", "--out", str(tmp_path), "--size", "30"]) == 1
-    assert "--size must be a multiple of 4" in capsys.readouterr().err
+    assert main(["demo", "--out", str(tmp_path), "--size", "30"]) == 2
+    assert "argument --size: must be a multiple of 4" in capsys.readouterr().err
 
 
 def test_models_lists_every_model(capsys):

@@ -103,23 +103,27 @@ def test_backend_errors_and_outputs():
     assert np.all(np.asarray(info.iterations[1:]) <= steps)
 
 
-def test_jaxopt_missing_gives_an_actionable_error(monkeypatch):
+@pytest.mark.parametrize(
+    ("package", "solver"), [("jaxopt", "JaxoptLM"), ("optimistix", "OptimistixLM")]
+)
+def test_missing_backend_gives_an_actionable_error(monkeypatch, package, solver):
+    """optimistix and jaxopt are optional (the ``backends`` extra): their solvers say so."""
     import builtins
 
     real_import = builtins.__import__
 
     def fake_import(name, *args, **kwargs):
-        if name == "jaxopt" or name.startswith("jaxopt."):
-            raise ImportError("No module named 'jaxopt'")
+        if name == package or name.startswith(f"{package}."):
+            raise ImportError(f"No module named '{package}'")
         return real_import(name, *args, **kwargs)
 
-    monkeypatch.delitem(sys.modules, "jaxopt", raising=False)
+    monkeypatch.delitem(sys.modules, package, raising=False)
     monkeypatch.setattr(builtins, "__import__", fake_import)
     m = jaxrefl.brdf.get("lambert")
     res = fit.make_residual(m, fit.ParamSpace(m, channels=1))
     data = fit.pixel_data(jnp.ones((2, 3, 1)), jnp.tile(jnp.asarray([0.0, 0.0, 1.0]), (2, 3, 1)))
-    with pytest.raises(ImportError, match="pip install jaxopt"):
-        fit.solve(res, jnp.zeros((2, 1)), data, fit.JaxoptLM())
+    with pytest.raises(ImportError, match=rf"{solver} needs .*pip install 'jaxrefl\[backends\]'"):
+        fit.solve(res, jnp.zeros((2, 1)), data, getattr(fit, solver)())
 
 
 def test_optimistix_on_float32_data_under_x64():

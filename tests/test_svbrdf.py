@@ -576,6 +576,8 @@ def test_demo_fits_and_reports_against_the_truth(tmp_path, capsys):
     report = json.loads((tmp_path / "fit" / "report.json").read_text())
     assert report["holdout"] == [0] and report["heldout_rmse"] < 0.05
     assert (tmp_path / "fit" / "maps.exr").exists()
+    assert (tmp_path / "fit" / "heldout.png").exists()  # photo 0 held out: its error map
+    assert not (tmp_path / "fit" / "tiles").exists()  # removed after a successful run
     truth = np.load(tmp_path / "truth" / "params.npz")
     exr = read_exr(tmp_path / "fit" / "maps.exr").channels
     err = np.abs(exr["albedo.G"] - truth["albedo"][..., 1])

@@ -1,5 +1,7 @@
 """Run the main job on the embedded demo.
 
+    jaxrefl demo [--out DIR] [--size N] [--seed S] [--noise X] [--no-fit]
+
 Builds the procedural SVBRDF tile of :mod:`jaxrefl.demo`, renders its nine phone-flash
 photographs with sensor noise (1% relative plus 0.2% of full scale, Gaussian, seeded), writes
 them in the svbrdf-diff-renderer layout (``parameters.json`` +
@@ -16,6 +18,8 @@ import json
 import time
 from pathlib import Path
 
+from ._main import check_out_dir, non_negative_float, non_negative_int
+
 HELP = "render, fit and check the embedded demo capture"
 
 # Sensor noise of the demo photos (linear units, before encoding).
@@ -23,16 +27,30 @@ _NOISE_REL = 0.01
 _NOISE_ABS = 0.002
 
 
+def _size(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, not {text!r}") from None
+    if value < 8 or value % 4:
+        raise argparse.ArgumentTypeError(f"must be a multiple of 4 and at least 8, got {value}")
+    return value
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, default=Path("jaxrefl-demo"), help="output folder")
-    p.add_argument("--size", type=int, default=128, help="image side in pixels (default 128)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the procedural sample")
+    p.add_argument(
+        "--size", type=_size, default=128, help="image side in pixels, a multiple of 4, >= 8"
+    )
+    p.add_argument(
+        "--seed", type=non_negative_int, default=0, help="seed of the procedural sample (>= 0)"
+    )
     p.add_argument("--no-fit", action="store_true", help="only render and write the capture")
     p.add_argument(
         "--noise",
-        type=float,
+        type=non_negative_float,
         default=1.0,
-        help="sensor noise, as a multiple of the default (1%% relative + 0.2%% of full scale)",
+        help="sensor noise, as a multiple of 1%% relative + 0.2%% of full scale (0: none)",
     )
 
 
@@ -52,8 +70,7 @@ def run(args: argparse.Namespace) -> int:
     from jaxrefl.brdf import alpha_to_roughness
     from jaxrefl.demo import demo_scene, render_demo
 
-    if args.size < 8 or args.size % 4:
-        raise ValueError(f"--size must be a multiple of 4 and at least 8, got {args.size}")
+    check_out_dir(args.out)
     scene = demo_scene(size=args.size, seed=args.seed)
     render_fn = jax.jit(lambda p: render_demo(_with(scene, p), encode=False))
 
@@ -111,7 +128,7 @@ def run(args: argparse.Namespace) -> int:
 def _fit_and_check(out: Path, truth: dict) -> None:
     import numpy as np
 
-    from jaxrefl.cli._fit import print_summary
+    from jaxrefl.cli._fit import print_summary, remove_tiles
     from jaxrefl.fit import has_estimate
     from jaxrefl.io import load_capture
     from jaxrefl.svbrdf import FitJob, fit_capture, write_outputs
@@ -121,6 +138,7 @@ def _fit_and_check(out: Path, truth: dict) -> None:
     print(f"fitting {capture} (photo 0 held out)")
     result = fit_capture(capture, job, out / "fit", restart=True)
     write_outputs(result, capture, out / "fit")
+    remove_tiles(out / "fit")
     print_summary(result.report)
     m = result.maps
     ok = has_estimate(m["status"])

@@ -2,6 +2,7 @@
 
     jaxrefl fit CAPTURE_DIR --out OUT_DIR [--model auto|ggx|ggx_rgb|pooled|lambert|...]
                 [--holdout i,j,...|all] [--tile-pixels N] [--downsample F] [--restart]
+                [--keep-tiles]
 
 CAPTURE_DIR is in one of the layouts :func:`jaxrefl.io.load_capture` reads (the
 svbrdf-diff-renderer ``parameters.json`` or ``optim.json`` layouts, MaterialGAN's text
@@ -13,15 +14,20 @@ held-out training photos (:func:`jaxrefl.svbrdf.choose_model`); the report says 
 Writes OUT_DIR/maps.exr (parameters, their Laplace std, correlations, status and
 reliability flags), OUT_DIR/report.json (timings with compile apart, pixel counts by status,
 the model, and with --holdout the held-out RMSE in linear radiance, overall and per photo)
-and PNG previews. An interrupted run resumes from OUT_DIR/tiles (--restart to start over).
+and PNG previews. The tiles of the fit are kept in OUT_DIR/tiles while it runs: an interrupted
+run resumes from them when run again (--restart to start over); after a successful run the
+folder is removed unless --keep-tiles.
 """
 
 from __future__ import annotations
 
 import argparse
+import shutil
 from pathlib import Path
 
-from ._main import positive_int
+from jaxrefl._names import CAPTURE_MODELS, canonical
+
+from ._main import check_out_dir, positive_float, positive_int
 from ._options import BACKENDS, DTYPES, LOSSES, NOISES, SHOT_GAIN, SHOT_READ, fit_config
 
 HELP = "fit a capture: per-pixel maps, uncertainty, held-out error"
@@ -31,69 +37,108 @@ def _indices(text: str) -> tuple[int, ...] | str:
     if text.strip().lower() == "all":
         return "all"
     try:
-        return tuple(int(t) for t in text.split(",") if t.strip())
+        idx = tuple(int(t) for t in text.split(",") if t.strip())
     except ValueError:
+        idx = (-1,)
+    if not idx or min(idx) < 0:
         raise argparse.ArgumentTypeError(
-            f"--holdout takes photo indices separated by commas (e.g. 0,4) or 'all', not {text!r}"
-        ) from None
+            f"--holdout takes photo indices >= 0 separated by commas (e.g. 0,4) or 'all', "
+            f"not {text!r}"
+        )
+    return idx
+
+
+def _alpha(text: str) -> float:
+    value = positive_float(text)
+    if value > 1.0:
+        raise argparse.ArgumentTypeError(f"must be in (0, 1] (a GGX width), got {value:g}")
+    return value
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from jaxrefl.svbrdf import CAPTURE_MODELS
-
     p.add_argument("capture", type=Path, help="capture folder (or generic JSON file)")
-    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument("--out", type=Path, required=True, help="output folder (created)")
     p.add_argument(
         "--model",
         default="auto",
+        type=canonical,
         choices=["auto", *sorted(CAPTURE_MODELS)],
-        help="capture model; auto (default): the candidate with the lowest leave-one-photo-out "
-        "error over the training photos",
+        help="capture model (jaxrefl models NAME describes one); auto: the candidate with the "
+        "lowest leave-one-photo-out error over the training photos",
     )
     p.add_argument(
         "--holdout",
         type=_indices,
         default=(),
         help="photos to leave out, e.g. 0,4; 'all': leave-one-out over every photo against "
-        "Lambert, then the maps from all photos",
+        "Lambert, then the maps from all photos (default: none)",
     )
     p.add_argument("--tile-pixels", type=positive_int, default=4096, help="pixels per tile")
-    p.add_argument("--resolution", type=positive_int, default=None, help="image folder to read")
     p.add_argument(
-        "--downsample", type=positive_int, default=1, help="box-filter factor before fitting"
+        "--resolution",
+        type=positive_int,
+        default=None,
+        help="image folder to read, by its size (default: the largest)",
     )
     p.add_argument(
-        "--max-photos", type=positive_int, default=None, help="read at most this many photos"
+        "--downsample", type=positive_int, default=1, help="box-filter factor (>= 1) before fitting"
     )
-    p.add_argument("--backend", default="lean", choices=BACKENDS)
-    p.add_argument("--dtype", default="float32", choices=DTYPES)
+    p.add_argument(
+        "--max-photos",
+        type=positive_int,
+        default=None,
+        help="read at most this many photos (default: all)",
+    )
+    p.add_argument(
+        "--backend",
+        default="lean",
+        choices=BACKENDS,
+        help="least-squares solver: lean (jaxrefl's own Levenberg-Marquardt), optimistix or "
+        "jaxopt (pip install 'jaxrefl[backends]')",
+    )
+    p.add_argument(
+        "--dtype", default="float32", choices=DTYPES, help="floating-point type of the fit"
+    )
     p.add_argument(
         "--noise",
         default="gaussian",
         choices=NOISES,
-        help=f"gaussian (sigma estimated) or shot (read {SHOT_READ}, gain {SHOT_GAIN})",
+        help=f"noise model: gaussian (sigma estimated) or shot (read {SHOT_READ}, "
+        f"gain {SHOT_GAIN}, linear radiance units)",
     )
     p.add_argument(
         "--loss",
         default=None,
         choices=LOSSES,
-        help="default: huber for pooled (robust to glints), l2 for the others",
+        help="robust loss on the residuals (default: huber for pooled, robust to glints; l2 for "
+        "the others)",
     )
     p.add_argument(
         "--alpha-min",
-        type=float,
+        type=_alpha,
         default=None,
-        help="lower bound of alpha (default: the narrowest lobe the capture resolves)",
+        help="lower bound of alpha, in (0, 1] (default: the narrowest lobe the capture resolves)",
     )
     p.add_argument(
         "--tilt-std",
-        type=float,
+        type=positive_float,
         default=0.1,
-        help="ggx_normal: std of the zero-mean prior on the normal's slopes (default 0.1)",
+        help="ggx_normal: std of the zero-mean prior on the normal's slopes",
     )
     p.add_argument("--restart", action="store_true", help="ignore tiles of an earlier run")
+    p.add_argument(
+        "--keep-tiles",
+        action="store_true",
+        help="keep OUT/tiles after a successful run (removed otherwise; an interrupted run "
+        "keeps them and resumes from them)",
+    )
     p.add_argument("--no-previews", action="store_true", help="skip the PNG previews")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def resume_hint(args: argparse.Namespace) -> str:
+    """What to type after Ctrl-C: the same command resumes from OUT/tiles."""
+    return f"the tiles done so far are in {args.out / 'tiles'}; run the same command to resume"
 
 
 def run(args: argparse.Namespace) -> int:
@@ -104,6 +149,7 @@ def run(args: argparse.Namespace) -> int:
         import jax
 
         jax.config.update("jax_enable_x64", True)
+    check_out_dir(args.out)
     loo_all = args.holdout == "all"
     job = FitJob(
         model=args.model,
@@ -126,11 +172,19 @@ def run(args: argparse.Namespace) -> int:
     if loo is not None:
         result.report.update(loo.report)
     files = write_outputs(result, capture, args.out, previews=not args.no_previews)
+    if not args.keep_tiles:
+        remove_tiles(args.out)
     print_summary(result.report)
     print(
         f"wrote {files['maps']}, {files['report']}" + ("" if args.no_previews else " and previews")
     )
     return 0
+
+
+def remove_tiles(out: Path) -> None:
+    """Remove OUT/tiles (the resume state of :func:`jaxrefl.svbrdf.fit_capture`) once the
+    maps are written."""
+    shutil.rmtree(out / "tiles", ignore_errors=True)
 
 
 def print_summary(report: dict) -> None:

@@ -7,7 +7,8 @@ FILE is a Cornell ASTM E1392 file (``.astm``; spectral, converted to linear sRGB
 band with ``--spectral bands``), a CURET value file (``abrdf.dat``; ``--sample N`` picks one
 of the 61 samples, ``--curet-table`` the geometry table, default ``table.txt`` beside it) or
 a MERL binary file (``.binary``; ``--merl-samples`` random cells). Default models: lambert,
-blinn_phong, ward, cook_torrance_beckmann, cook_torrance_ggx, lafortune_1..3.
+blinn_phong, ward, beckmann, ggx, lafortune_1..3 (``jaxrefl models NAME`` describes one;
+the older names ``cook_torrance_ggx`` and ``cook_torrance_beckmann`` are accepted).
 
 Writes OUT_DIR/report.json (per model: parameters, the cosine-weighted L2 of Ngan et al.
 2005, log-space and relative L2, fit wall time without compilation, compilation time, number
@@ -20,51 +21,107 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from jaxrefl._names import MEASURED_MODELS, canonical
+
+from ._main import check_out_dir, non_negative_int, positive_int
 from ._options import BACKENDS, DTYPES, fit_config
 
 HELP = "fit analytic models to a measured BRDF (Cornell, CURET, MERL)"
 
 
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    from jaxrefl.measured import DEFAULT_MODELS
+def _curet_sample(text: str) -> int:
+    value = positive_int(text)
+    if value > 61:
+        raise argparse.ArgumentTypeError(f"CURET has samples 1..61, got {value}")
+    return value
 
+
+def _angle(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an angle in degrees, not {text!r}") from None
+    if not value < 90.0:
+        raise argparse.ArgumentTypeError(f"must be below 90 degrees, got {value:g}")
+    return value
+
+
+def _incidence(text: str) -> float:
+    value = _angle(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be in [0, 90) degrees, got {value:g}")
+    return value
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    default = list(MEASURED_MODELS)
     p.add_argument("path", metavar="FILE", help="measured BRDF file (.astm, .dat, .binary)")
     p.add_argument(
         "--models",
         nargs="+",
         default=None,
         metavar="NAME",
-        help=f"models to fit (default: all of {', '.join(DEFAULT_MODELS)}); "
-        "names may also be comma-separated",
+        help=f"models to fit, by name or comma-separated (default: all of {', '.join(default)})",
     )
-    p.add_argument("--out", required=True, type=Path, help="output folder")
+    p.add_argument("--out", required=True, type=Path, help="output folder (created)")
     p.add_argument(
         "--spectral",
         choices=("rgb", "bands"),
         default="rgb",
-        help="spectral data: convert to RGB (default) or fit every band separately",
+        help="spectral data: convert to RGB or fit every band separately",
     )
-    p.add_argument("--illuminant", choices=("D65", "E"), default="D65")
-    p.add_argument("--sample", type=int, default=None, help="CURET sample number (1..61)")
-    p.add_argument("--curet-table", type=Path, default=None, help="CURET geometry table")
     p.add_argument(
-        "--merl-samples", type=int, default=20_000, help="MERL cells drawn at random (0: all)"
+        "--illuminant",
+        choices=("D65", "E"),
+        default="D65",
+        help="illuminant of the spectral-to-RGB conversion (CIE D65 daylight, or equal energy)",
+    )
+    p.add_argument(
+        "--sample",
+        type=_curet_sample,
+        default=None,
+        help="CURET sample number, 1..61 (no default: required for a CURET file)",
+    )
+    p.add_argument(
+        "--curet-table",
+        type=Path,
+        default=None,
+        help="CURET geometry table (default: table.txt beside FILE)",
+    )
+    p.add_argument(
+        "--merl-samples",
+        type=non_negative_int,
+        default=20_000,
+        help="MERL cells drawn at random (0: all)",
     )
     p.add_argument(
         "--max-theta",
-        type=float,
+        type=_angle,
         default=80.0,
-        help="leave out directions beyond this angle from the normal, degrees (default 80, "
-        "as Ngan et al. 2005; a negative value keeps all)",
+        help="leave out directions beyond this angle from the normal, degrees, below 90 (as "
+        "Ngan et al. 2005; a negative value keeps all)",
     )
     p.add_argument("--no-cosine", action="store_true", help="fit f_r, not f_r cos(theta_i)")
-    p.add_argument("--backend", choices=BACKENDS, default="lean")
-    p.add_argument("--dtype", choices=DTYPES, default="float32")
+    p.add_argument(
+        "--backend",
+        choices=BACKENDS,
+        default="lean",
+        help="least-squares solver: lean (jaxrefl's own), optimistix or jaxopt "
+        "(pip install 'jaxrefl[backends]')",
+    )
+    p.add_argument(
+        "--dtype", choices=DTYPES, default="float32", help="floating-point type of the fit"
+    )
     p.add_argument("--no-retry", action="store_true", help="no automatic float64 retry")
-    p.add_argument("--max-iters", type=int, default=None, help="solver iteration budget")
+    p.add_argument(
+        "--max-iters",
+        type=positive_int,
+        default=None,
+        help="solver iteration budget (default: the solver's own)",
+    )
     p.add_argument(
         "--thetas",
-        type=float,
+        type=_incidence,
         nargs="+",
         default=None,
         help="incidence angles of the lobe plots, degrees (default: spread over the data)",
@@ -73,15 +130,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _model_names(raw: list[str] | None) -> list[str] | None:
+    """Canonical names of ``--models`` (aliases resolved, duplicates dropped)."""
     if raw is None:
         return None
-    names = [n.strip() for item in raw for n in item.split(",") if n.strip()]
-    from jaxrefl.measured import DEFAULT_MODELS
-
-    unknown = [n for n in names if n not in DEFAULT_MODELS]
+    names = [canonical(n) for item in raw for n in item.split(",") if n.strip()]
+    unknown = [n for n in names if n not in MEASURED_MODELS]
     if unknown:
-        raise ValueError(f"unknown model(s) {unknown}; choose from {', '.join(DEFAULT_MODELS)}")
-    return names
+        raise ValueError(
+            f"--models: unknown model(s) {', '.join(unknown)}; choose from "
+            f"{', '.join(MEASURED_MODELS)}"
+        )
+    return list(dict.fromkeys(names))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -89,6 +148,7 @@ def run(args: argparse.Namespace) -> int:
     from jaxrefl._jsonsafe import report_json
 
     names = _model_names(args.models)
+    check_out_dir(args.out)
     m = jm.load_measured(
         args.path,
         curet_table=args.curet_table,
@@ -117,7 +177,7 @@ def run(args: argparse.Namespace) -> int:
     if not args.no_plot:
         import matplotlib
 
-        matplotlib.use("Agg")
+        matplotlib.use("Agg")  # files only: no window, whatever MPLBACKEND says
         import matplotlib.pyplot as plt
 
         fig = jm.plot_fit_lobes(report, thetas_deg=args.thetas)

@@ -1,13 +1,62 @@
-"""Entry point: ``jaxrefl <command> [options]``."""
+"""Entry point: ``jaxrefl <command> [options]``.
+
+Adding a subcommand
+-------------------
+A subcommand is a module under ``jaxrefl/cli/`` with
+
+- a docstring (the first line a summary, then the synopsis indented by four spaces, then
+  prose; shown by ``jaxrefl COMMAND --help`` with its Sphinx roles made plain),
+- ``HELP``: one line for ``jaxrefl --help``,
+- ``add_arguments(parser)``: every option with a ``help`` text; a default other than
+  None/False is shown by the formatter, a None default is explained in the help,
+- ``run(args) -> int``: the work; JAX and the library are imported here, not at module level,
+- optionally ``resume_hint(args) -> str``: what to type to resume after Ctrl-C,
+- optionally ``COMPILES = False`` for a command that runs no JAX program (no cache option),
+
+and one line in :data:`COMMANDS` below. Building the parser imports these modules and
+nothing else: ``jaxrefl --help`` must not import JAX (``tests/test_cli_behaviour.py``
+checks). Model names come from :mod:`jaxrefl._names`, which imports nothing.
+
+Errors
+------
+Argument errors exit 2 with argparse's one-line message (:func:`main` returns the status
+rather than raising ``SystemExit``, so tests call it in-process). While a command runs, a bad value
+(``ValueError``, ``KeyError``) or an ``OSError`` (naming its path) is one line on stderr and
+exit status 1; Ctrl-C is one line and exit status 130 (128 + SIGINT, the shell convention).
+"""
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import os
+import re
 import sys
 from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
 
-__all__ = ["main", "positive_int"]
+__all__ = [
+    "COMMANDS",
+    "build_parser",
+    "fraction",
+    "main",
+    "non_negative_float",
+    "plain",
+    "positive_float",
+    "positive_int",
+]
+
+#: Command name -> module (see "Adding a subcommand" above).
+COMMANDS: dict[str, str] = {
+    "demo": "jaxrefl.cli._demo",
+    "fit": "jaxrefl.cli._fit",
+    "sample": "jaxrefl.cli._sample",
+    "ps": "jaxrefl.cli._ps",
+    "fit-brdf": "jaxrefl.cli._fit_brdf",
+    "models": "jaxrefl.cli._models",
+    "export": "jaxrefl.cli._export",
+}
 
 
 def positive_int(text: str) -> int:
@@ -21,53 +70,187 @@ def positive_int(text: str) -> int:
     return value
 
 
-# Command name -> module defining HELP, add_arguments(parser) and run(args) -> int.
-_COMMANDS = {
-    "demo": "jaxrefl.cli._demo",
-    "fit": "jaxrefl.cli._fit",
-    "sample": "jaxrefl.cli._sample",
-    "ps": "jaxrefl.cli._ps",
-    "fit-brdf": "jaxrefl.cli._fit_brdf",
-    "models": "jaxrefl.cli._models",
-    "export": "jaxrefl.cli._export",
-}
+def non_negative_int(text: str) -> int:
+    """An argparse type: an integer >= 0."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 0, not {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {value}")
+    return value
+
+
+def _float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, not {text!r}") from None
+    if value != value or value in (float("inf"), float("-inf")):
+        raise argparse.ArgumentTypeError(f"expected a finite number, not {text!r}")
+    return value
+
+
+def positive_float(text: str) -> float:
+    """An argparse type: a finite number > 0."""
+    value = _float(text)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be > 0, got {value:g}")
+    return value
+
+
+def non_negative_float(text: str) -> float:
+    """An argparse type: a finite number >= 0."""
+    value = _float(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {value:g}")
+    return value
+
+
+def fraction(text: str) -> float:
+    """An argparse type: a number in [0, 1]."""
+    value = _float(text)
+    if not 0.0 <= value <= 1.0:
+        raise argparse.ArgumentTypeError(f"must be in [0, 1], got {value:g}")
+    return value
+
+
+_ROLE = re.compile(r":(?:[a-z]+:)?[a-z]+:`(~?)([^`<]*?)(?:\s*<[^>]*>)?`")
+
+
+def plain(text: str) -> str:
+    """Docstring text without Sphinx markup: ``:func:`~a.b.f``` -> ``f``, ``:class:`a.B```
+    -> ``a.B``, double backquotes dropped."""
+
+    def role(m: re.Match[str]) -> str:
+        name = m.group(2)
+        return name.rsplit(".", 1)[-1] if m.group(1) else name
+
+    return _ROLE.sub(role, text).replace("``", "")
+
+
+class _Formatter(argparse.RawDescriptionHelpFormatter):
+    """Keeps the docstring's layout (synopsis apart from prose) and appends each option's
+    default unless it is None/False or the help already states it."""
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        text = action.help or ""
+        default = action.default
+        if (
+            "default" in text
+            or default is None
+            or default is False
+            or default is argparse.SUPPRESS
+            or not (action.option_strings or action.nargs in ("?", "*"))
+        ):
+            return text
+        return f"{text} (default: %(default)s)"
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The full parser; imports the subcommand modules, which import neither JAX nor the
+    library at module level."""
     from jaxrefl import __version__
 
     parser = argparse.ArgumentParser(
         prog="jaxrefl",
         description="Probabilistic reflectance estimation in JAX.",
+        epilog="jaxrefl COMMAND --help describes a command and every option.",
+        formatter_class=_Formatter,
     )
     parser.add_argument("--version", action="version", version=f"jaxrefl {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name, module_name in _COMMANDS.items():
+    for name, module_name in COMMANDS.items():
         module = importlib.import_module(module_name)
-        p = sub.add_parser(name, help=module.HELP, description=module.__doc__)
+        p = sub.add_parser(
+            name,
+            help=module.HELP,
+            description=plain(module.__doc__ or module.HELP),
+            formatter_class=_Formatter,
+        )
         module.add_arguments(p)
-        p.set_defaults(_run=module.run)
+        if getattr(module, "COMPILES", True):
+            p.add_argument(
+                "--no-compile-cache",
+                action="store_true",
+                help="do not keep compiled programs on disk (also: JAXREFL_NO_COMPILE_CACHE=1); "
+                "the cache is in $XDG_CACHE_HOME/jaxrefl/jax, or JAX_COMPILATION_CACHE_DIR",
+            )
+        p.set_defaults(_module=module)
     return parser
 
 
+def _os_message(exc: OSError) -> str:
+    """One line naming the path: ``out/maps.exr: Permission denied``."""
+    if exc.filename is not None:
+        where = str(exc.filename)
+        if exc.filename2 is not None:
+            where += f" -> {exc.filename2}"
+        return f"{where}: {exc.strerror or exc}"
+    return str(exc)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
+    """Run ``jaxrefl`` with ``argv`` (default: ``sys.argv[1:]``); the exit status."""
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # --help, --version (0) or an argument error (2, one line)
+        return exc.code if isinstance(exc.code, int) else 2
     if not getattr(args, "command", None):
         parser.print_help()
         return 2
-    from jaxrefl import brdf
-
-    # At the command line every concrete BRDF evaluation checks its parameters' ranges and
-    # its directions (brdf.set_validation): a bad value is refused by name, not rendered.
-    before = brdf.set_validation(True)
+    module: Any = args._module
+    name = f"jaxrefl {args.command}"
+    clock = None
     try:
-        return int(args._run(args) or 0)
-    except (ValueError, FileNotFoundError, KeyError) as exc:
-        print(f"jaxrefl {args.command}: error: {exc}", file=sys.stderr)
+        if getattr(module, "COMPILES", True):
+            from ._compile import CompileClock, enable_compile_cache
+
+            cache = enable_compile_cache(off=args.no_compile_cache)
+            clock = CompileClock().start()
+        from jaxrefl import brdf
+
+        # At the command line every concrete BRDF evaluation checks its parameters' ranges
+        # and its directions (brdf.set_validation): a bad value is refused by name.
+        before = brdf.set_validation(True)
+        try:
+            status = int(module.run(args) or 0)
+        finally:
+            brdf.set_validation(before)
+        if clock is not None:
+            print(clock.line(cache))
+        return status
+    except KeyboardInterrupt:
+        hint = getattr(module, "resume_hint", None)
+        more = f"; {hint(args)}" if hint is not None else ""
+        print(f"{name}: interrupted{more}", file=sys.stderr)
+        return 130
+    except OSError as exc:
+        print(f"{name}: error: {_os_message(exc)}", file=sys.stderr)
+        return 1
+    except (ValueError, KeyError) as exc:
+        text = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
+        print(f"{name}: error: {text}", file=sys.stderr)
         return 1
     finally:
-        brdf.set_validation(before)
+        if clock is not None:
+            clock.stop()
+
+
+def check_out_dir(path: Path, flag: str = "--out") -> Path:
+    """``path`` as an output folder, checked before any work: refused (one line) when it, or
+    the nearest part of it that exists, is a file or a folder this user cannot write to."""
+    for part in (path, *path.parents):
+        if not part.exists():
+            continue
+        if not part.is_dir():
+            what = "exists" if part == path else f"is inside {part}, which exists"
+            raise ValueError(f"{flag} {path}: {what} and is not a folder; name a folder")
+        if not os.access(part, os.W_OK | os.X_OK):
+            raise ValueError(f"{flag} {path}: {part} is not writable")
+        break
+    return path
 
 
 if __name__ == "__main__":  # pragma: no cover

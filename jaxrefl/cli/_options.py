@@ -23,6 +23,7 @@ __all__ = [
     "DTYPES",
     "LOSSES",
     "NOISES",
+    "OPTIONAL_BACKENDS",
     "SHOT_GAIN",
     "SHOT_READ",
     "fit_config",
@@ -40,9 +41,22 @@ SHOT_READ = 0.002  # --read's default: read-noise std, linear radiance units
 SHOT_GAIN = 0.002  # --gain's default: radiance units per photo-electron
 
 
+#: Backends that need an optional package (``pip install 'jaxrefl[backends]'``).
+OPTIONAL_BACKENDS = {"optimistix": "optimistix", "jaxopt": "jaxopt"}
+
+
 def solver_from_flags(backend: str, max_iters: int | None = None) -> fit.Solver:
-    """The solver ``--backend`` names, with ``--max-iters`` (None: the solver's default)."""
+    """The solver ``--backend`` names, with ``--max-iters`` (None: the solver's default);
+    a ``ValueError`` saying what to install when its optional package is missing."""
+    import importlib.util
+
     from jaxrefl import fit
+
+    package = OPTIONAL_BACKENDS.get(backend)
+    if package is not None and importlib.util.find_spec(package) is None:
+        raise ValueError(
+            f"--backend {backend} needs the {package} package: pip install 'jaxrefl[backends]'"
+        )
 
     kinds: dict[str, type[fit.Solver]] = {
         "lean": fit.LMOptions,

@@ -22,27 +22,39 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from ._main import check_out_dir, positive_int
+
 HELP = "photometric stereo: normals, albedo and depth from a capture folder"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("path", metavar="CAPTURE_DIR", type=Path, help="capture folder")
-    p.add_argument("--out", required=True, type=Path, help="output folder")
-    p.add_argument("--method", choices=("ls", "robust", "brdf"), default="ls")
+    p.add_argument("--out", required=True, type=Path, help="output folder (created)")
+    p.add_argument(
+        "--method",
+        choices=("ls", "robust", "brdf"),
+        default="ls",
+        help="ls: Woodham least squares; robust: shadows and highlights rejected; brdf: normal "
+        "and Cook-Torrance GGX BRDF per pixel",
+    )
     p.add_argument(
         "--calibrate-lights",
         type=Path,
         default=None,
         metavar="CHROME_DIR",
-        help="chrome-sphere capture under the same lights: calibrate the directions from it",
+        help="chrome-sphere capture under the same lights: calibrate the directions from it "
+        "(default: the capture's own light directions)",
     )
     p.add_argument(
         "--reference",
         choices=("sphere",),
         default=None,
-        help="evaluate against the ideal sphere fitted to the mask",
+        help="evaluate against the ideal sphere fitted to the mask (default: the capture's "
+        "ground-truth normals, when it has them)",
     )
-    p.add_argument("--downsample", type=int, default=1, help="keep every n-th pixel (default 1)")
+    p.add_argument(
+        "--downsample", type=positive_int, default=1, help="keep every n-th pixel (>= 1)"
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -52,6 +64,7 @@ def run(args: argparse.Namespace) -> int:
         raise FileNotFoundError(f"{args.path}: capture folder not found")
     if args.calibrate_lights is not None and not args.calibrate_lights.is_dir():
         raise FileNotFoundError(f"{args.calibrate_lights}: chrome-sphere folder not found")
+    check_out_dir(args.out)
     r = run_ps(
         args.path,
         args.out,

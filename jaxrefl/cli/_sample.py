@@ -3,7 +3,7 @@
     jaxrefl sample CAPTURE_DIR --out OUT_DIR [--pixels R0:R1,C0:C1] [--downsample F]
                    [--model ggx] [--mcmc flagged|all|none] [--audit 0.02]
                    [--warmup N] [--samples N] [--chains N] [--rerun-rhat R] [--seed S]
-    jaxrefl sample BRDF_FILE --out OUT_DIR [--brdf-model cook_torrance_ggx]
+    jaxrefl sample BRDF_FILE --out OUT_DIR [--brdf-model ggx]
                    [--sampler emcee|hmc] [--steps N] [--walkers N]
 
 A capture (any layout :func:`jaxrefl.io.load_capture` reads; ``--downsample`` first, then
@@ -36,7 +36,9 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from ._main import positive_int
+from jaxrefl._names import CAPTURE_MODELS, MEASURED_MODELS, canonical
+
+from ._main import check_out_dir, fraction, non_negative_float, non_negative_int, positive_int
 from ._options import fit_config
 
 HELP = "posterior sampling: uncertainty maps with diagnostics (capture or BRDF file)"
@@ -56,30 +58,70 @@ def _crop(text: str) -> tuple[int, int, int, int]:
     return r0, r1, c0, c1
 
 
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    from jaxrefl.svbrdf import CAPTURE_MODELS
+def _rhat(text: str) -> float:
+    value = non_negative_float(text)
+    if 0 < value <= 1:
+        raise argparse.ArgumentTypeError(
+            f"R-hat is >= 1: give a limit above 1, or 0; got {value:g}"
+        )
+    return value
 
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("path", type=Path, help="capture folder, or a measured BRDF file")
-    p.add_argument("--out", type=Path, required=True, help="output folder")
-    p.add_argument("--pixels", type=_crop, default=None, help="crop ROW0:ROW1,COL0:COL1")
+    p.add_argument("--out", type=Path, required=True, help="output folder (created)")
+    p.add_argument(
+        "--pixels", type=_crop, default=None, help="crop ROW0:ROW1,COL0:COL1 (default: all)"
+    )
     p.add_argument("--downsample", type=positive_int, default=1, help="box-filter factor first")
-    p.add_argument("--model", default="ggx", choices=sorted(CAPTURE_MODELS), help="capture model")
-    p.add_argument("--mcmc", default="flagged", choices=("flagged", "all", "none"))
-    p.add_argument("--audit", type=float, default=0.02, help="fraction of reliable pixels audited")
-    p.add_argument("--warmup", type=int, default=300, help="HMC warm-up steps per chain")
+    p.add_argument(
+        "--model",
+        default="ggx",
+        type=canonical,
+        choices=sorted(CAPTURE_MODELS),
+        help="capture model (jaxrefl models NAME describes one)",
+    )
+    p.add_argument(
+        "--mcmc",
+        default="flagged",
+        choices=("flagged", "all", "none"),
+        help="pixels sampled by HMC: those whose Laplace std is flagged unreliable, all, or none",
+    )
+    p.add_argument(
+        "--audit",
+        type=fraction,
+        default=0.02,
+        help="fraction of reliable pixels also sampled, to check the Laplace std, in [0, 1]",
+    )
+    p.add_argument(
+        "--warmup", type=non_negative_int, default=300, help="HMC warm-up steps per chain"
+    )
     p.add_argument("--samples", type=positive_int, default=500, help="HMC draws per chain")
     p.add_argument("--chains", type=positive_int, default=4, help="chains per pixel")
     p.add_argument(
         "--rerun-rhat",
-        type=float,
+        type=_rhat,
         default=1.1,
         help="rerun pixels above this max R-hat, longer (0: no second pass)",
     )
-    p.add_argument("--brdf-model", default="cook_torrance_ggx", help="model for a BRDF file")
-    p.add_argument("--sampler", default="emcee", choices=("emcee", "hmc"), help="for a BRDF file")
+    p.add_argument(
+        "--brdf-model",
+        default="ggx",
+        type=canonical,
+        choices=list(MEASURED_MODELS),
+        help="model for a BRDF file (jaxrefl models NAME describes one)",
+    )
+    p.add_argument(
+        "--sampler", default="emcee", choices=("emcee", "hmc"), help="sampler for a BRDF file"
+    )
     p.add_argument("--steps", type=positive_int, default=3000, help="emcee steps")
-    p.add_argument("--walkers", type=positive_int, default=None, help="emcee walkers")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--walkers",
+        type=positive_int,
+        default=None,
+        help="emcee walkers (default: max(32, 2 D + 2) for D parameters)",
+    )
+    p.add_argument("--seed", type=non_negative_int, default=0, help="random seed (>= 0)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -110,6 +152,7 @@ def run(args: argparse.Namespace) -> int:
     path = Path(args.path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such capture folder or BRDF file")
+    check_out_dir(args.out)
     args.out.mkdir(parents=True, exist_ok=True)
     opts = _options(args)
     if path.is_file() and path.suffix.lower() != ".json":

@@ -23,7 +23,9 @@ solver object carries its own iteration budget and tolerances:
 Whatever the solver, the status is then completed the same way (``_status.classify``): the
 AT_BOUND test with ``space``, MASKED with ``n_usable``, ILL_CONDITIONED from J^T J at the
 solution. Library solvers run every pixel until the slowest one stops (a vmapped while
-loop), so they are slow on big batches; they are here as cross-checks.
+loop), so they are slow on big batches; they are here as cross-checks. optimistix and jaxopt
+are optional dependencies (``pip install 'jaxrefl[backends]'``), imported when their solver
+runs; a missing one raises an ImportError naming that command.
 """
 
 from __future__ import annotations
@@ -114,10 +116,21 @@ def _import_jaxopt():
             import jaxopt
     except ImportError as err:  # pragma: no cover - depends on the environment
         raise ImportError(
-            "JaxoptLM needs the jaxopt package: pip install jaxopt "
-            "(or use fit.LMOptions() or fit.OptimistixLM())"
+            "JaxoptLM needs the jaxopt package, an optional dependency: "
+            "pip install 'jaxrefl[backends]' (or use fit.LMOptions())"
         ) from err
     return jaxopt
+
+
+def _import_optimistix():
+    try:
+        import optimistix
+    except ImportError as err:  # pragma: no cover - depends on the environment
+        raise ImportError(
+            "OptimistixLM needs the optimistix package, an optional dependency: "
+            "pip install 'jaxrefl[backends]' (or use fit.LMOptions())"
+        ) from err
+    return optimistix
 
 
 def _status(residual_fn, theta, theta0, data, converged, valid, space, n_usable, cond_max, rtol):
@@ -252,6 +265,7 @@ def solve(
         info = FitInfo(res.status, res.iterations, res.cost, res.converged, res.jtj, res.active)
         return theta, info
     if isinstance(solver, OptimistixLM):
+        _import_optimistix()  # fail early, outside the trace, if it is missing
         single = jnp.finfo(theta0.dtype).bits <= 32
         if single and jax.config.read("jax_enable_x64"):
             # optimistix's LM builds its damping term in the default float (float64 under

@@ -11,7 +11,7 @@ Quick use::
     print(report.table())
     report.to_dict()                                # what `jaxrefl fit-brdf` writes
 
-    post = jm.sample_posterior(m, "cook_torrance_ggx")   # emcee; HMC: jp.HMCOptions()
+    post = jm.sample_posterior(m, "ggx")   # emcee; HMC: jp.HMCOptions()
     post.summary(), jm.write_posterior(post, "out")      # posterior.nc, corner.png
 
 Parts: :mod:`._metrics` (cosine-weighted L2 of Ngan et al. 2005, log-space and relative

@@ -26,6 +26,7 @@ name            model (``jaxrefl.brdf``) and free parameters per pixel
 from __future__ import annotations
 
 from jaxrefl import brdf
+from jaxrefl._names import CAPTURE_MODELS, canonical
 from jaxrefl.fit import ParamSpace
 
 __all__ = ["ALPHA_RANGE", "CAPTURE_MODELS", "DIELECTRIC_F0", "TWO_STAGE", "capture_model"]
@@ -39,14 +40,6 @@ DIELECTRIC_F0 = (0.0, 0.25)
 # width (``jaxrefl.svbrdf.resolvable_alpha``), at least 1e-3 (the microfacet models' floor).
 ALPHA_RANGE = (1e-3, 1.0)
 
-CAPTURE_MODELS: dict[str, str] = {
-    "ggx": "Cook-Torrance GGX + Lambert, grey specular F0 (albedo RGB, specular, alpha)",
-    "beckmann": "Cook-Torrance Beckmann + Lambert, grey specular F0",
-    "ggx_rgb": "Cook-Torrance GGX + Lambert, coloured specular F0",
-    "ggx_normal": "ggx with a per-pixel normal perturbation (tilt_x, tilt_y slopes)",
-    "pooled": "ggx_rgb with one alpha for the capture, chosen by held-out photos, F0 pooled",
-    "lambert": "Lambertian albedo only (diffuse baseline)",
-}
 # Models fitted from another model's optimum (name -> the first stage's model). The
 # automatic start grids one nonlinear scalar (alpha); with two slopes as well it would fall
 # back to a weak multi-start, while the flat fit is a close start (tilts are small).
@@ -59,6 +52,7 @@ def capture_model(
     """(model, parameter space) of a capture model named in :data:`CAPTURE_MODELS`;
     ``alpha_min`` raises the lower bound of alpha (default 1e-3); ``alpha``: the shared
     width of ``pooled`` (required there; None with ``pooled`` gives its Lambert choice)."""
+    name = canonical(name)
     if name == "pooled":
         if alpha is None:
             return capture_model("lambert", channels)

@@ -10,9 +10,13 @@ parameter labels), ``jaxrefl/status_codes``, ``jaxrefl/laplace_flags`` and
 ``jaxrefl/version``. Writes are atomic (:func:`jaxrefl.io.write_exr`).
 
 Previews (8-bit PNG, at most ``preview_side`` pixels a side, strided):
-``params.png`` (albedo, specular, roughness, status), ``uncertainty.png`` (std maps and
-the Laplace flag), ``compare.png`` (photographed against fitted, linear radiance shown with
-the capture's gamma, for up to three photos, held-out ones first).
+``params.png`` (albedo, specular, roughness with colour bars in their units, and the fit
+status with a legend of the codes present), ``uncertainty.png`` (std maps on log colour
+scales from their 1st to 99th percentile, colour bars in the maps' units, and the Laplace
+flag with a legend), ``compare.png`` (photographed against fitted, linear radiance shown
+with the capture's gamma, for up to three photos, held-out ones first) and, when photos
+were held out, ``heldout.png`` (per-pixel RMSE over the held-out photos' valid
+observations, linear radiance).
 """
 
 from __future__ import annotations
@@ -108,7 +112,66 @@ def _encode(x: np.ndarray, gamma: float = 2.2) -> np.ndarray:
     return np.clip(np.nan_to_num(x, nan=0.0), 0.0, 1.0) ** (1.0 / gamma)
 
 
+# Units of the std maps in the previews (the maps' own units: module docstring of write_maps).
+_STD_UNITS = {
+    "albedo_std.G": "diffuse albedo (green), 1",
+    "specular_std": "specular F0, 1",
+    "roughness_std": "perceptual roughness, 1",
+}
+
+
+def _categorical(fig, ax, codes: np.ndarray, names: dict[int, str], title: str) -> None:
+    """A map of integer codes with a legend of the codes present (name and count)."""
+    import matplotlib.colors as mcolors
+    from matplotlib.patches import Patch
+
+    present = [int(v) for v in np.unique(codes)]
+    palette = [mcolors.to_rgba(f"C{i % 10}") for i in range(len(present))]
+    index = np.searchsorted(present, codes)
+    ax.imshow(np.asarray(palette)[index], interpolation="nearest")
+    ax.set_title(title, fontsize=9)
+    ax.axis("off")
+    handles = [
+        Patch(color=palette[i], label=f"{v} {names.get(v, '?')} ({int(np.sum(codes == v))})")
+        for i, v in enumerate(present)
+    ]
+    ax.legend(
+        handles=handles,
+        loc="upper center",
+        bbox_to_anchor=(0.5, -0.02),
+        fontsize=7,
+        frameon=False,
+        ncol=1,
+    )
+
+
+def _flag_name(value: int) -> str:
+    if value == 0:
+        return "reliable"
+    return "|".join(b.name or str(b.value) for b in fit.LaplaceFlag if value & b.value)
+
+
+def _log_std(fig, ax, v: np.ndarray, title: str, units: str) -> None:
+    """A std map on a log colour scale (1st to 99th percentile of the positive values), its
+    colour bar labelled in the map's units."""
+    from matplotlib.colors import LogNorm
+
+    pos = v[np.isfinite(v) & (v > 0)]
+    lo, hi = np.percentile(pos, [1, 99]) if pos.size else (1e-3, 1.0)
+    hi = max(hi, lo * 10.0)  # at least a decade, so that a uniform map still has a scale
+    import matplotlib
+
+    cmap = matplotlib.colormaps["magma"].with_extremes(bad="0.6")  # grey: no std there
+    im = ax.imshow(np.where(v > 0, v, np.nan), cmap=cmap, norm=LogNorm(vmin=lo, vmax=hi))
+    ax.set_title(f"{title} (grey: none)", fontsize=9)
+    ax.axis("off")
+    fig.colorbar(im, ax=ax, fraction=0.046).set_label(f"std ({units}), log scale", fontsize=7)
+
+
 def write_previews(result: CaptureFit, capture, out: Path, preview_side: int = 384) -> list[Path]:
+    """PNG previews (module docstring): parameter maps, std maps on log colour scales with
+    colour bars in their units, status and Laplace-flag maps with legends, photographed
+    against fitted photos, and with held-out photos the map of their per-pixel RMSE."""
     import matplotlib
 
     matplotlib.use("Agg", force=False)
@@ -125,50 +188,75 @@ def write_previews(result: CaptureFit, capture, out: Path, preview_side: int = 3
         ax.axis("off")
         return im
 
-    def show_bar(fig, ax, img, title, **kw):
-        fig.colorbar(show(ax, img, title, **kw), ax=ax, fraction=0.046)
+    def show_bar(fig, ax, img, title, label, **kw):
+        fig.colorbar(show(ax, img, title, **kw), ax=ax, fraction=0.046).set_label(label, fontsize=7)
 
     def save(fig, name):
         fig.tight_layout()
         paths.append(out / name)
-        fig.savefig(paths[-1], dpi=100)
+        fig.savefig(paths[-1], dpi=100, bbox_inches="tight")
         plt.close(fig)
 
     # Parameter maps.
     names = [n for n in ("specular", "roughness") if n in m]
     rgb = [n for n in ("albedo", "specular") if f"{n}.R" in m]  # coloured maps
     n_ax = max(1, len(rgb)) + len(names) + 1
-    fig, axes = plt.subplots(1, n_ax, figsize=(3.2 * n_ax, 3.4))
+    fig, axes = plt.subplots(1, n_ax, figsize=(3.2 * n_ax, 4.2))
     titles = {"albedo": "diffuse albedo (gamma 2.2)", "specular": "specular F0 (gamma 2.2)"}
     for ax, n in zip(axes, rgb, strict=False):
         show(ax, _encode(np.stack([m[f"{n}.{c}"] for c in "RGB"], -1)), titles[n])
+    units = {"specular": "Schlick F0, 1", "roughness": "perceptual roughness, 1"}
     for ax, n in zip(axes[max(1, len(rgb)) :], names, strict=False):
-        show_bar(fig, ax, m[n], n, cmap="viridis")
-    show_bar(fig, axes[-1], m["status"], "fit status", cmap="tab10", vmin=0, vmax=9)
+        show_bar(fig, ax, m[n], n, units[n], cmap="viridis")
+    status_names = {int(s): s.name or str(int(s)) for s in fit.Status}
+    _categorical(fig, axes[-1], np.asarray(m["status"], np.int64), status_names, "fit status")
     save(fig, "params.png")
 
     # Uncertainty maps.
-    std_names = [n for n in ("albedo_std.G", "specular_std", "roughness_std") if n in m]
-    fig, axes = plt.subplots(1, len(std_names) + 1, figsize=(3.2 * (len(std_names) + 1), 3.4))
+    std_names = [n for n in _STD_UNITS if n in m]
+    fig, axes = plt.subplots(1, len(std_names) + 1, figsize=(3.4 * (len(std_names) + 1), 4.2))
     axes = np.atleast_1d(axes)
     for ax, sn in zip(axes, std_names, strict=False):
-        v = m[sn]
-        hi = np.nanpercentile(v, 99) if np.any(np.isfinite(v)) else 1.0
-        show_bar(fig, ax, v, sn, cmap="magma", vmin=0, vmax=hi)
-    show_bar(fig, axes[-1], m["laplace_flag"], "Laplace flag (0 = reliable)", cmap="tab20")
+        _log_std(fig, ax, np.asarray(m[sn], np.float64), sn, _STD_UNITS[sn])
+    flags = np.asarray(m["laplace_flag"], np.int64)
+    flag_names = {int(v): _flag_name(int(v)) for v in np.unique(flags)}
+    _categorical(fig, axes[-1], flags, flag_names, "Laplace flag")
     save(fig, "uncertainty.png")
 
     # Photographed against fitted.
     k = capture.n_photos
-    photos = list(result.job.holdout) + [i for i in range(k) if i not in result.job.holdout]
+    held = list(result.job.holdout)
+    photos = held + [i for i in range(k) if i not in held]
     photos = photos[:3]
     shot, pred = predict_photos(result, capture, photos, step)
     fig, axes = plt.subplots(len(photos), 2, figsize=(6.4, 3.2 * len(photos)), squeeze=False)
     for row, i in enumerate(photos):
-        tag = " (held out)" if i in result.job.holdout else ""
+        tag = " (held out)" if i in held else ""
         show(axes[row, 0], _encode(shot[row]), f"photo {i}{tag}")
         show(axes[row, 1], _encode(pred[row]), f"fitted {i}")
     save(fig, "compare.png")
+
+    # Held-out error per pixel: RMSE over the held-out photos' valid observations.
+    if held:
+        sub = _strided(capture.select(held), step)
+        _, pred_h = predict_photos(result, capture, held, step)
+        err = np.where(np.asarray(sub.status) == 0, np.asarray(sub.images) - pred_h, np.nan)
+        with np.errstate(invalid="ignore"):
+            rmse = np.sqrt(np.nanmean(err**2, axis=(0, 3)))
+        fig, ax = plt.subplots(1, 1, figsize=(4.4, 4.0))
+        finite = rmse[np.isfinite(rmse)]
+        hi = float(np.percentile(finite, 99)) if finite.size else 1.0
+        show_bar(
+            fig,
+            ax,
+            rmse,
+            f"held-out RMSE per pixel (photos {', '.join(map(str, held))})",
+            "linear radiance of the capture",
+            cmap="inferno",
+            vmin=0.0,
+            vmax=hi,
+        )
+        save(fig, "heldout.png")
     return paths
 
 
