@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from ._distributed import add_distributed_arguments, distributed_from_args
 from ._main import positive_int
 from ._options import BACKENDS, DTYPES, LOSSES, NOISES, SHOT_GAIN, SHOT_READ, fit_config
 
@@ -94,12 +95,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--restart", action="store_true", help="ignore tiles of an earlier run")
     p.add_argument("--no-previews", action="store_true", help="skip the PNG previews")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_distributed_arguments(p)
 
 
 def run(args: argparse.Namespace) -> int:
     from jaxrefl.io import load_capture
     from jaxrefl.svbrdf import FitJob, fit_capture, write_outputs
 
+    dist = distributed_from_args(args)
+    if dist is not None:
+        if args.holdout == "all":
+            raise ValueError("--holdout all runs in one process: drop --distributed")
+        dist.initialize()  # before any JAX computation
     if args.dtype == "float64":
         import jax
 
@@ -122,9 +129,13 @@ def run(args: argparse.Namespace) -> int:
         from jaxrefl.svbrdf import leave_one_out
 
         loo = leave_one_out(capture, job, progress=None if args.quiet else print)
-    result = fit_capture(capture, job, args.out, restart=args.restart, progress=not args.quiet)
+    result = fit_capture(
+        capture, job, args.out, restart=args.restart, progress=not args.quiet, distributed=dist
+    )
     if loo is not None:
         result.report.update(loo.report)
+    if dist is not None and not dist.is_main:
+        return 0  # process 0 writes the outputs
     files = write_outputs(result, capture, args.out, previews=not args.no_previews)
     print_summary(result.report)
     print(

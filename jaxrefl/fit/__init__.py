@@ -20,7 +20,8 @@ Levenberg-Marquardt as pure init/step functions), :func:`solve` (the solver obje
 :class:`LMOptions`, :class:`OptimistixLM`, :class:`JaxoptLM`), :class:`FitConfig` (solver,
 noise, loss and dtype of a fit, taken by every fitting entry point), per-pixel
 :class:`Status` codes, and :func:`laplace` (Gauss-Newton covariance in natural units with
-reliability flags).
+reliability flags). :class:`Distributed` names the process group of a job split over
+processes and hosts (JAX's distributed runtime).
 """
 
 from ._backends import FitInfo as FitInfo
@@ -28,6 +29,7 @@ from ._backends import JaxoptLM as JaxoptLM
 from ._backends import OptimistixLM as OptimistixLM
 from ._backends import Solver as Solver
 from ._backends import solve as solve
+from ._distributed import Distributed as Distributed
 from ._init import diffuse_albedo as diffuse_albedo
 from ._init import grid_values as grid_values
 from ._init import initial_theta as initial_theta

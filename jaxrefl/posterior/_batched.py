@@ -43,12 +43,10 @@ import time
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
-import blackjax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from blackjax.adaptation.step_size import dual_averaging_adaptation
 from jaxtyping import Array, ArrayLike, Float
 
 from jaxrefl.fit import PixelData
@@ -164,6 +162,12 @@ def _one_chain(
     end of the warm-up, whose averaged step size is kept. One kernel serves warm-up and
     sampling, so the model's gradient is compiled once.
     """
+
+    # Imported here, not with the module: importing BlackJAX runs JAX computations, which
+    # would fix the process's devices before a multi-process job can start
+    # (jaxrefl.fit.Distributed.initialize).
+    import blackjax
+    from blackjax.adaptation.step_size import dual_averaging_adaptation
 
     def logdensity(t):
         return lp(t, data, normals)
