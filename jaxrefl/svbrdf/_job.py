@@ -577,7 +577,9 @@ def fit_capture(
               there are split round-robin by process id, each written by its process
               alone; once all are in, every process returns the whole fit (process 0
               writes the outputs: :func:`write_outputs`). A process that dies leaves its
-              finished tiles, which a rerun loads.
+              finished tiles, which a rerun loads. Call ``distributed.initialize()``
+              before loading the capture (:func:`jaxrefl.io.load_capture` computes with
+              JAX, which fixes the process's devices); here it is a no-op then.
     """
     job = FitJob() if job is None else job
     if distributed is not None:
