@@ -123,9 +123,7 @@ def test_two_processes_resume_a_dead_one_and_equal_one_process(capture_dir, tmp_
         *("--tile-pixels", str(TILE), "--dtype", "float64", "--no-previews", "--quiet"),
         *("--distributed", "--coordinator", f"localhost:{port}", "--num-processes", "2"),
     ]
-    procs = _group(
-        lambda pid: [sys.executable, "-c", _CLI, *cli, "--process-id", str(pid)]
-    )
+    procs = _group(lambda pid: [sys.executable, "-c", _CLI, *cli, "--process-id", str(pid)])
     results = [_finish(p, TIMEOUT_S) for p in procs]
     for rc, log in results:
         assert rc == 0, log[-3000:]
@@ -150,7 +148,7 @@ def test_two_processes_resume_a_dead_one_and_equal_one_process(capture_dir, tmp_
 def test_bad_distributed_options_are_refused_by_name(capture_dir, tmp_path):
     with pytest.raises(ValueError, match="coordinator must be HOST:PORT"):
         fit.Distributed("localhost", 2, 0)
-    with pytest.raises(ValueError, match="process_id must be in 0 .. num_processes - 1"):
+    with pytest.raises(ValueError, match=r"process_id must be in 0 \.\. num_processes - 1"):
         fit.Distributed("localhost:1234", 2, 2)
     with pytest.raises(ValueError, match="needs out_dir"):
         svbrdf.fit_capture(load_capture(capture_dir), distributed=fit.Distributed())

@@ -50,6 +50,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from jaxrefl.fit import PixelData
+from jaxrefl.fit._shard import device_count, map_sharded
 
 from ._logpost import LogPosterior
 from ._reparam import ConditionalAlbedo, conditional_albedo
@@ -303,6 +304,7 @@ def sample_pixels(
     options: HMCOptions | None = None,
     seed: int = 0,
     timing: bool = False,
+    devices: int | None = None,
 ) -> Samples:
     """Sample the posterior of every pixel of ``data`` ((N, K, C)) with vmapped HMC.
 
@@ -312,6 +314,10 @@ def sample_pixels(
                (Laplace ``theta_std``); NaN or missing entries use 1
     normals:   (N, K, 3) world normals when the light direction is sampled
     timing:    run twice on the first batch to measure compilation apart (``compile_s``)
+    devices:   how many of this process's devices share the pixels (None: all of them;
+               :func:`jaxrefl.fit._shard.map_sharded`, contiguous shards over a 1-D mesh).
+               Every pixel has its own key, so a pixel's chains take the same random steps
+               on any device; its draws agree with one device's up to rounding
     """
     opts = HMCOptions() if options is None else options
     lp = lp.for_data(data)  # drops the censored branch where nothing is censored
@@ -361,8 +367,11 @@ def sample_pixels(
     if n_run != n:
         args = jax.tree.map(lambda a: a[rows], args)
 
+    ndev = device_count(devices)
+
     def call():
-        out = jax.block_until_ready(_run(target, opts, *args))
+        run = lambda *a: _run(target, opts, *a)  # noqa: E731
+        out = jax.block_until_ready(map_sharded(run, args, ndev))
         return jax.tree.map(lambda a: a[:n], out)
 
     t0 = time.perf_counter()

@@ -589,6 +589,11 @@ def fit_capture(
                 "(the processes exchange their tiles there)"
             )
         distributed.initialize()
+    if out_dir is None and _dist.process_count() > 1:
+        raise ValueError(
+            "fit_capture in a job of several processes needs out_dir: a folder every process "
+            "can read and write (the processes exchange their tiles there)"
+        )
     _k, h, w, c = capture.shape
     choice: ModelChoice | None = None
     t_choose = time.perf_counter()
