@@ -85,7 +85,7 @@ class Distributed:
         first one runs."""
         if jax.distributed.is_initialized():
             return
-        if jax.config.jax_cpu_collectives_implementation in (None, "", "none"):
+        if getattr(jax.config, "jax_cpu_collectives_implementation", None) in (None, "", "none"):
             # CPU processes exchange nothing without it (the barrier is a collective).
             jax.config.update("jax_cpu_collectives_implementation", "gloo")
         try:

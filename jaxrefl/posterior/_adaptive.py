@@ -484,7 +484,7 @@ def _fingerprint(tag, idx, opts: HMCOptions, seed: int, size: int, labels) -> st
 
 def _save_chunk(path: Path, cut: Samples, run_s: float) -> None:
     """One chunk's draws, written to a temporary file then renamed (complete or absent)."""
-    arrays = {"theta": cut.theta, "natural": cut.natural, "run_s": np.float64(run_s)}
+    arrays: dict[str, Any] = {"theta": cut.theta, "natural": cut.natural, "run_s": run_s}
     arrays.update({f"stats.{k}": v for k, v in cut.stats.items()})
     arrays.update({f"tuning.{k}": v for k, v in cut.tuning.items()})
     arrays["no_estimate"] = cut.extra["no_estimate"]
