@@ -2,8 +2,14 @@
 
 from __future__ import annotations
 
+import contextlib
+import datetime
+import io
 import os
 import platform
+import sys
+from collections.abc import Callable
+from pathlib import Path
 
 import jax
 
@@ -39,3 +45,69 @@ def table(headers: list[str], rows: list[list[object]]) -> str:
     out = [line(headers), "|" + "|".join("-" * (w + 2) for w in widths) + "|"]
     out += [line(r) for r in cells]
     return "\n".join(out)
+
+
+def write_section(section: str, body: str) -> Path:
+    """Replace (or append) one script's section of ``docs/benchmarks.md``.
+
+    The section lies between ``<!-- section:start -->`` and ``<!-- section:end -->``
+    markers, so each script rewrites its own rows and leaves the others alone.
+    """
+    path = Path(__file__).resolve().parent.parent / "docs" / "benchmarks.md"
+    path.parent.mkdir(exist_ok=True)
+    start, end = f"<!-- {section}:start -->", f"<!-- {section}:end -->"
+    text = (
+        path.read_text()
+        if path.exists()
+        else "# Benchmarks\n\nWritten by the scripts in `benchmarks/`.\n"
+    )
+    block = f"{start}\n{body}\n{end}"
+    if start in text and end in text:
+        head, rest = text.split(start, 1)
+        text = head + block + rest.split(end, 1)[1]
+    else:
+        text = text.rstrip("\n") + "\n\n" + block + "\n"
+    path.write_text(text)
+    return path
+
+
+class _Tee(io.TextIOBase):
+    """A text stream that writes to the terminal and keeps a copy."""
+
+    def __init__(self, out):
+        self.out, self.kept = out, io.StringIO()
+
+    def write(self, s: str) -> int:
+        self.out.write(s)
+        return self.kept.write(s)
+
+    def flush(self) -> None:
+        self.out.flush()
+
+
+def run_and_record(section: str, title: str, main: Callable[[], int | None]) -> int:
+    """Run a benchmark's ``main``, print as usual, and record what it printed.
+
+    The printed report becomes the script's section of ``docs/benchmarks.md``: a heading,
+    the date, the machine and the command line, then the report itself (its Markdown
+    headings one level down). ``--no-write`` on the command line prints only.
+    """
+    record = "--no-write" not in sys.argv
+    if not record:
+        sys.argv.remove("--no-write")
+    tee = _Tee(sys.stdout)
+    with contextlib.redirect_stdout(tee):
+        rc = main()
+    if rc not in (None, 0) or not record:
+        return int(rc or 0)
+    report = "\n".join(
+        "#" + line if line.startswith("#") else line for line in tee.kept.getvalue().splitlines()
+    )
+    args = " ".join(sys.argv[1:])
+    body = (
+        f"## {title} (`benchmarks/{section}.py`)\n\n"
+        f"{datetime.date.today().isoformat()}; {machine()}; "
+        f"`{args or 'default arguments'}`.\n\n{report.strip()}"
+    )
+    print(f"wrote {write_section(section, body)}")
+    return 0
