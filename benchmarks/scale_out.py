@@ -10,7 +10,8 @@ Two jobs on the procedural demo capture (``jaxrefl demo``: 9 flash photos, 8-bit
 * the adaptive uncertainty map (:func:`jaxrefl.svbrdf.uncertainty_maps`: the float64 fit,
   Laplace, then MCMC with :data:`jaxrefl.posterior.MAP_OPTIONS` on the flagged pixels and
   a 2% audit, no second pass) of a ``--post-size`` square capture, its MCMC pixels in
-  chunks of ``--chunk`` (the chunks are what the processes share).
+  chunks of ``--chunk`` (the chunks are what the processes share); ``--post-rows R``
+  maps the first R rows of that capture only (MCMC on a whole map takes long on a CPU).
 
 Each job runs as N processes on localhost (N = 1: a plain run; N > 1: ``--distributed``
 with a coordinator on a free local port), each a fresh interpreter started from the same
@@ -72,14 +73,16 @@ from jaxrefl import posterior as jp
 from jaxrefl.io import load_capture
 
 jax.config.update("jax_enable_x64", True)
-cap_dir, out, model, coord, n, pid, chunk = sys.argv[1:]
+cap_dir, out, model, coord, n, pid, chunk, rows = sys.argv[1:]
 dist = None if coord == "-" else fit.Distributed(coord, int(n), int(pid))
 if dist is not None:
     dist.initialize()
 opts = jp.AdaptiveOptions(hmc=jp.MAP_OPTIONS, rerun_rhat=None, chunk=int(chunk),
                           keep_samples=False)
 job = svbrdf.FitJob(model=model, config=fit.FitConfig(dtype=np.float64))
-res = svbrdf.uncertainty_maps(load_capture(cap_dir), job, opts, out_dir=out, distributed=dist)
+cap = load_capture(cap_dir)
+cap = cap.crop(0, int(rows), 0, cap.shape[2])
+res = svbrdf.uncertainty_maps(cap, job, opts, out_dir=out, distributed=dist)
 if dist is None or dist.is_main:
     svbrdf.write_uncertainty(res, out)
     (__import__("pathlib").Path(out) / "timings.json").write_text(json.dumps(
@@ -170,9 +173,13 @@ def main() -> int:
     ap.add_argument("--processes", default="1,2")
     ap.add_argument("--model", default="ggx")
     ap.add_argument("--chunk", type=int, default=512, help="MCMC pixels per chunk")
+    ap.add_argument(
+        "--post-rows", type=int, default=None, help="the uncertainty map of the first rows only"
+    )
     ap.add_argument("--timeout", type=float, default=3600.0, help="seconds per run")
     a = ap.parse_args()
     counts = [int(v) for v in a.processes.split(",")]
+    a.post_rows = a.post_size if a.post_rows is None else min(a.post_rows, a.post_size)
     tmp = Path(tempfile.mkdtemp(prefix="scale_out_"))
     try:
         fit_cap, post_cap = _demo(tmp, a.fit_size), _demo(tmp, a.post_size)
@@ -186,7 +193,7 @@ def main() -> int:
         for n in counts:
             out = tmp / f"post{n}"
             args = [str(post_cap), str(out), a.model]
-            r = _run_group(_POST, [*args, str(a.chunk)], n, a.timeout)
+            r = _run_group(_POST, [*args, str(a.chunk), str(a.post_rows)], n, a.timeout)
             t = json.loads((out / "timings.json").read_text())
             r.update(work=t["fit_s"] + t["posterior_s"], compile=t.get("mcmc_compile_s", 0.0))
             r["mcmc_pixels"], r["chunks"] = t["mcmc_pixels"], t["mcmc_chunks"]
@@ -207,7 +214,8 @@ def main() -> int:
         "load 1 min before / after",
     ]
     rows = _rows(f"fit {a.fit_size} x {a.fit_size} ({a.model})", fits)
-    rows += _rows(f"uncertainty {a.post_size} x {a.post_size} ({a.model})", posts)
+    crop = "" if a.post_rows == a.post_size else f", rows 0-{a.post_rows - 1}"
+    rows += _rows(f"uncertainty {a.post_size} x {a.post_size}{crop} ({a.model})", posts)
     print(table(head, rows))
     p = posts[min(posts)]
     print(
