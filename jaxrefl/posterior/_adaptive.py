@@ -43,6 +43,16 @@ whose posterior is a long curved ridge that chains in the fit's coordinates do n
 (``benchmarks/posterior_speed.py --only-mixing`` compares the settings).
 ``keep_samples=False`` keeps only the summaries (a 256 x 256 map's draws are ~1 GB).
 
+Chunks on disk and across processes: with ``chunk_dir`` each chunk's draws are written
+there as it finishes (a file named by the pass, a fingerprint of the pixels, sampler
+settings and seed, and the chunk's index), and a rerun reads the chunks it finds rather
+than sampling them (resume). In a job of several processes (:class:`jaxrefl.fit.Distributed`)
+chunk i is sampled by process i mod n, with seed ``seed + i`` as in one process; after a
+barrier every process reads every chunk in order and computes the same summaries and
+second-pass starts, so the map does not depend on the number of processes. Within a
+process, :func:`~jaxrefl.posterior.sample_pixels` spreads a chunk over the process's
+devices.
+
 Second pass: a pixel whose first-pass chains disagree (max split R-hat above
 ``rerun_rhat``, 1.1 by default) runs again under ``rerun_hmc`` (default
 :func:`longer_options`: twice the warm-up, four times the steps between kept draws). Its
