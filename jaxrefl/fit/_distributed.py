@@ -9,11 +9,12 @@ are read by :func:`jax.distributed.initialize` itself from the cluster's environ
 
 Work is split without any protocol of its own: every process lists the same units of work
 (tiles, MCMC chunks) in the same order, takes every ``n``-th one from its id on
-(:func:`share`: round-robin, so that a region of slow pixels is spread over the processes),
-and writes each result to a shared folder; :func:`barrier` (JAX's
+(:func:`process_share`: round-robin, so that a region of slow pixels is spread over the
+processes), and writes each result to a shared folder; :func:`process_barrier` (JAX's
 :func:`~jax.experimental.multihost_utils.sync_global_devices`) waits for every process
 before a step that reads what the others wrote. Small per-process figures (counts,
-seconds) are exchanged with :func:`~jax.experimental.multihost_utils.process_allgather`.
+seconds) are exchanged with :func:`process_gather` (JAX's
+:func:`~jax.experimental.multihost_utils.process_allgather`).
 
 Cross-process collectives on CPU go through Gloo (``jax_cpu_collectives_implementation``,
 JAX's default since 0.4.36; :meth:`Distributed.initialize` sets it where it is unset).
@@ -29,7 +30,7 @@ from typing import TypeVar
 import jax
 import numpy as np
 
-__all__ = ["Distributed", "barrier", "gather", "is_main", "process_count", "share"]
+__all__ = ["Distributed", "process_barrier", "process_gather", "process_share"]
 
 T = TypeVar("T")
 
@@ -76,7 +77,7 @@ class Distributed:
     def is_main(self) -> bool:
         """Whether this is process 0, the one that writes a job's outputs (after
         :meth:`initialize`)."""
-        return is_main()
+        return jax.process_index() == 0
 
     def initialize(self) -> None:
         """Start or join the process group (once per process; a second call does nothing).
@@ -103,22 +104,12 @@ class Distributed:
             ) from None
 
 
-def process_count() -> int:
-    """Processes in the job (1 without :meth:`Distributed.initialize`)."""
-    return jax.process_count()
-
-
-def is_main() -> bool:
-    """Whether this is process 0 (the one that prepares folders and writes the outputs)."""
-    return jax.process_index() == 0
-
-
-def share(items: list[T]) -> list[T]:
+def process_share(items: list[T]) -> list[T]:
     """This process's share of ``items``: every n-th from its id on (n processes)."""
     return items[jax.process_index() :: jax.process_count()]
 
 
-def barrier(name: str) -> None:
+def process_barrier(name: str) -> None:
     """Wait until every process has called ``barrier(name)`` (nothing with one process)."""
     if jax.process_count() > 1:
         from jax.experimental import multihost_utils
@@ -126,7 +117,7 @@ def barrier(name: str) -> None:
         multihost_utils.sync_global_devices(name)
 
 
-def gather(values: np.ndarray) -> np.ndarray:
+def process_gather(values: np.ndarray) -> np.ndarray:
     """(processes, ...) ``values`` (same shape and dtype everywhere) of every process, in
     process order; (1, ...) with one process."""
     values = np.asarray(values)

@@ -80,8 +80,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxrefl.fit import LaplaceFlag, PixelData
-from jaxrefl.fit import _distributed as _dist
+from jaxrefl.fit import LaplaceFlag, PixelData, process_barrier, process_share
 
 from ._batched import HMCOptions, Samples, sample_pixels
 from ._diagnostics import diagnostics
@@ -308,7 +307,7 @@ def adaptive_uncertainty(
     their chunks there.
     """
     o = AdaptiveOptions() if options is None else options
-    if chunk_dir is None and _dist.process_count() > 1:
+    if chunk_dir is None and jax.process_count() > 1:
         raise ValueError(
             "adaptive_uncertainty in a job of several processes needs chunk_dir: a folder "
             "every process can read and write (the processes exchange their chunks there)"
@@ -438,8 +437,8 @@ class _Run:
         """
         size = _chunk_size(idx.size, self.o.chunk, opts.batch_size)
         firsts = list(range(0, idx.size, size))
-        many = _dist.process_count() > 1
-        mine = set(_dist.share(list(range(len(firsts)))))
+        many = jax.process_count() > 1
+        mine = set(process_share(list(range(len(firsts)))))
         # A chunk file belongs to these pixels, starts of this pass and sampler settings
         # only: its name carries their fingerprint, so another run's chunks never match.
         name = None
@@ -448,7 +447,7 @@ class _Run:
             key = _fingerprint(tag, idx, opts, seed, size, self.lp.labels)
             name = lambda ci: self.folder / f"{tag}_{key}_{ci:05d}.npz"  # noqa: E731
         bar = firsts
-        if self.progress and _dist.is_main():
+        if self.progress and jax.process_index() == 0:
             from tqdm.auto import tqdm
 
             bar = tqdm(firsts, desc=desc, unit="chunk")
@@ -463,7 +462,7 @@ class _Run:
                 assert got is not None  # one process: every chunk is its own
                 yield real, *got
         if many:
-            _dist.barrier(f"jaxrefl mcmc: {tag} pass")
+            process_barrier(f"jaxrefl mcmc: {tag} pass")
             assert name is not None  # adaptive_uncertainty requires a folder here
             for ci, a in enumerate(firsts):
                 real = idx[a : a + size]

@@ -49,8 +49,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from jaxrefl.fit import PixelData
-from jaxrefl.fit._shard import device_count, map_sharded
+from jaxrefl.fit import PixelData, device_count, map_sharded
 
 from ._logpost import LogPosterior
 from ._reparam import ConditionalAlbedo, conditional_albedo
@@ -315,7 +314,7 @@ def sample_pixels(
     normals:   (N, K, 3) world normals when the light direction is sampled
     timing:    run twice on the first batch to measure compilation apart (``compile_s``)
     devices:   how many of this process's devices share the pixels (None: all of them;
-               :func:`jaxrefl.fit._shard.map_sharded`, contiguous shards over a 1-D mesh).
+               :func:`jaxrefl.fit.map_sharded`, contiguous shards over a 1-D mesh).
                Every pixel has its own key, so a pixel's chains take the same random steps
                on any device; its draws agree with one device's up to rounding
     """

@@ -51,8 +51,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxrefl import brdf, fit
-from jaxrefl.fit import Distributed, Status
-from jaxrefl.fit import _distributed as _dist
+from jaxrefl.fit import Distributed, Status, process_barrier, process_gather, process_share
 
 from ._auto import ModelChoice, choose_model
 from ._data import pixel_block, resolvable_alpha
@@ -544,13 +543,13 @@ def _shared_dir(out_dir: Path, manifest: dict[str, Any], restart: bool) -> Path:
     """:func:`_prepare_dir` in a job of one or more processes: every process checks the
     manifest (the same files give every process the same error), process 0 alone creates
     the folder, writes the manifest or clears old tiles, and the others wait for it."""
-    if _dist.process_count() == 1:
+    if jax.process_count() == 1:
         return _prepare_dir(out_dir, manifest, restart)
     if not restart:
         _check_manifest(out_dir / "tiles" / "manifest.json", manifest)
-    if _dist.is_main():
+    if jax.process_index() == 0:
         _prepare_dir(out_dir, manifest, restart)
-    _dist.barrier("jaxrefl fit: folder prepared")
+    process_barrier("jaxrefl fit: folder prepared")
     return out_dir / "tiles"
 
 
@@ -589,7 +588,7 @@ def fit_capture(
                 "(the processes exchange their tiles there)"
             )
         distributed.initialize()
-    if out_dir is None and _dist.process_count() > 1:
+    if out_dir is None and jax.process_count() > 1:
         raise ValueError(
             "fit_capture in a job of several processes needs out_dir: a folder every process "
             "can read and write (the processes exchange their tiles there)"
@@ -624,8 +623,8 @@ def fit_capture(
                 loaded += results[i] is not None
     missing = [i for i, r in enumerate(results) if r is None]
     # Every process has listed the same missing tiles before any writes a new one.
-    _dist.barrier("jaxrefl fit: tiles listed")
-    todo = _dist.share(missing)
+    process_barrier("jaxrefl fit: tiles listed")
+    todo = process_share(missing)
 
     compile_s = 0.0
     times: list[float] = []
@@ -636,7 +635,7 @@ def fit_capture(
         warm = time.perf_counter() - t0
         fitter.stage_s = dict.fromkeys(STAGES, 0.0)  # the warm-up call is not a tile
     iterator: Any = todo
-    if progress and todo and _dist.is_main():
+    if progress and todo and jax.process_index() == 0:
         from tqdm.auto import tqdm
 
         iterator = tqdm(todo, desc="fit tiles", unit="tile")
@@ -658,7 +657,7 @@ def fit_capture(
     if todo:
         compile_s = max(0.0, warm - times[0])
     per_process = None
-    if _dist.process_count() > 1:
+    if jax.process_count() > 1:
         per_process = _collect(tdir, tiles, results, len(todo), compile_s, float(np.sum(times)))
 
     done = [r for r in results if r is not None]
@@ -692,7 +691,7 @@ def fit_capture(
 def _collect(tdir, tiles, results, computed: int, compile_s: float, run_s: float) -> np.ndarray:
     """Wait for every process's tiles, read those of the others into ``results``; returns
     (processes, 3): tiles computed, compile seconds, run seconds of each process."""
-    _dist.barrier("jaxrefl fit: tiles written")
+    process_barrier("jaxrefl fit: tiles written")
     for i, r in enumerate(results):
         if r is None:
             s, e = tiles[i]
@@ -702,7 +701,7 @@ def _collect(tdir, tiles, results, computed: int, compile_s: float, run_s: float
                     f"{tdir}/tile_{i:05d}.npz: missing or unreadable after every process "
                     "finished; is the output folder one shared folder for all processes?"
                 )
-    return _dist.gather(np.array([computed, compile_s, run_s], np.float64))
+    return process_gather(np.array([computed, compile_s, run_s], np.float64))
 
 
 def _distributed_timings(report: dict, per: np.ndarray, pixels: float) -> None:
