@@ -204,7 +204,7 @@ class _FakeFit:
         monkeypatch.setattr(jaxrefl.svbrdf, "write_outputs", self.write_outputs)
         monkeypatch.setattr(cli_fit, "print_summary", lambda report: None)
 
-    def fit_capture(self, capture, job, out, restart=False, progress=True):
+    def fit_capture(self, capture, job, out, restart=False, progress=True, distributed=None):
         tiles = Path(out) / "tiles"
         tiles.mkdir(parents=True, exist_ok=True)
         (tiles / "tile_00000.npz").write_bytes(b"")

@@ -366,3 +366,48 @@ def test_vectorised_diagnostics_match_arviz():
     for k, v in ref.items():
         np.testing.assert_allclose(dg[k], v, rtol=1e-8, err_msg=k)
     assert dg["max_rhat"][3] > 1.5 and np.isnan(dg["max_rhat"][4])
+
+
+def test_chunk_folder_resumes_without_sampling_again(lambert, monkeypatch, tmp_path):
+    """With ``chunk_dir`` every chunk's draws (both passes) are written as they finish; a
+    rerun reads them and samples nothing, with the same map; another seed matches none of
+    them (stand-in sampler whose chains disagree on some pixels: a second pass runs)."""
+    from jaxrefl.posterior import _adaptive
+
+    lp, data, r, lap = lambert
+    th, sd, flag = np.asarray(r.theta), np.asarray(lap.theta_std), np.asarray(lap.flag)
+    calls = []
+
+    def fake(lp_, sub, th0, *, theta_std, normals, options, seed):
+        calls.append(seed)
+        th0 = np.asarray(th0)
+        rng = np.random.default_rng(seed)
+        c, m = options.num_chains, options.num_samples
+        x = th0[:, None, None, :] if th0.ndim == 2 else th0.mean(1)[:, None, None, :]
+        x = np.repeat(np.repeat(x, c, 1), m, 2) + 1e-2 * rng.normal(size=(th0.shape[0], c, m, 1))
+        if th0.ndim == 2:
+            x[[0, 2], 1] += 1.0  # in each chunk (3 pixels), two pixels' chains disagree
+        st = {"acceptance_rate": np.ones(x.shape[:3]), "diverging": np.zeros(x.shape[:3], bool)}
+        tuning = {"step_size": np.ones(x.shape[:2])}
+        n = x.shape[0]
+        return jp.Samples(
+            x, x, lp_.labels, st, "hmc", tuning, run_s=1.0, extra={"no_estimate": np.zeros(n, bool)}
+        )
+
+    monkeypatch.setattr(_adaptive, "sample_pixels", fake)
+    opts = jp.HMCOptions(num_warmup=5, num_samples=30, num_chains=2)
+    o = jp.AdaptiveOptions(mcmc="all", hmc=opts, chunk=4, seed=7)
+    folder = tmp_path / "mcmc"
+    first = jp.adaptive_uncertainty(lp, data, th, sd, flag, o, chunk_dir=folder)
+    assert len(calls) == 3 and first.rerun.any()  # two first-pass chunks, one second-pass
+    assert len(list(folder.glob("first_*.npz"))) == 2
+    assert len(list(folder.glob("second_*.npz"))) == 1
+    calls.clear()
+    again = jp.adaptive_uncertainty(lp, data, th, sd, flag, o, chunk_dir=folder)
+    assert calls == []
+    for name in ("mean", "std", "q05", "q95", "rhat", "rerun", "rhat_first", "method"):
+        np.testing.assert_array_equal(getattr(again, name), getattr(first, name), err_msg=name)
+    np.testing.assert_array_equal(again.samples.theta, first.samples.theta)
+    assert again.timings["mcmc_s"] == first.timings["mcmc_s"] == 2.0
+    jp.adaptive_uncertainty(lp, data, th, sd, flag, replace(o, seed=8), chunk_dir=folder)
+    assert len(calls) == 3  # another seed: other chunks

@@ -27,6 +27,7 @@ from pathlib import Path
 
 from jaxrefl._names import CAPTURE_MODELS, canonical
 
+from ._distributed import add_distributed_arguments, distributed_from_args
 from ._main import check_out_dir, positive_float, positive_int
 from ._options import BACKENDS, DTYPES, LOSSES, NOISES, SHOT_GAIN, SHOT_READ, fit_config
 
@@ -134,6 +135,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--no-previews", action="store_true", help="skip the PNG previews")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_distributed_arguments(p)
 
 
 def resume_hint(args: argparse.Namespace) -> str:
@@ -145,6 +147,11 @@ def run(args: argparse.Namespace) -> int:
     from jaxrefl.io import load_capture
     from jaxrefl.svbrdf import FitJob, fit_capture, write_outputs
 
+    dist = distributed_from_args(args)
+    if dist is not None:
+        if args.holdout == "all":
+            raise ValueError("--holdout all runs in one process: drop --distributed")
+        dist.initialize()  # before any JAX computation
     if args.dtype == "float64":
         import jax
 
@@ -168,9 +175,13 @@ def run(args: argparse.Namespace) -> int:
         from jaxrefl.svbrdf import leave_one_out
 
         loo = leave_one_out(capture, job, progress=None if args.quiet else print)
-    result = fit_capture(capture, job, args.out, restart=args.restart, progress=not args.quiet)
+    result = fit_capture(
+        capture, job, args.out, restart=args.restart, progress=not args.quiet, distributed=dist
+    )
     if loo is not None:
         result.report.update(loo.report)
+    if dist is not None and not dist.is_main:
+        return 0  # process 0 writes the outputs
     files = write_outputs(result, capture, args.out, previews=not args.no_previews)
     if not args.keep_tiles:
         remove_tiles(args.out)

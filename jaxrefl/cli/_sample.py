@@ -38,6 +38,7 @@ from typing import Any
 
 from jaxrefl._names import CAPTURE_MODELS, MEASURED_MODELS, canonical
 
+from ._distributed import add_distributed_arguments, distributed_from_args
 from ._main import check_out_dir, fraction, non_negative_float, non_negative_int, positive_int
 from ._options import fit_config
 
@@ -105,6 +106,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="rerun pixels above this max R-hat, longer (0: no second pass)",
     )
     p.add_argument(
+        "--chunk", type=positive_int, default=2048, help="MCMC pixels per compiled sampler call"
+    )
+    p.add_argument(
         "--brdf-model",
         default="ggx",
         type=canonical,
@@ -123,6 +127,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--seed", type=non_negative_int, default=0, help="random seed (>= 0)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_distributed_arguments(p)
 
 
 def _json(path: Path, obj: Any) -> None:
@@ -153,12 +158,20 @@ def run(args: argparse.Namespace) -> int:
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such capture folder or BRDF file")
     check_out_dir(args.out)
+    brdf_file = path.is_file() and path.suffix.lower() != ".json"
+    dist = distributed_from_args(args)
+    if dist is not None:
+        if brdf_file:
+            raise ValueError("--distributed splits a capture's tiles and chunks, not a BRDF file")
+        dist.initialize()  # before any JAX computation
     args.out.mkdir(parents=True, exist_ok=True)
     opts = _options(args)
-    if path.is_file() and path.suffix.lower() != ".json":
+    if brdf_file:
         report = _run_brdf(args, path, opts)
     else:
-        report = _run_capture(args, path, opts)
+        report = _run_capture(args, path, opts, dist)
+    if dist is not None and not dist.is_main:
+        return 0  # process 0 writes the outputs
     _json(args.out / "report.json", report)
     print(f"wrote {', '.join(report['files'])} and report.json to {args.out}/")
     return 0
@@ -170,7 +183,7 @@ def _options(args):
     return HMCOptions(num_warmup=args.warmup, num_samples=args.samples, num_chains=args.chains)
 
 
-def _run_capture(args, path: Path, opts) -> dict:
+def _run_capture(args, path: Path, opts, dist) -> dict:
     from jaxrefl import posterior as jp
     from jaxrefl import svbrdf
     from jaxrefl.io import load_capture
@@ -181,6 +194,7 @@ def _run_capture(args, path: Path, opts) -> dict:
         audit=args.audit,
         hmc=opts,
         rerun_rhat=args.rerun_rhat if args.rerun_rhat > 0 else None,
+        chunk=args.chunk,
         seed=args.seed,
     )
     cap = load_capture(path)
@@ -192,7 +206,16 @@ def _run_capture(args, path: Path, opts) -> dict:
         if r1 > h or c1 > w:
             raise ValueError(f"--pixels {r0}:{r1},{c0}:{c1} exceeds the {h} x {w} capture")
         cap = cap.crop(r0, r1, c0, c1)
-    res = svbrdf.uncertainty_maps(cap, job, options, progress=not args.quiet)
+    res = svbrdf.uncertainty_maps(
+        cap,
+        job,
+        options,
+        progress=not args.quiet,
+        out_dir=None if dist is None else args.out,  # the processes' exchange (resume)
+        distributed=dist,
+    )
+    if dist is not None and not dist.is_main:
+        return {}
     files = [p.name for p in svbrdf.write_uncertainty(res, args.out)]
     rep = res.report()
     head = {k: rep.pop(k) for k in ("model", "height", "width")}

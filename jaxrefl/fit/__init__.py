@@ -20,7 +20,10 @@ Levenberg-Marquardt as pure init/step functions), :func:`solve` (the solver obje
 :class:`LMOptions`, :class:`OptimistixLM`, :class:`JaxoptLM`), :class:`FitConfig` (solver,
 noise, loss and dtype of a fit, taken by every fitting entry point), per-pixel
 :class:`Status` codes, and :func:`laplace` (Gauss-Newton covariance in natural units with
-reliability flags).
+reliability flags). :func:`map_sharded` spreads a batch of pixels over this process's
+devices; :class:`Distributed` names the process group of a job split over processes and
+hosts (JAX's distributed runtime), which :func:`process_share`, :func:`process_barrier`
+and :func:`process_gather` coordinate.
 """
 
 from ._backends import FitInfo as FitInfo
@@ -28,6 +31,10 @@ from ._backends import JaxoptLM as JaxoptLM
 from ._backends import OptimistixLM as OptimistixLM
 from ._backends import Solver as Solver
 from ._backends import solve as solve
+from ._distributed import Distributed as Distributed
+from ._distributed import process_barrier as process_barrier
+from ._distributed import process_gather as process_gather
+from ._distributed import process_share as process_share
 from ._init import diffuse_albedo as diffuse_albedo
 from ._init import grid_values as grid_values
 from ._init import initial_theta as initial_theta
@@ -69,6 +76,8 @@ from ._residual import gaussian_prior as gaussian_prior
 from ._residual import make_residual as make_residual
 from ._residual import pixel_data as pixel_data
 from ._residual import replace_params as replace_params
+from ._shard import device_count as device_count
+from ._shard import map_sharded as map_sharded
 from ._status import STATUS_MEANINGS as STATUS_MEANINGS
 from ._status import Status as Status
 from ._status import classify as classify

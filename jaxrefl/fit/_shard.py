@@ -1,4 +1,4 @@
-"""Spread a batch of independent pixels over every device JAX sees.
+"""Spread a batch of independent pixels over the devices of this process.
 
 Pixels are independent problems, so the batch axis is split into equal contiguous shards, one
 per device (``jax.shard_map`` over a 1-D mesh named ``"pixels"``); each device runs the same
@@ -16,6 +16,10 @@ step's condition test, ``_laplace``), so they agree between layouts, and converg
 agree to rounding in theta and cost. An iterate that has not converged carries the rounding
 of its path further: a pixel stopped by the iteration limit (MAX_ITERATIONS, or AT_BOUND,
 which takes precedence) can differ visibly in a poorly determined parameter at equal cost.
+
+In a multi-process job (:class:`jaxrefl.fit.Distributed`) the mesh holds this process's
+own devices (``jax.local_devices()``): the processes split the work among themselves
+(tiles, MCMC chunks), and each spreads its share over its devices.
 
 On the CPU, ``XLA_FLAGS=--xla_force_host_platform_device_count=2`` (set before JAX starts)
 gives two host devices: that is how the tests check it.
@@ -35,8 +39,9 @@ __all__ = ["device_count", "map_sharded"]
 
 
 def device_count(devices: int | None = None) -> int:
-    """The number of devices to use: ``devices`` (clipped to what exists) or all of them."""
-    n = jax.device_count()
+    """The number of this process's devices to use: ``devices`` (clipped to what exists) or
+    all of them."""
+    n = jax.local_device_count()
     return n if devices is None else max(1, min(int(devices), n))
 
 
@@ -57,7 +62,7 @@ def map_sharded(fn: Callable[..., Any], args: tuple, n_devices: int) -> Any:
         return jnp.concatenate([x, jnp.repeat(x[-1:], pad, axis=0)], axis=0)
 
     args = jax.tree.map(padded, args)
-    mesh = Mesh(np.asarray(jax.devices()[:n_devices]), ("pixels",))
+    mesh = Mesh(np.asarray(jax.local_devices()[:n_devices]), ("pixels",))
     spec = PartitionSpec("pixels")
     # Checking replication is irrelevant here (nothing is replicated); it also does not
     # know every primitive of the solver.

@@ -43,6 +43,16 @@ whose posterior is a long curved ridge that chains in the fit's coordinates do n
 (``benchmarks/posterior_speed.py --only-mixing`` compares the settings).
 ``keep_samples=False`` keeps only the summaries (a 256 x 256 map's draws are ~1 GB).
 
+Chunks on disk and across processes: with ``chunk_dir`` each chunk's draws are written
+there as it finishes (a file named by the pass, a fingerprint of the pixels, sampler
+settings and seed, and the chunk's index), and a rerun reads the chunks it finds rather
+than sampling them (resume). In a job of several processes (:class:`jaxrefl.fit.Distributed`)
+chunk i is sampled by process i mod n, with seed ``seed + i`` as in one process; after a
+barrier every process reads every chunk in order and computes the same summaries and
+second-pass starts, so the map does not depend on the number of processes. Within a
+process, :func:`~jaxrefl.posterior.sample_pixels` spreads a chunk over the process's
+devices.
+
 Second pass: a pixel whose first-pass chains disagree (max split R-hat above
 ``rerun_rhat``, 1.1 by default) runs again under ``rerun_hmc`` (default
 :func:`longer_options`: twice the warm-up, four times the steps between kept draws). Its
@@ -58,16 +68,19 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import hashlib
 import math
+import os
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxrefl.fit import LaplaceFlag, PixelData
+from jaxrefl.fit import LaplaceFlag, PixelData, process_barrier, process_share
 
 from ._batched import HMCOptions, Samples, sample_pixels
 from ._diagnostics import diagnostics
@@ -280,6 +293,7 @@ def adaptive_uncertainty(
     noise_scale: np.ndarray | None = None,
     normals: np.ndarray | None = None,
     progress: bool = False,
+    chunk_dir: str | Path | None = None,
 ) -> UncertaintyMap:
     """Laplace on every pixel, MCMC on the flagged ones and an audit sample (module doc).
 
@@ -287,9 +301,17 @@ def adaptive_uncertainty(
     theta-space std; flag: (N,) Laplace flags (:class:`jaxrefl.fit.LaplaceFlag`);
     options: :class:`AdaptiveOptions` (None: its defaults). noise_scale: (N,) starting
     noise scale when ``lp`` samples it (e.g. the Laplace residual std); normals: (N, 3)
-    when ``lp`` samples a light. progress: a tqdm bar over the chunks.
+    when ``lp`` samples a light. progress: a tqdm bar over the chunks. chunk_dir: a folder
+    where each MCMC chunk's draws are written when sampled and read back on a rerun
+    (resume); required in a job of several processes (module docstring), which exchange
+    their chunks there.
     """
     o = AdaptiveOptions() if options is None else options
+    if chunk_dir is None and jax.process_count() > 1:
+        raise ValueError(
+            "adaptive_uncertainty in a job of several processes needs chunk_dir: a folder "
+            "every process can read and write (the processes exchange their chunks there)"
+        )
     theta_hat = np.asarray(theta_hat, dtype=np.float64)
     theta_std = np.asarray(theta_std, dtype=np.float64)
     flag = np.asarray(flag).astype(np.int64)
@@ -315,7 +337,8 @@ def adaptive_uncertainty(
             th0 = lp.init_theta(jnp.asarray(theta_hat[rows]), noise_scale=s0)
             return th0, np.concatenate([theta_std[rows], np.ones((rows.size, extra))], -1)
 
-        run = _Run(lp, data, normals, o, progress, timings)
+        folder = None if chunk_dir is None else Path(chunk_dir)
+        run = _Run(lp, data, normals, o, progress, timings, folder)
         samples, restart = run.first_pass(idx, first_starts, out, rng)
         run.second_pass(idx, restart, out, samples)
     return UncertaintyMap(
@@ -348,6 +371,7 @@ class _Run:
     o: AdaptiveOptions
     progress: bool
     timings: dict[str, Any]
+    folder: Path | None = None
 
     def first_pass(self, idx, starts, out: _Summaries, rng):
         """Sample the pixels ``idx``; returns their draws (None unless ``keep_samples``)
@@ -356,7 +380,7 @@ class _Run:
         second = o.second_pass
         restart: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         parts, run_s = [], []
-        for real, cut, rs in self._chunks(idx, starts, o.hmc, o.seed, "MCMC pixels"):
+        for real, cut, rs in self._chunks(idx, starts, o.hmc, o.seed, "MCMC pixels", "first"):
             run_s.append(rs)
             out.store(real, cut)
             if second is not None:  # draws kept for the second pass's starts only
@@ -391,7 +415,9 @@ class _Run:
         run_s = []
         at = {int(i): k for k, i in enumerate(idx)}
         seed = self.o.seed + _RERUN_SEED
-        for real, cut, rs in self._chunks(again, starts, second, seed, "MCMC second pass"):
+        for real, cut, rs in self._chunks(
+            again, starts, second, seed, "MCMC second pass", "second"
+        ):
             run_s.append(rs)
             out.store(real, cut)
             if samples is not None:
@@ -400,29 +426,110 @@ class _Run:
         self.timings["rerun_s"] = float(np.sum(run_s))
         self.timings["rerun_pixels"] = int(again.size)
 
-    def _chunks(self, idx, starts, opts: HMCOptions, seed: int, desc: str):
+    def _chunks(self, idx, starts, opts: HMCOptions, seed: int, desc: str, tag: str):
         """Sample the pixels ``idx`` in chunks of one compiled size (module docstring).
 
         starts(rows) -> (theta0 (R, D) or (R, chains, D), theta_std (R, D)) for the map's
-        pixels ``rows``. Yields (real pixels, their Samples, run seconds).
+        pixels ``rows``. Yields (real pixels, their Samples, run seconds) in chunk order.
+        With a folder, a chunk found there is read rather than sampled, and a sampled one
+        is written; with several processes each samples its share (chunk i: process
+        i mod n), and after a barrier every process reads all of them.
         """
         size = _chunk_size(idx.size, self.o.chunk, opts.batch_size)
-        firsts = range(0, idx.size, size)
-        if self.progress:
+        firsts = list(range(0, idx.size, size))
+        many = jax.process_count() > 1
+        mine = set(process_share(list(range(len(firsts)))))
+        # A chunk file belongs to these pixels, starts of this pass and sampler settings
+        # only: its name carries their fingerprint, so another run's chunks never match.
+        name = None
+        if self.folder is not None:
+            self.folder.mkdir(parents=True, exist_ok=True)
+            key = _fingerprint(tag, idx, opts, seed, size, self.lp.labels)
+            name = lambda ci: self.folder / f"{tag}_{key}_{ci:05d}.npz"  # noqa: E731
+        bar = firsts
+        if self.progress and jax.process_index() == 0:
             from tqdm.auto import tqdm
 
-            firsts = tqdm(firsts, desc=desc, unit="chunk")
-        for ci, a in enumerate(firsts):
+            bar = tqdm(firsts, desc=desc, unit="chunk")
+        for ci, a in enumerate(bar):
             real = idx[a : a + size]
-            # pad the last chunk by repeating its pixels: one compiled shape for the map
-            rows = np.resize(real, size)
-            sub = jax.tree.map(lambda v, rows=rows: v[rows], self.data)
-            th0, sd = starts(rows)
-            nrm = None if self.normals is None else jnp.asarray(np.asarray(self.normals)[rows])
-            smp = sample_pixels(
-                self.lp, sub, th0, theta_std=sd, normals=nrm, options=opts, seed=seed + ci
-            )
-            yield real, _take(smp, real.size), smp.run_s
+            got = None if name is None else _load_chunk(name(ci), real.size, self.lp.labels)
+            if got is None and ci in mine:
+                got = self._sample(real, size, starts, opts, seed + ci)
+                if name is not None:
+                    _save_chunk(name(ci), *got)
+            if not many:
+                assert got is not None  # one process: every chunk is its own
+                yield real, *got
+        if many:
+            process_barrier(f"jaxrefl mcmc: {tag} pass")
+            assert name is not None  # adaptive_uncertainty requires a folder here
+            for ci, a in enumerate(firsts):
+                real = idx[a : a + size]
+                got = _load_chunk(name(ci), real.size, self.lp.labels)
+                if got is None:
+                    raise RuntimeError(
+                        f"{name(ci)}: missing or unreadable after every process finished; "
+                        "is chunk_dir one shared folder for all processes?"
+                    )
+                yield real, *got
+
+    def _sample(self, real, size, starts, opts: HMCOptions, seed: int):
+        """(Samples of the pixels ``real``, run seconds): one chunk, padded to ``size``."""
+        # pad the last chunk by repeating its pixels: one compiled shape for the map
+        rows = np.resize(real, size)
+        sub = jax.tree.map(lambda v: v[rows], self.data)
+        th0, sd = starts(rows)
+        nrm = None if self.normals is None else jnp.asarray(np.asarray(self.normals)[rows])
+        smp = sample_pixels(self.lp, sub, th0, theta_std=sd, normals=nrm, options=opts, seed=seed)
+        return _take(smp, real.size), smp.run_s
+
+
+def _fingerprint(tag, idx, opts: HMCOptions, seed: int, size: int, labels) -> str:
+    h = hashlib.sha1(f"{tag} {opts!r} {seed} {size} {labels}".encode())
+    h.update(np.ascontiguousarray(idx, np.int64).tobytes())
+    return h.hexdigest()[:12]
+
+
+def _save_chunk(path: Path, cut: Samples, run_s: float) -> None:
+    """One chunk's draws, written to a temporary file then renamed (complete or absent)."""
+    arrays: dict[str, Any] = {"theta": cut.theta, "natural": cut.natural, "run_s": run_s}
+    arrays.update({f"stats.{k}": v for k, v in cut.stats.items()})
+    arrays.update({f"tuning.{k}": v for k, v in cut.tuning.items()})
+    arrays["no_estimate"] = cut.extra["no_estimate"]
+    arrays["method"] = np.str_(cut.method)
+    arrays["reparam"] = np.str_(cut.extra.get("reparam", "none"))
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    with open(tmp, "wb") as fh:
+        np.savez(fh, **arrays)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+
+
+def _load_chunk(path: Path, m: int, labels) -> tuple[Samples, float] | None:
+    """A chunk written by :func:`_save_chunk` for ``m`` pixels, or None where the file is
+    absent, truncated, corrupt or of another size (then it is sampled again)."""
+    if not path.exists():
+        return None
+    try:
+        with np.load(path) as z:
+            a = {k: z[k] for k in z.files}
+    except Exception:  # truncated or corrupt: sample it again
+        return None
+    if a.get("theta") is None or a["theta"].shape[0] != m:
+        return None
+    smp = Samples(
+        theta=a["theta"],
+        natural=a["natural"],
+        labels=tuple(labels),
+        stats={k[6:]: v for k, v in a.items() if k.startswith("stats.")},
+        method=str(a["method"]),
+        tuning={k[7:]: v for k, v in a.items() if k.startswith("tuning.")},
+        run_s=float(a["run_s"]),
+        extra={"no_estimate": a["no_estimate"], "reparam": str(a["reparam"])},
+    )
+    return smp, float(a["run_s"])
 
 
 def _choose_methods(has: np.ndarray, flag: np.ndarray, o: AdaptiveOptions, rng) -> np.ndarray:

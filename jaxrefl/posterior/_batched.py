@@ -43,15 +43,13 @@ import time
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
-import blackjax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from blackjax.adaptation.step_size import dual_averaging_adaptation
 from jaxtyping import Array, ArrayLike, Float
 
-from jaxrefl.fit import PixelData
+from jaxrefl.fit import PixelData, device_count, map_sharded
 
 from ._logpost import LogPosterior
 from ._reparam import ConditionalAlbedo, conditional_albedo
@@ -164,6 +162,12 @@ def _one_chain(
     end of the warm-up, whose averaged step size is kept. One kernel serves warm-up and
     sampling, so the model's gradient is compiled once.
     """
+
+    # Imported here, not with the module: importing BlackJAX runs JAX computations, which
+    # would fix the process's devices before a multi-process job can start
+    # (jaxrefl.fit.Distributed.initialize).
+    import blackjax
+    from blackjax.adaptation.step_size import dual_averaging_adaptation
 
     def logdensity(t):
         return lp(t, data, normals)
@@ -299,6 +303,7 @@ def sample_pixels(
     options: HMCOptions | None = None,
     seed: int = 0,
     timing: bool = False,
+    devices: int | None = None,
 ) -> Samples:
     """Sample the posterior of every pixel of ``data`` ((N, K, C)) with vmapped HMC.
 
@@ -308,6 +313,10 @@ def sample_pixels(
                (Laplace ``theta_std``); NaN or missing entries use 1
     normals:   (N, K, 3) world normals when the light direction is sampled
     timing:    run twice on the first batch to measure compilation apart (``compile_s``)
+    devices:   how many of this process's devices share the pixels (None: all of them;
+               :func:`jaxrefl.fit.map_sharded`, contiguous shards over a 1-D mesh).
+               Every pixel has its own key, so a pixel's chains take the same random steps
+               on any device; its draws agree with one device's up to rounding
     """
     opts = HMCOptions() if options is None else options
     lp = lp.for_data(data)  # drops the censored branch where nothing is censored
@@ -357,8 +366,11 @@ def sample_pixels(
     if n_run != n:
         args = jax.tree.map(lambda a: a[rows], args)
 
+    ndev = device_count(devices)
+
     def call():
-        out = jax.block_until_ready(_run(target, opts, *args))
+        run = lambda *a: _run(target, opts, *a)  # noqa: E731
+        out = jax.block_until_ready(map_sharded(run, args, ndev))
         return jax.tree.map(lambda a: a[:n], out)
 
     t0 = time.perf_counter()

@@ -14,6 +14,16 @@ job and capture loads the tiles already there and computes only the missing ones
 lost, none recomputed); a different job or capture in the same folder is refused with a
 message, and a corrupt tile file is recomputed.
 
+Several processes and hosts (``distributed``, a :class:`jaxrefl.fit.Distributed`): the
+same job runs in every process on a shared ``out_dir``. Process 0 checks and prepares the
+folder while the others wait; every process lists the missing tiles, then fits every n-th
+of them from its id on (n processes) and writes them as above; after a barrier every
+process reads the others' tiles and assembles the maps. Each tile is fitted by one process
+with the one compiled tile program, so the maps equal a one-process run's bit for bit; a
+process that dies leaves its finished tiles for a rerun (with any number of processes).
+The report's ``timings.processes`` gives each process's tiles and seconds; ``run_s`` is
+then the slowest process's.
+
 Timings: ``compile_s`` is measured by a warm-up call on the first tile's data (time of that
 call minus the time of the same tile in the run), ``run_s`` is the sum of the tiles' times
 (from reading its data to writing its file).
@@ -41,7 +51,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxrefl import brdf, fit
-from jaxrefl.fit import Status
+from jaxrefl.fit import Distributed, Status, process_barrier, process_gather, process_share
 from jaxrefl.io import corr_name, map_name
 
 from ._auto import ModelChoice, choose_model
@@ -494,26 +504,35 @@ def _manifest(job: FitJob, capture, n_tiles: int) -> dict[str, Any]:
     }
 
 
+def _check_manifest(mpath: Path, manifest: dict[str, Any]) -> bool:
+    """Whether ``mpath`` exists and names this job and capture (False: absent); raises where
+    it is unreadable or names another fit (its tiles are not this fit's)."""
+    if not mpath.exists():
+        return False
+    tiles = mpath.parent
+    try:
+        old = json.loads(mpath.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError, OSError) as e:
+        raise ValueError(
+            f"{mpath}: unreadable resume manifest ({e}); the tiles beside it cannot be "
+            "matched to this fit: use --restart (or another --out folder)"
+        ) from None
+    new = json.loads(json.dumps(manifest))  # as it reads back (tuples become lists)
+    same = isinstance(old, dict) and all(old.get(k) == new[k] for k in ("job", "capture"))
+    if not same:
+        raise ValueError(
+            f"{mpath}: the tiles in {tiles} belong to a different fit (another model, "
+            "holdout, tile size, fit configuration or capture); use another --out "
+            "folder or --restart"
+        )
+    return True
+
+
 def _prepare_dir(out_dir: Path, manifest: dict[str, Any], restart: bool) -> Path:
     tiles = out_dir / "tiles"
     tiles.mkdir(parents=True, exist_ok=True)
     mpath = tiles / "manifest.json"
-    if mpath.exists() and not restart:
-        try:
-            old = json.loads(mpath.read_text())
-        except (json.JSONDecodeError, UnicodeDecodeError, OSError) as e:
-            raise ValueError(
-                f"{mpath}: unreadable resume manifest ({e}); the tiles beside it cannot be "
-                "matched to this fit: use --restart (or another --out folder)"
-            ) from None
-        new = json.loads(json.dumps(manifest))  # as it reads back (tuples become lists)
-        same = isinstance(old, dict) and all(old.get(k) == new[k] for k in ("job", "capture"))
-        if not same:
-            raise ValueError(
-                f"{mpath}: the tiles in {tiles} belong to a different fit (another model, "
-                "holdout, tile size, fit configuration or capture); use another --out "
-                "folder or --restart"
-            )
+    if not restart and _check_manifest(mpath, manifest):
         return tiles
     for old_tile in tiles.glob("tile_*.npz"):
         old_tile.unlink()
@@ -521,6 +540,20 @@ def _prepare_dir(out_dir: Path, manifest: dict[str, Any], restart: bool) -> Path
     tmp.write_text(json.dumps(manifest, indent=2))
     os.replace(tmp, mpath)
     return tiles
+
+
+def _shared_dir(out_dir: Path, manifest: dict[str, Any], restart: bool) -> Path:
+    """:func:`_prepare_dir` in a job of one or more processes: every process checks the
+    manifest (the same files give every process the same error), process 0 alone creates
+    the folder, writes the manifest or clears old tiles, and the others wait for it."""
+    if jax.process_count() == 1:
+        return _prepare_dir(out_dir, manifest, restart)
+    if not restart:
+        _check_manifest(out_dir / "tiles" / "manifest.json", manifest)
+    if jax.process_index() == 0:
+        _prepare_dir(out_dir, manifest, restart)
+    process_barrier("jaxrefl fit: folder prepared")
+    return out_dir / "tiles"
 
 
 def fit_capture(
@@ -531,6 +564,7 @@ def fit_capture(
     restart: bool = False,
     progress: bool = False,
     on_tile: Callable[[int, int], None] | None = None,
+    distributed: Distributed | None = None,
 ) -> CaptureFit:
     """Fit every pixel of ``capture`` (module docstring); returns the maps and a report.
 
@@ -539,8 +573,29 @@ def fit_capture(
     progress: show a tqdm progress bar over tiles
     on_tile:  called as ``on_tile(index, n_tiles)`` after each tile is saved (for tests
               and front ends; an exception raised there interrupts the run like Ctrl-C)
+    distributed: run as one process of a group (:class:`jaxrefl.fit.Distributed`; every
+              process calls ``fit_capture`` with the same capture, job and ``out_dir``, a
+              folder they all see). Process 0 prepares ``out_dir``; the tiles missing
+              there are split round-robin by process id, each written by its process
+              alone; once all are in, every process returns the whole fit (process 0
+              writes the outputs: :func:`write_outputs`). A process that dies leaves its
+              finished tiles, which a rerun loads. Call ``distributed.initialize()``
+              before loading the capture (:func:`jaxrefl.io.load_capture` computes with
+              JAX, which fixes the process's devices); here it is a no-op then.
     """
     job = FitJob() if job is None else job
+    if distributed is not None:
+        if out_dir is None:
+            raise ValueError(
+                "a distributed fit needs out_dir: a folder every process can read and write "
+                "(the processes exchange their tiles there)"
+            )
+        distributed.initialize()
+    if out_dir is None and jax.process_count() > 1:
+        raise ValueError(
+            "fit_capture in a job of several processes needs out_dir: a folder every process "
+            "can read and write (the processes exchange their tiles there)"
+        )
     _k, h, w, c = capture.shape
     choice: ModelChoice | None = None
     t_choose = time.perf_counter()
@@ -558,7 +613,7 @@ def fit_capture(
     tiles = _tiles(h, w, job.tile_pixels)
     tdir = None
     if out_dir is not None:
-        tdir = _prepare_dir(Path(out_dir), _manifest(job, capture, len(tiles)), restart)
+        tdir = _shared_dir(Path(out_dir), _manifest(job, capture, len(tiles)), restart)
 
     results: list[dict[str, np.ndarray] | None] = [None] * len(tiles)
     loaded = 0
@@ -569,7 +624,10 @@ def fit_capture(
                 s_i, e_i = tiles[i]
                 results[i] = _load_tile(p, e_i - s_i)
                 loaded += results[i] is not None
-    todo = [i for i, r in enumerate(results) if r is None]
+    missing = [i for i, r in enumerate(results) if r is None]
+    # Every process has listed the same missing tiles before any writes a new one.
+    process_barrier("jaxrefl fit: tiles listed")
+    todo = process_share(missing)
 
     compile_s = 0.0
     times: list[float] = []
@@ -580,7 +638,7 @@ def fit_capture(
         warm = time.perf_counter() - t0
         fitter.stage_s = dict.fromkeys(STAGES, 0.0)  # the warm-up call is not a tile
     iterator: Any = todo
-    if progress and todo:
+    if progress and todo and jax.process_index() == 0:
         from tqdm.auto import tqdm
 
         iterator = tqdm(todo, desc="fit tiles", unit="tile")
@@ -601,6 +659,9 @@ def fit_capture(
             on_tile(i, len(tiles))
     if todo:
         compile_s = max(0.0, warm - times[0])
+    per_process = None
+    if jax.process_count() > 1:
+        per_process = _collect(tdir, tiles, results, len(todo), compile_s, float(np.sum(times)))
 
     done = [r for r in results if r is not None]
     cat = {key: np.concatenate([r[key] for r in done]) for key in done[0]}
@@ -608,6 +669,8 @@ def fit_capture(
     report = _report(fitter, cat, capture, job, maps, compile_s, times, len(tiles), loaded)
     report["timings"]["stages_s"] = dict(fitter.stage_s)
     report["timings"]["choose_s"] = choose_s
+    if per_process is not None:
+        _distributed_timings(report, per_process, h * w * len(missing) / len(tiles))
     report["auto"] = None if choice is None else choice.as_dict()
     return CaptureFit(
         maps=maps,
@@ -626,6 +689,38 @@ def fit_capture(
             "auto": choice,
         },
     )
+
+
+def _collect(tdir, tiles, results, computed: int, compile_s: float, run_s: float) -> np.ndarray:
+    """Wait for every process's tiles, read those of the others into ``results``; returns
+    (processes, 3): tiles computed, compile seconds, run seconds of each process."""
+    process_barrier("jaxrefl fit: tiles written")
+    for i, r in enumerate(results):
+        if r is None:
+            s, e = tiles[i]
+            results[i] = _load_tile(tdir / f"tile_{i:05d}.npz", e - s)
+            if results[i] is None:
+                raise RuntimeError(
+                    f"{tdir}/tile_{i:05d}.npz: missing or unreadable after every process "
+                    "finished; is the output folder one shared folder for all processes?"
+                )
+    return process_gather(np.array([computed, compile_s, run_s], np.float64))
+
+
+def _distributed_timings(report: dict, per: np.ndarray, pixels: float) -> None:
+    """The report's timings of a multi-process fit: per process (``processes``), and the
+    job's ``run_s`` as the slowest process's, its ``pixels_per_s`` over all processes."""
+    t = report["timings"]
+    run_s = float(np.max(per[:, 2]))
+    t["processes"] = {
+        "count": int(per.shape[0]),
+        "tiles_computed": [int(v) for v in per[:, 0]],
+        "compile_s": per[:, 1].tolist(),
+        "run_s": per[:, 2].tolist(),
+    }
+    t["run_s"] = run_s
+    t["compile_s"] = float(np.max(per[:, 1]))
+    t["pixels_per_s"] = pixels / run_s if run_s > 0 else None
 
 
 def _maps(fitter: _TileFitter, cat, h: int, w: int) -> dict[str, np.ndarray]:
@@ -729,7 +824,7 @@ def _report(fitter, cat, capture, job, maps, compile_s, times, n_tiles, loaded) 
             "tiles": n_tiles,
             "tiles_loaded": loaded,
             "tile_pixels": job.tile_pixels,
-            "devices": jax.device_count(),
+            "devices": jax.device_count(),  # of every process
             "platform": jax.devices()[0].platform,
         },
         "train_rmse": _rmse(sse[:, train], cnt[:, train]),

@@ -135,6 +135,8 @@ def uncertainty_maps(
     options: jp.AdaptiveOptions | None = None,
     *,
     progress: bool = False,
+    out_dir: str | Path | None = None,
+    distributed: fit.Distributed | None = None,
 ) -> CaptureUncertainty:
     """Posterior uncertainty of every pixel of ``capture`` (module docstring).
 
@@ -148,6 +150,13 @@ def uncertainty_maps(
               count (one tile, no padding, for a small capture or crop)
     options:  :class:`jaxrefl.posterior.AdaptiveOptions` (None: its defaults)
     progress: tqdm bars over the fit's tiles and the MCMC chunks
+    out_dir:  where the fit's tiles (``out_dir/fit``) and the MCMC chunks' draws
+              (``out_dir/mcmc``) are written as they finish, and read back by a rerun
+              (resume); None keeps everything in memory
+    distributed: run as one process of a group (:class:`jaxrefl.fit.Distributed`, as
+              :func:`fit_capture`): the fit's tiles and the MCMC chunks are split among
+              the processes, which exchange them in ``out_dir`` (required); every process
+              returns the whole result (process 0 writes it: :func:`write_uncertainty`)
     """
     if jnp.asarray(0.0).dtype != jnp.float64:  # jax_enable_x64 is off
         raise ValueError(
@@ -158,6 +167,13 @@ def uncertainty_maps(
     if job.dtype != np.float64:
         raise ValueError(f"uncertainty_maps needs a float64 FitJob, not {job.dtype}")
     options = jp.AdaptiveOptions() if options is None else options
+    if distributed is not None:
+        if out_dir is None:
+            raise ValueError(
+                "distributed uncertainty maps need out_dir: a folder every process can read "
+                "and write (the processes exchange their tiles and chunks there)"
+            )
+        distributed.initialize()
     if isinstance(capture, (str, Path)):
         from jaxrefl.io import load_capture
 
@@ -165,7 +181,8 @@ def uncertainty_maps(
     _k, h, w, _c = capture.shape
     job = replace(job, tile_pixels=min(job.tile_pixels, h * w))
     t0 = time.perf_counter()
-    cf = fit_capture(capture, job, progress=progress)
+    fit_dir = None if out_dir is None else Path(out_dir) / "fit"
+    cf = fit_capture(capture, job, fit_dir, progress=progress, distributed=distributed)
     t_fit = time.perf_counter() - t0
     model, space = cf.model()
     lp = jp.log_posterior(model, space, fit.GaussianNoise(None))
@@ -183,6 +200,7 @@ def uncertainty_maps(
         options,
         noise_scale=noise0,
         progress=progress,
+        chunk_dir=None if out_dir is None else Path(out_dir) / "mcmc",
     )
     t_post = time.perf_counter() - t1
     return CaptureUncertainty(

@@ -1,0 +1,156 @@
+"""One fit over two processes on localhost (JAX's distributed runtime, CPU collectives):
+a process that dies leaves its tiles, a rerun resumes them, and the maps equal a
+one-process fit's bit for bit."""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from jaxrefl import fit, svbrdf
+from jaxrefl.cli import main
+from jaxrefl.io import load_capture, read_exr
+
+SIZE = 8  # 64 pixels in 4 tiles of 16: two a process
+TILE = 16
+TIMEOUT_S = 120  # a subprocess still running after this is killed: the test fails, not hangs
+HEARTBEAT_S = 5  # the survivor of a dead process stops this long after the death
+
+# One process of the group through the library; process 1 dies after its first tile.
+_ENTRY = textwrap.dedent(
+    """
+    import os, sys
+    import jax
+    import numpy as np
+    from jaxrefl import fit, svbrdf
+    from jaxrefl.io import load_capture
+
+    jax.config.update("jax_enable_x64", True)
+    cap_dir, out, port, pid, heartbeat = sys.argv[1:]
+    dist = fit.Distributed(f"localhost:{port}", 2, int(pid), heartbeat_timeout_s=int(heartbeat))
+    dist.initialize()  # before load_capture, which computes with JAX
+
+    def die_after_first_tile(i, n):
+        if dist.is_main:
+            return
+        os._exit(17)  # no clean-up, like a killed process
+
+    job = svbrdf.FitJob(model="lambert", tile_pixels=16, config=fit.FitConfig(dtype=np.float64))
+    svbrdf.fit_capture(load_capture(cap_dir), job, out, on_tile=die_after_first_tile,
+                       distributed=dist)
+    """
+)
+# ``jaxrefl`` itself, in the interpreter running the tests.
+_CLI = "import sys; from jaxrefl.cli import main; sys.exit(main())"
+
+
+def _port() -> int:
+    with socket.socket() as s:
+        s.bind(("localhost", 0))
+        return int(s.getsockname()[1])
+
+
+def _env() -> dict[str, str]:
+    root = str(Path(__file__).resolve().parents[1])
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([root, os.environ.get("PYTHONPATH", "")])}
+    env.pop("XLA_FLAGS", None)  # one device a process, as in the reference fit
+    return env
+
+
+def _group(cmd_of_pid) -> list[subprocess.Popen]:
+    return [
+        subprocess.Popen(
+            cmd_of_pid(pid), env=_env(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+        )
+        for pid in (0, 1)
+    ]
+
+
+def _finish(p: subprocess.Popen, timeout: float) -> tuple[int, str]:
+    try:
+        out, _ = p.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        p.kill()
+        out, _ = p.communicate()
+        return -9, out
+    return p.returncode, out
+
+
+@pytest.fixture(scope="module")
+def capture_dir(tmp_path_factory):
+    out = tmp_path_factory.mktemp("demo")
+    assert main(["demo", "--out", str(out), "--size", str(SIZE), "--no-fit", "--noise", "0"]) == 0
+    return out
+
+
+def test_two_processes_resume_a_dead_one_and_equal_one_process(capture_dir, tmp_path):
+    out = tmp_path / "fit"
+    # 1. Two processes; process 1 dies after its first tile (1), process 0 fits its share
+    #    (0, 2) and is stopped by the coordination service when process 1's heartbeats stop.
+    port = _port()
+    procs = _group(
+        lambda pid: [
+            sys.executable,
+            "-c",
+            _ENTRY,
+            str(capture_dir),
+            str(out),
+            str(port),
+            str(pid),
+            str(HEARTBEAT_S),
+        ]
+    )
+    rc1, log1 = _finish(procs[1], TIMEOUT_S)
+    rc0, log0 = _finish(procs[0], 4 * HEARTBEAT_S + 30)
+    assert rc1 == 17, log1[-3000:]
+    assert rc0 != 0, log0[-3000:]  # it cannot finish: tile 3 was process 1's
+    done = sorted(p.name for p in (out / "tiles").glob("tile_*.npz"))
+    assert done == ["tile_00000.npz", "tile_00001.npz", "tile_00002.npz"], (done, log0[-3000:])
+
+    # 2. A rerun of the command line with --distributed loads the three tiles and fits
+    #    the missing one once (process 0's share; process 1 has none).
+    port = _port()
+    cli = [
+        *("fit", str(capture_dir), "--out", str(out), "--model", "lambert"),
+        *("--tile-pixels", str(TILE), "--dtype", "float64", "--no-previews", "--quiet"),
+        *("--distributed", "--coordinator", f"localhost:{port}", "--num-processes", "2"),
+    ]
+    procs = _group(lambda pid: [sys.executable, "-c", _CLI, *cli, "--process-id", str(pid)])
+    results = [_finish(p, TIMEOUT_S) for p in procs]
+    for rc, log in results:
+        assert rc == 0, log[-3000:]
+    report = json.loads((out / "report.json").read_text())
+    t = report["timings"]
+    assert t["tiles"] == 4 and t["tiles_loaded"] == 3, t
+    assert t["processes"]["count"] == 2 and t["processes"]["tiles_computed"] == [1, 0], t
+
+    # 3. The maps equal the one-process fit's (float64 fit; maps stored as float32).
+    job = svbrdf.FitJob(model="lambert", tile_pixels=TILE, config=fit.FitConfig(dtype=np.float64))
+    ref = svbrdf.fit_capture(load_capture(capture_dir), job)
+    maps = read_exr(out / "maps.exr").channels
+    assert set(ref.maps) <= set(maps)
+    for name, v in ref.maps.items():
+        np.testing.assert_array_equal(maps[name], v, err_msg=name)
+    theta = np.concatenate(
+        [np.load(out / "tiles" / f"tile_{i:05d}.npz")["theta"] for i in range(4)]
+    )
+    np.testing.assert_array_equal(theta, ref.theta)
+
+
+def test_bad_distributed_options_are_refused_by_name(capture_dir, tmp_path):
+    with pytest.raises(ValueError, match="coordinator must be HOST:PORT"):
+        fit.Distributed("localhost", 2, 0)
+    with pytest.raises(ValueError, match=r"process_id must be in 0 \.\. num_processes - 1"):
+        fit.Distributed("localhost:1234", 2, 2)
+    with pytest.raises(ValueError, match="needs out_dir"):
+        svbrdf.fit_capture(load_capture(capture_dir), distributed=fit.Distributed())
+    args = ["fit", str(capture_dir), "--out", str(tmp_path), "--process-id", "1"]
+    assert main(args) == 1  # --process-id without --distributed
