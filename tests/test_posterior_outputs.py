@@ -296,7 +296,7 @@ def test_second_pass_reruns_the_pixels_whose_chains_disagree(lambert, monkeypatc
     sp = u.report()["mcmc"]["second_pass"]
     assert sp["pixels"] == 2 and sp["pixels_rhat_above_1.1_after"] == 0
     assert sp["max_rhat_before"]["min"] > 1.5 and sp["max_rhat_after"]["max"] < 1.1
-    ch = jp.uncertainty_channels(u, 2, 3)["mcmc_pass"].reshape(-1)
+    ch = jp.uncertainty_channels(u, 2, 3)["mcmc_pass.Y"].reshape(-1)
     np.testing.assert_array_equal(ch, [1, 2, 1, 1, 2, 1])
     lean = jp.adaptive_uncertainty(lp, data, th, sd, flag, replace(o, keep_samples=False))
     np.testing.assert_array_equal(lean.std, u.std)  # the same without keeping the draws
