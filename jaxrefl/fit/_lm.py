@@ -96,6 +96,8 @@ ResidualFn = Callable[[Array, Any], Array]
 # (else one plain loop of steps is used).
 _MIN_COMPACT = 64
 _MIN_BLOCK = 512
+# Small batches are padded to a power of two pixels, at least this many (see batched_lm).
+_MIN_PAD = 16
 
 
 class LMOptions(Option):
@@ -526,13 +528,14 @@ def batched_lm(
     ``options.compact_after`` steps the still-unconverged pixels of a block are gathered
     (``compact_fraction`` of a block at a time) and only they take the remaining steps.
 
-    A batch of fewer than ``_MIN_BLOCK / 2`` pixels is padded to the next power of two with
-    copies of pixel 0 (cut off after), so that small batches of different sizes share one
-    compiled program; such a block runs one loop that stops when all its pixels have
-    converged, and a copy converges with pixel 0, so the padding adds no steps.
+    A batch of fewer than ``_MIN_BLOCK / 2`` pixels is padded to the next power of two (at
+    least ``_MIN_PAD``) with copies of pixel 0 (cut off after), so that small batches of
+    different sizes share one compiled program; such a block runs one loop that stops when
+    all its pixels have converged, and a copy converges with pixel 0, so the padding adds
+    no steps.
     """
     n = theta0.shape[0]
-    m = 1 << max(0, n - 1).bit_length()
+    m = max(_MIN_PAD, 1 << max(0, n - 1).bit_length())
     args = (theta0, data, n_usable)
     leaves = jax.tree.leaves(args)
     if m == n or m >= _MIN_BLOCK or any(isinstance(x, jax.core.Tracer) for x in leaves):
