@@ -540,6 +540,7 @@ def initial_theta(
 
     def padded(x):  # on the host: no small programs to compile per batch size
         a = np.asarray(x)
-        return jnp.asarray(np.concatenate([a, np.repeat(a[:1], pad, 0)]))
+        return jax.device_put(np.concatenate([a, np.repeat(a[:1], pad, 0)]))
 
-    return map_sharded(run, (jax.tree.map(padded, data),), device_count(devices))[:n]
+    theta = map_sharded(run, (jax.tree.map(padded, data),), device_count(devices))
+    return jax.device_put(np.asarray(theta)[:n])

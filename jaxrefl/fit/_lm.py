@@ -545,11 +545,11 @@ def batched_lm(
         a = np.asarray(x)
         if a.ndim == 0 or a.shape[0] != n:
             return x
-        return jnp.asarray(np.concatenate([a, np.repeat(a[:1], m - n, 0)]))
+        return jax.device_put(np.concatenate([a, np.repeat(a[:1], m - n, 0)]))
 
     theta0, data, n_usable = jax.tree.map(padded, args)
     out = _batched_lm(residual_fn, theta0, data, options, space=space, n_usable=n_usable)
-    return jax.tree.map(lambda x: jnp.asarray(np.asarray(x)[:n]), out)
+    return jax.tree.map(lambda x: jax.device_put(np.asarray(x)[:n]), out)
 
 
 @eqx.filter_jit
