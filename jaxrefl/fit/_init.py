@@ -447,11 +447,14 @@ def _varpro_chunk(shape: tuple[int, ...], n_grid: int) -> int:
 
 
 def _bucket(n: int, chunk: int) -> int:
-    """The batch size a varpro batch of n pixels is padded to before compilation: a power
-    of two number of blocks of ``chunk`` pixels, so that batches of different sizes share
-    one compiled program (at most twice the pixels of ``n``, rounded up to a block)."""
+    """The batch size a varpro batch of n pixels is padded to before compilation, so that
+    batches of different sizes share one compiled program: a power of two number of blocks
+    of ``chunk`` pixels up to 16 blocks, a multiple of 16 blocks above (less than 16 blocks
+    of padding on a large batch)."""
     blocks = -(-n // chunk)
-    return chunk * (1 << max(0, blocks - 1).bit_length())
+    if blocks <= 16:
+        return chunk * (1 << max(0, blocks - 1).bit_length())
+    return chunk * 16 * -(-blocks // 16)
 
 
 def _plan(res: Residual, grid_size: int):
