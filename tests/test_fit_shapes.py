@@ -1,7 +1,7 @@
 """Small batches of different sizes share one compiled solver: ``fit.batched_lm`` pads a
 batch of fewer than 256 pixels to a power of two (at least 16) and ``fit.initial_theta``
-pads a variable-projection batch to a power-of-two number of blocks, with copies of pixel 0
-cut off after. A pixel's result does not depend on the batch it came in."""
+pads a small variable-projection batch to a power-of-two number of blocks, with copies of
+pixel 0 cut off after. A pixel's result does not depend on the batch it came in."""
 
 from __future__ import annotations
 
