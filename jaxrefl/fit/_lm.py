@@ -69,7 +69,6 @@ from typing import Any, ClassVar
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jax import lax
 from jaxtyping import Array, Bool, Float, Int
 
@@ -96,8 +95,6 @@ ResidualFn = Callable[[Array, Any], Array]
 # (else one plain loop of steps is used).
 _MIN_COMPACT = 64
 _MIN_BLOCK = 512
-# Small batches are padded to a power of two pixels, at least this many (see batched_lm).
-_MIN_PAD = 16
 
 
 class LMOptions(Option):
@@ -510,6 +507,7 @@ def _solve_block(residual_fn, theta0, data, n_usable, options, space):
     return jax.vmap(lambda s, t, n: _finish(s, t, options, space, n))(states, theta0, n_usable)
 
 
+@eqx.filter_jit
 def batched_lm(
     residual_fn: ResidualFn,
     theta0: Float[Array, "N P"],
@@ -527,41 +525,7 @@ def batched_lm(
     blocks of ``options.chunk`` (``lax.map``; a block's working set stays in cache), and after
     ``options.compact_after`` steps the still-unconverged pixels of a block are gathered
     (``compact_fraction`` of a block at a time) and only they take the remaining steps.
-
-    A batch of fewer than ``_MIN_BLOCK / 2`` pixels is padded to the next power of two (at
-    least ``_MIN_PAD``) with copies of pixel 0 (cut off after), so that small batches of
-    different sizes share one compiled program; such a block runs one loop that stops when
-    all its pixels have converged, and a copy converges with pixel 0, so the padding adds
-    no steps.
     """
-    n = theta0.shape[0]
-    m = max(_MIN_PAD, 1 << max(0, n - 1).bit_length())
-    args = (theta0, data, n_usable)
-    leaves = jax.tree.leaves(args)
-    if m == n or m >= _MIN_BLOCK or any(isinstance(x, jax.core.Tracer) for x in leaves):
-        return _batched_lm(residual_fn, theta0, data, options, space=space, n_usable=n_usable)
-
-    def padded(x):  # on the host: no small programs to compile per batch size
-        a = np.asarray(x)
-        if a.ndim == 0 or a.shape[0] != n:
-            return x
-        return jax.device_put(np.concatenate([a, np.repeat(a[:1], m - n, 0)]))
-
-    theta0, data, n_usable = jax.tree.map(padded, args)
-    out = _batched_lm(residual_fn, theta0, data, options, space=space, n_usable=n_usable)
-    return jax.tree.map(lambda x: jax.device_put(np.asarray(x)[:n]), out)
-
-
-@eqx.filter_jit
-def _batched_lm(
-    residual_fn: ResidualFn,
-    theta0: Float[Array, "N P"],
-    data: Any,
-    options: LMOptions | None = None,
-    *,
-    space: ParamSpace | None = None,
-    n_usable: Int[Array, " N"] | None = None,
-) -> tuple[Float[Array, "N P"], LMResult]:
     options = LMOptions() if options is None else options
     n = theta0.shape[0]
     nu = jnp.full((n,), jnp.iinfo(jnp.int32).max, jnp.int32) if n_usable is None else n_usable

@@ -8,9 +8,9 @@ device count with copies of its last pixel, which are dropped afterwards.
 No step of a pixel reads another pixel (the lean LM freezes converged pixels; see ``_lm``),
 so the results equal those of one device *up to rounding*, not bit for bit: XLA compiles
 each batch shape on its own, and its fusion choices, hence how the sums over a pixel's
-observations are rounded, depend on the shape (the starting points (``_init``) and small
-LM batches (``_lm``) are padded to a few shapes; other shapes, and the Laplace step, can
-differ in the last bit between layouts). Statuses
+observations are rounded, depend on the shape (the starting points (``_init``) are padded
+to a few shapes; the LM and the Laplace step on equal inputs can differ in the last bit
+between layouts). Statuses
 and Laplace flags are decided far above that rounding (the status thresholds; the Laplace
 step's condition test, ``_laplace``), so they agree between layouts, and converged pixels
 agree to rounding in theta and cost. An iterate that has not converged carries the rounding
