@@ -440,6 +440,23 @@ def _multistart_pixel(res, scalar_name, grid, exclude_brightest, d):
     return thetas[best]
 
 
+def _varpro_chunk(shape: tuple[int, ...], n_grid: int) -> int:
+    """Pixels per block of the variable projection for data of shape (N, K, C)."""
+    k, c = shape[-2:]
+    return max(1, min(_VARPRO_CHUNK, _VARPRO_ELEMS // (max(1, n_grid) * k * c)))
+
+
+def _bucket(n: int, chunk: int) -> int:
+    """The batch size a varpro batch of n pixels is padded to before compilation, so that
+    batches of different sizes share one compiled program: a power of two number of blocks
+    of ``chunk`` pixels up to 16 blocks, a multiple of 16 blocks above (less than 16 blocks
+    of padding on a large batch)."""
+    blocks = -(-n // chunk)
+    if blocks <= 16:
+        return chunk * (1 << max(0, blocks - 1).bit_length())
+    return chunk * 16 * -(-blocks // 16)
+
+
 def _plan(res: Residual, grid_size: int):
     space = res.space
     lin = linear_params(res.model, space)
@@ -468,9 +485,7 @@ def _initial_theta_jit(res, data, plan, exclude_brightest, refine):
         # padded with copies of pixel 0, cut off after. The block size depends on K and C
         # only, never on N: every pixel then goes through the same compiled block, and its
         # start does not depend on the batch it came in (nor on how devices split it).
-        k, c = data.obs.shape[-2:]
-        per_pixel = max(1, len(grid)) * k * c
-        chunk = max(1, min(_VARPRO_CHUNK, _VARPRO_ELEMS // per_pixel))
+        chunk = _varpro_chunk(data.obs.shape, len(grid))
         blocks = -(-n // chunk)
         pad = blocks * chunk - n
 
@@ -517,4 +532,18 @@ def initial_theta(
         raise ValueError(f"refine must be >= 0, got {refine}")
     ex = float(exclude_brightest)
     run = lambda d: _initial_theta_jit(res, d, plan, ex, int(refine))  # noqa: E731
-    return map_sharded(run, (data,), device_count(devices))
+    n = data.obs.shape[0]
+    if how != "varpro" or n == 0:
+        return map_sharded(run, (data,), device_count(devices))
+    # The varpro start of a pixel depends on that pixel alone; padding the batch with copies
+    # of pixel 0 (cut off after) lets batches of different sizes use one compiled program.
+    pad = _bucket(n, _varpro_chunk(data.obs.shape, len(grid))) - n
+    if not pad or any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(data)):
+        return map_sharded(run, (data,), device_count(devices))
+
+    def padded(x):  # on the host: no small programs to compile per batch size
+        a = np.asarray(x)
+        return jax.device_put(np.concatenate([a, np.repeat(a[:1], pad, 0)]))
+
+    theta = map_sharded(run, (jax.tree.map(padded, data),), device_count(devices))
+    return jax.device_put(np.asarray(theta)[:n])

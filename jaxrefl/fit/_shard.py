@@ -8,9 +8,9 @@ device count with copies of its last pixel, which are dropped afterwards.
 No step of a pixel reads another pixel (the lean LM freezes converged pixels; see ``_lm``),
 so the results equal those of one device *up to rounding*, not bit for bit: XLA compiles
 each batch shape on its own, and its fusion choices, hence how the sums over a pixel's
-observations are rounded, depend on the shape (on the CPU the starting points of 33 and of
-65 pixels (``_init``) compile to 44 and 57 fused kernels and differ in the last bit; the LM
-and the Laplace step on equal inputs differ likewise for other shapes). Statuses
+observations are rounded, depend on the shape (the starting points (``_init``) are padded
+to a few shapes; the LM and the Laplace step on equal inputs can differ in the last bit
+between layouts). Statuses
 and Laplace flags are decided far above that rounding (the status thresholds; the Laplace
 step's condition test, ``_laplace``), so they agree between layouts, and converged pixels
 agree to rounding in theta and cost. An iterate that has not converged carries the rounding
