@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import platform
+from pathlib import Path
 
 import jax
 
@@ -39,3 +40,27 @@ def table(headers: list[str], rows: list[list[object]]) -> str:
     out = [line(headers), "|" + "|".join("-" * (w + 2) for w in widths) + "|"]
     out += [line(r) for r in cells]
     return "\n".join(out)
+
+
+def write_section(section: str, body: str) -> Path:
+    """Replace (or append) one script's section of ``docs/benchmarks.md``.
+
+    The section lies between ``<!-- section:start -->`` and ``<!-- section:end -->``
+    markers, so each script rewrites its own rows and leaves the others alone.
+    """
+    path = Path(__file__).resolve().parent.parent / "docs" / "benchmarks.md"
+    path.parent.mkdir(exist_ok=True)
+    start, end = f"<!-- {section}:start -->", f"<!-- {section}:end -->"
+    text = (
+        path.read_text()
+        if path.exists()
+        else "# Benchmarks\n\nWritten by the scripts in `benchmarks/`.\n"
+    )
+    block = f"{start}\n{body}\n{end}"
+    if start in text and end in text:
+        head, rest = text.split(start, 1)
+        text = head + block + rest.split(end, 1)[1]
+    else:
+        text = text.rstrip("\n") + "\n\n" + block + "\n"
+    path.write_text(text)
+    return path
