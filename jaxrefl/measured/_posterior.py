@@ -41,6 +41,7 @@ from ._starts import MultiStart
 __all__ = ["BRDFPosterior", "sample_posterior", "write_posterior"]
 
 NOISE = "Gaussian on f_r cos(theta_i), unknown scale (Jeffreys prior)"
+_MULTISTART = MultiStart()
 _EMCEE_KEYS = ("tau", "burn", "thin", "tau_reliable", "n_steps", "n_walkers")
 
 
@@ -136,7 +137,7 @@ def sample_posterior(
     max_theta_deg: float | None = 80.0,
     seed: int = 0,
     progress: bool = False,
-    starts: MultiStart | None = MultiStart(),
+    starts: MultiStart | None = _MULTISTART,
 ) -> BRDFPosterior:
     """The posterior of ``model`` (a :func:`build_model` name) given ``measured`` (module
     docstring); spectral data are converted to RGB (:func:`to_rgb`) first.

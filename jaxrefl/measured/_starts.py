@@ -108,6 +108,10 @@ class MultiStart(Option):
             raise ValueError(f"MultiStart needs min_share in [0, 1], got {self.min_share}")
 
 
+_DEFAULT_STARTS = MultiStart()
+_FLOAT32_CONFIG = FitConfig(dtype=np.float32)
+
+
 @dataclass(frozen=True)
 class LobeMoments:
     """What the data say about the lobe (:func:`lobe_moments`).
@@ -392,8 +396,8 @@ def fit_multistart(
     *,
     channels: Channels = "joint",
     cosine: bool = True,
-    config: FitConfig = FitConfig(dtype=np.float32),
-    starts: MultiStart = MultiStart(),
+    config: FitConfig = _FLOAT32_CONFIG,
+    starts: MultiStart = _DEFAULT_STARTS,
     thetas: np.ndarray | None = None,
     channel_names: tuple[str, ...] | None = None,
 ) -> tuple[FitResult, Certificate, np.ndarray]:
