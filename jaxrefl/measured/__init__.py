@@ -17,7 +17,8 @@ Quick use::
 Parts: :mod:`._metrics` (cosine-weighted L2 of Ngan et al. 2005, log-space and relative
 L2), :mod:`._models` (the named model set), :mod:`._starts` (multi-start fits from
 data-driven and quasi-random starts, and the certificate of the optimum), :mod:`._data`
-(reading, RGB conversion, angle limit), :mod:`._fit` (fit one model / all of them), :mod:`._retry` (float32 -> float64),
+(reading, RGB conversion, angle limit), :mod:`._fit` (fit one model / all of them),
+:mod:`._retry` (float32 -> float64),
 :mod:`._plots` (measured vs fitted lobes), :mod:`._components` (models assembled from
 switched-on components),
 :mod:`._compact` (leave out the pixels a scene does not need), :mod:`._prune` (drop
