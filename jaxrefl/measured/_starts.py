@@ -24,8 +24,12 @@ problem repeated S times) and keeps the start of lowest cost. The starts
 * **quasi-random** (:func:`random_thetas`): scrambled Sobol points (``scipy.stats.qmc``)
   in a box of the unconstrained space: albedo and specular log-uniform in [0.005, 0.9] and
   [1e-3, 0.9], alpha in [0.01, 0.8], exponent in [1, 1e4], eta in [1.05, 3], Lafortune
-  rows with n in [1, 5000], peak c^n in [0.01, 100], Cz/|Cx| in [-0.3, 1.3] and Cx/Cy in
-  [0.8, 1.25]; any other parameter its default +- 2 in theta.
+  rows with n in [1, 5000], peak c^n in [0.01, 100], Cz/|Cx| in [-0.3, 1.3], Cx/Cy in
+  [0.8, 1.25], a quarter of them retro-reflective (Cx, Cy > 0), the rest specular; any
+  other parameter its default +- 2 in theta.
+* **the automatic start** of a single fit (:func:`jaxrefl.fit.initial_theta`: closed-form
+  colours on a roughness grid), so that the kept result is never worse than the single
+  start's (both get the same iteration budget).
 
 The :class:`Certificate` counts the starts whose cost is within ``agree_rtol`` (1%) of the
 best and flags the optimum as doubtful when their share is below ``min_share``: a user
@@ -49,7 +53,18 @@ import numpy as np
 from scipy.stats import qmc
 
 from jaxrefl.brdf import BRDF
-from jaxrefl.fit import FitConfig, FitResult, Option, ParamSpace, PixelData, fit_pixels, pixel_data
+from jaxrefl.fit import (
+    L2,
+    FitConfig,
+    FitResult,
+    Option,
+    ParamSpace,
+    PixelData,
+    fit_pixels,
+    initial_theta,
+    make_residual,
+    pixel_data,
+)
 from jaxrefl.fit import sample_arrays as _sample_arrays
 
 __all__ = [
@@ -74,6 +89,11 @@ _DIFFUSE_QUANTILE = 0.8
 _ALPHA_RANGE = (0.005, 1.0)
 # Lobe scales of a start stay inside their range: a start at a bound has no slope.
 _SPEC_RANGE = (1e-3, 0.95)
+# Costs below this fraction of the data's own 1/2 |y|^2 are an exact fit, equal within
+# round-off (see certify).
+_EXACT = 1e-6
+# Share of the random Lafortune lobes that start retro-reflective.
+_RETRO_SHARE = 0.25
 # Sample directions of the model's peak at unit scale: a mirror pair 10 degrees off normal.
 _PEAK_THETA = math.radians(10.0)
 
@@ -82,8 +102,10 @@ class MultiStart(Option):
     """How many starts a measured fit solves, and when their agreement is doubtful.
 
     n_random:   quasi-random starts (Sobol, scrambled with ``seed``), >= 0; default 24
-    data:       include the data-driven starts (default True; 6 starts, fewer for a model
+    data:       include the data-driven starts (default True; 6 starts, one for a model
                 with no lobe)
+
+    The automatic start of a single fit is always solved too (module docstring).
     seed:       seed of the Sobol scrambling
     agree_rtol: a start agrees when its cost is within this fraction of the best (0.01)
     min_share:  the certificate flags the optimum as doubtful when fewer than this share
@@ -255,8 +277,14 @@ def random_thetas(space: ParamSpace, n: int, seed: int = 0, *, sobol: bool = Tru
             nn = _log_uniform(rows[..., 0], 1.0, 5e3)
             c = _log_uniform(rows[..., 1], 0.01, 100.0) ** (1.0 / nn)
             cz = c * (-0.3 + 1.6 * rows[..., 2])
-            ratio = _log_uniform(rows[..., 3], 0.8, 1.25)
-            v = np.stack([-c * np.sqrt(ratio), -c / np.sqrt(ratio), cz, nn], axis=-1)
+            # The last coordinate picks the lobe's kind and its x/y ratio: a quarter of the
+            # starts are retro-reflective (Cx, Cy > 0: the peak at wo = wi), the rest specular.
+            u4 = rows[..., 3]
+            retro = u4 < _RETRO_SHARE
+            t = np.where(retro, u4 / _RETRO_SHARE, (u4 - _RETRO_SHARE) / (1 - _RETRO_SHARE))
+            ratio = _log_uniform(t, 0.8, 1.25)
+            sx = np.where(retro, 1.0, -1.0)
+            v = np.stack([sx * c * np.sqrt(ratio), sx * c / np.sqrt(ratio), cz, nn], axis=-1)
         else:
             generic.append(b)
             continue
@@ -341,13 +369,19 @@ class Certificate:
         }
 
 
-def certify(costs: np.ndarray, rtol: float = 0.01, min_share: float = 0.2) -> Certificate:
-    """The :class:`Certificate` of costs (S,) of one problem or (N, S) of N problems."""
+def certify(
+    costs: np.ndarray, rtol: float = 0.01, min_share: float = 0.2, scale: float = 0.0
+) -> Certificate:
+    """The :class:`Certificate` of costs (S,) of one problem or (N, S) of N problems.
+
+    A start agrees when c - c_best <= rtol max(c_best, ``_EXACT`` scale), where ``scale`` is
+    the cost of a zero prediction (1/2 |y|^2): at an (almost) exact fit every cost is
+    round-off, and those below a millionth of the data's own agree with each other.
+    """
     c = np.atleast_2d(np.asarray(costs, np.float64))
     c = np.where(np.isfinite(c), c, np.inf)
     best = np.min(c, axis=1, keepdims=True)
-    # A zero best cost (an exact fit) still compares: the tolerance floors at tiny.
-    tol = rtol * np.abs(best) + np.finfo(np.float64).tiny
+    tol = rtol * np.maximum(np.abs(best), _EXACT * scale) + np.finfo(np.float64).tiny
     agree = c <= best + tol
     n_agree = int(np.min(np.sum(agree, axis=1)))
     rel = (c - best) / np.where(best > 0, best, 1.0)
@@ -405,10 +439,11 @@ def fit_multistart(
 
     wi, wo (K, 3), values (K, C) f_r in 1/sr (samples below the horizon get weight 0);
     ``channels``, ``cosine`` and ``config`` as for :func:`jaxrefl.fit.fit_samples` (config's
-    dtype None: float32). ``thetas`` (S, P) replaces the starts of ``starts`` (its
-    thresholds still certify). Returns the best result shaped as
-    :func:`jaxrefl.fit.fit_samples` returns it (no leading axis when joint, C when
-    separate), its :class:`Certificate`, and the (N, S) costs of every start.
+    dtype None: float32). The starts: the automatic one, then :func:`start_thetas`;
+    ``thetas`` (S, P) replaces them all (the thresholds of ``starts`` still certify).
+    Returns the best result shaped as :func:`jaxrefl.fit.fit_samples` returns it (no
+    leading axis when joint, C when separate), its :class:`Certificate`, and the (N, S)
+    costs of every start.
     """
     dtype = np.dtype(np.float32 if config.dtype is None else config.dtype)
     wi = np.asarray(wi, np.float64)
@@ -427,7 +462,9 @@ def fit_multistart(
             start_thetas(space, wi, wo, f if n == 1 else f[:, i : i + 1], starts, cosine=cosine)
             for i in range(n)
         ]
-        t0 = np.stack(per)  # (N, S, P)
+        loss = L2() if config.loss is None else config.loss
+        auto = np.asarray(initial_theta(make_residual(model, space, config.noise, loss), data))
+        t0 = np.concatenate([auto[:, None].astype(np.float64), np.stack(per)], axis=1)
     else:
         t0 = np.broadcast_to(np.asarray(thetas, np.float64), (n, *np.shape(thetas)))
     s = t0.shape[1]
@@ -442,7 +479,9 @@ def fit_multistart(
     costs = np.asarray(r.cost, np.float64).reshape(n, s)
     costs = np.where(np.isfinite(costs), costs, np.inf)
     pick = np.argmin(costs, axis=1) + s * np.arange(n)
-    cert = certify(costs, starts.agree_rtol, starts.min_share)
+    y = np.where(np.asarray(data.weight) > 0, np.asarray(data.obs, np.float64), 0.0)
+    scale = float(0.5 * np.sum(y * y) / n)
+    cert = certify(costs, starts.agree_rtol, starts.min_share, scale)
 
     def take(x):
         x = jnp.asarray(x)[pick]
