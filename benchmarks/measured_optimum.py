@@ -16,16 +16,19 @@ float64 at each fit's parameters; ``gap`` = (default - best of 64) / best of 64 
 the default found the lower cost). Times: wall seconds of the default fit without the
 compilation of the model's first fit (printed apart).
 
-    python benchmarks/measured_optimum.py [--curet all|N,M,...] [--no-write]
+    python benchmarks/measured_optimum.py [--curet all|N,M,...] [--rows FILE] [--no-write]
 
 It prints the tables and writes them, dated and with the machine, to the section
-``measured_optimum`` of ``docs/benchmarks.md``.
+``measured_optimum`` of ``docs/benchmarks.md``, after every material (a long run leaves
+what it has measured). ``--rows FILE`` keeps every measured row in a JSON-lines file and
+skips the (file, model) pairs already there, so that an interrupted run resumes.
 """
 
 from __future__ import annotations
 
 import argparse
 import datetime
+import json
 import os
 import sys
 import time
@@ -73,51 +76,10 @@ def _materials(curet: str):
         yield f"curet/{i}", jm.restrict(m, 80.0), False
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--curet", default="all", help="CURET samples: all, or e.g. 1,5,12")
-    ap.add_argument("--no-write", action="store_true", help="print only")
-    args = ap.parse_args(argv)
-    print(f"machine: {machine()}\n")
-    compile_s: dict[tuple[str, str], float] = {}
-    rows, curet_rows = [], []
-    for label, m, cornell in _materials(args.curet):
-        names = jm.DEFAULT_MODELS + (EXTRA_CORNELL if cornell else ())
-        for name in names:
-            model = jm.build_model(name)
-            t0 = time.perf_counter()
-            mf = jm.fit_model(model, m, name=name, max_theta_deg=None, timing=False)
-            dt = time.perf_counter() - t0
-            key = (name, label.split("/")[0])
-            if key not in compile_s:
-                # The first fit of a model on a file's shapes compiles it: time it again,
-                # warm, to split the two.
-                t1 = time.perf_counter()
-                jm.fit_model(model, m, name=name, max_theta_deg=None, timing=False)
-                warm = time.perf_counter() - t1
-                compile_s[key] = max(dt - warm, 0.0)
-                dt = warm
-            ref = _reference(model, m)
-            gap = (mf.cost - ref) / ref if ref > 0 else 0.0
-            cert = mf.certificate
-            row = [label, name, mf.cost, ref, gap, cert.short() if cert else "-", dt]
-            (rows if cornell else curet_rows).append(row)
-            print(
-                f"{label:22s} {name:34s} {mf.cost:10.4g} {ref:10.4g} {100 * gap:+7.2f}% "
-                f"{row[5]:>14s} {dt:6.2f} s",
-                flush=True,
-            )
-
+def _body(rows, curet_rows, compile_s, n_curet: int) -> str:
     def fmt(r):
-        return [
-            r[0],
-            r[1],
-            f"{r[2]:.5g}",
-            f"{r[3]:.5g}",
-            f"{100 * r[4]:+.2f}%",
-            r[5],
-            f"{r[6]:.2f}",
-        ]
+        gap = f"{100 * r[4]:+.2f}%"
+        return [r[0], r[1], f"{r[2]:.5g}", f"{r[3]:.5g}", gap, r[5], f"{r[6]:.2f}"]
 
     head = ["file", "model", "default cost", f"best of {N_REF}", "gap", "starts agree", "fit s"]
     parts = [
@@ -139,6 +101,8 @@ def main(argv=None) -> int:
         summary = []
         for name in jm.DEFAULT_MODELS:
             rs = [r for r in curet_rows if r[1] == name]
+            if not rs:
+                continue
             gaps = np.array([r[4] for r in rs])
             worst = rs[int(np.argmax(gaps))]
             doubt = sum("doubtful" in r[5] for r in rs)
@@ -153,23 +117,17 @@ def main(argv=None) -> int:
                     f"{np.median([r[6] for r in rs]):.2f}",
                 ]
             )
+        done = len({r[0] for r in curet_rows})
         parts += [
             "",
-            f"CURET samples ({len({r[0] for r in curet_rows})}), per model:",
+            f"CURET samples ({done} of {n_curet}), per model:",
             "",
             table(
-                [
-                    "model",
-                    "samples",
-                    "within 1%",
-                    "worst gap",
-                    "median gap",
-                    "doubtful",
-                    "median fit s",
-                ],
+                ["model", "samples", "within 1%", "worst gap", "median gap", "doubtful",
+                 "median fit s"],
                 summary,
             ),
-        ]
+        ]  # fmt: skip
         beyond = [fmt(r) for r in curet_rows if r[4] > TOL]
         if beyond:
             parts += ["", "CURET fits more than 1% above the best of 64:", "", table(head, beyond)]
@@ -178,11 +136,66 @@ def main(argv=None) -> int:
     parts += [
         "",
         f"{len(all_rows) - n_bad} of {len(all_rows)} fits within 1% of the best of {N_REF}.",
-        "",
-        "Compile time of each model's first default fit (s; Cornell, then CURET shapes): "
-        + ", ".join(f"{k[0]} {v:.1f} ({k[1]})" for k, v in compile_s.items()),
     ]
-    body = "\n".join(parts)
+    if compile_s:
+        parts += [
+            "",
+            "Compile time of each model's first default fit (s; Cornell, then CURET shapes): "
+            + ", ".join(f"{k[0]} {v:.1f} ({k[1]})" for k, v in compile_s.items()),
+        ]
+    return "\n".join(parts)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--curet", default="all", help="CURET samples: all, or e.g. 1,5,12")
+    ap.add_argument("--rows", type=Path, default=None, help="JSON-lines file of measured rows")
+    ap.add_argument("--no-write", action="store_true", help="print only")
+    args = ap.parse_args(argv)
+    print(f"machine: {machine()}\n")
+    n_curet = 61 if args.curet == "all" else len(args.curet.split(","))
+    kept: dict[tuple[str, str], list] = {}
+    if args.rows is not None and args.rows.exists():
+        for line in args.rows.read_text().splitlines():
+            r = json.loads(line)
+            kept[(r[0], r[1])] = r
+    compile_s: dict[tuple[str, str], float] = {}
+    rows, curet_rows = [], []
+    for label, m, cornell in _materials(args.curet):
+        names = jm.DEFAULT_MODELS + (EXTRA_CORNELL if cornell else ())
+        for name in names:
+            if (label, name) in kept:
+                (rows if cornell else curet_rows).append(kept[(label, name)])
+                continue
+            model = jm.build_model(name)
+            t0 = time.perf_counter()
+            mf = jm.fit_model(model, m, name=name, max_theta_deg=None, timing=False)
+            dt = time.perf_counter() - t0
+            key = (name, label.split("/")[0])
+            if key not in compile_s:
+                # The first fit of a model on a file's shapes compiles it: time it again,
+                # warm, to split the two.
+                t1 = time.perf_counter()
+                jm.fit_model(model, m, name=name, max_theta_deg=None, timing=False)
+                warm = time.perf_counter() - t1
+                compile_s[key] = max(dt - warm, 0.0)
+                dt = warm
+            ref = _reference(model, m)
+            gap = (mf.cost - ref) / ref if ref > 0 else 0.0
+            cert = mf.certificate
+            row = [label, name, mf.cost, ref, gap, cert.short() if cert else "-", dt]
+            (rows if cornell else curet_rows).append(row)
+            if args.rows is not None:
+                with args.rows.open("a") as fh:
+                    fh.write(json.dumps(row) + "\n")
+            print(
+                f"{label:22s} {name:34s} {mf.cost:10.4g} {ref:10.4g} {100 * gap:+7.2f}% "
+                f"{row[5]:>14s} {dt:6.2f} s",
+                flush=True,
+            )
+        if not args.no_write:
+            write_section("measured_optimum", _body(rows, curet_rows, compile_s, n_curet))
+    body = _body(rows, curet_rows, compile_s, n_curet)
     print("\n" + body)
     if not args.no_write:
         print(f"wrote {write_section('measured_optimum', body)}")
