@@ -81,9 +81,15 @@ DEFAULT_MODELS: tuple[str, ...] = tuple(_BUILDERS)
 #: The Fresnel terms a Cook-Torrance model of this set can have.
 FRESNEL_CHOICES: tuple[str, ...] = ("schlick", "dielectric")
 _DIELECTRIC = "_dielectric"
+
+
+def _dielectric(distribution: str) -> Callable[[], BRDF]:
+    return lambda: CookTorrance(distribution, diffuse="lambert", fresnel="dielectric")
+
+
 for _d, _label in (("beckmann", "Beckmann"), ("ggx", "GGX")):
     _BUILDERS[f"cook_torrance_{_d}{_DIELECTRIC}"] = (
-        lambda d=_d: CookTorrance(d, diffuse="lambert", fresnel="dielectric"),
+        _dielectric(_d),
         f"Lambert + Cook-Torrance, {_label} D, height-correlated Smith G, exact dielectric F "
         "(fitted eta)",
     )
