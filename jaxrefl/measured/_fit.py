@@ -1,9 +1,11 @@
 """Fit analytic models to one measured material and report error, parameters and time.
 
-:func:`fit_model` fits one model with :func:`jaxrefl.fit.fit_samples` (lean batched
-Levenberg-Marquardt by default; a :class:`jaxrefl.fit.FitConfig` picks the solver, noise,
-loss and dtype) and returns a
-:class:`ModelFit`; :func:`fit_brdf` prepares the samples once (spectra to RGB or per band,
+:func:`fit_model` fits one model from a batch of starts solved together
+(:func:`~jaxrefl.measured._starts.fit_multistart`: the automatic start, starts read off
+the measured highlight and quasi-random ones, the best kept and certified; ``starts=None``
+fits the single automatic start with :func:`jaxrefl.fit.fit_samples`), by the lean batched
+Levenberg-Marquardt by default (a :class:`jaxrefl.fit.FitConfig` picks the solver, noise,
+loss and dtype), and returns a :class:`ModelFit`; :func:`fit_brdf` prepares the samples once (spectra to RGB or per band,
 angle limit, solid-angle weights) and fits a whole set of models into a :class:`FitReport`
 whose :meth:`FitReport.to_dict` is the ``report.json`` of ``jaxrefl fit-brdf``.
 
