@@ -7,7 +7,8 @@ fits the single automatic start with :func:`jaxrefl.fit.fit_samples`), by the le
 Levenberg-Marquardt by default (a :class:`jaxrefl.fit.FitConfig` picks the solver, noise,
 loss and dtype), and returns a :class:`ModelFit`; :func:`fit_brdf` prepares the samples
 once (spectra to RGB or per band, angle limit, solid-angle weights) and fits a whole set of
-models into a :class:`FitReport` whose :meth:`FitReport.to_dict` is the ``report.json`` of ``jaxrefl fit-brdf``.
+models into a :class:`FitReport` whose :meth:`FitReport.to_dict` is the ``report.json``
+of ``jaxrefl fit-brdf``.
 
 What is minimised: with ``cosine=True`` (default) the residual is
 (f̂ - f) cos(theta_i) per sample and channel, i.e. exactly the quantity inside the
