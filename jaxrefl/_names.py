@@ -53,6 +53,8 @@ MEASURED_MODELS: dict[str, str] = {
     "lafortune_1": "Lambert + 1 Lafortune lobe",
     "lafortune_2": "Lambert + 2 Lafortune lobes",
     "lafortune_3": "Lambert + 3 Lafortune lobes",
+    "beckmann_dielectric": "beckmann with the exact dielectric Fresnel term (fitted eta)",
+    "ggx_dielectric": "ggx with the exact dielectric Fresnel term (fitted eta)",
 }
 
 #: Other spellings -> the canonical name.
@@ -61,6 +63,8 @@ ALIASES: dict[str, str] = {
     "cook_torrance_beckmann": "beckmann",
     "ct_ggx": "ggx",
     "ct_beckmann": "beckmann",
+    "cook_torrance_ggx_dielectric": "ggx_dielectric",
+    "cook_torrance_beckmann_dielectric": "beckmann_dielectric",
     "ggx_normals": "ggx_normal",
 }
 

@@ -54,7 +54,7 @@ def _incidence(text: str) -> float:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    default = list(MEASURED_MODELS)
+    default = [n for n in MEASURED_MODELS if not n.endswith("_dielectric")]
     p.add_argument("path", metavar="FILE", help="measured BRDF file (.astm, .dat, .binary)")
     p.add_argument(
         "--models",
@@ -127,6 +127,23 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="incidence angles of the lobe plots, degrees (default: spread over the data)",
     )
     p.add_argument("--no-plot", action="store_true", help="skip lobes.png")
+    p.add_argument(
+        "--fresnel",
+        choices=("schlick", "dielectric", "both"),
+        default="schlick",
+        help="Fresnel term of the Cook-Torrance models: Schlick's F0 (default), the exact "
+        "dielectric one with a fitted eta, or both (the report says which fits better)",
+    )
+    p.add_argument(
+        "--starts",
+        type=int,
+        default=24,
+        help="quasi-random starts per model, solved together with the data-driven ones "
+        "(default 24)",
+    )
+    p.add_argument(
+        "--single-start", action="store_true", help="one automatic start per model, no certificate"
+    )
 
 
 def _model_names(raw: list[str] | None) -> list[str] | None:
@@ -143,12 +160,29 @@ def _model_names(raw: list[str] | None) -> list[str] | None:
     return list(dict.fromkeys(names))
 
 
+def _with_fresnel(names: list[str] | None, fresnel: str) -> list[str]:
+    """The model names with the Fresnel choice applied (``both``: each Cook-Torrance model
+    with Schlick, then with the dielectric term)."""
+    from jaxrefl.measured import DEFAULT_MODELS, fresnel_variant
+
+    out: list[str] = []
+    for n in DEFAULT_MODELS if names is None else names:
+        kinds = ("schlick", "dielectric") if fresnel == "both" else (fresnel,)
+        for v in (fresnel_variant(n, k) for k in kinds):
+            if v not in out:
+                out.append(v)
+    return out
+
+
 def run(args: argparse.Namespace) -> int:
     from jaxrefl import measured as jm
     from jaxrefl._jsonsafe import report_json
 
-    names = _model_names(args.models)
+    names = _with_fresnel(_model_names(args.models), args.fresnel)
     check_out_dir(args.out)
+    if args.starts < 0:
+        raise ValueError(f"--starts must be >= 0, got {args.starts}")
+    starts = None if args.single_start else jm.MultiStart(n_random=args.starts)
     m = jm.load_measured(
         args.path,
         curet_table=args.curet_table,
@@ -167,6 +201,7 @@ def run(args: argparse.Namespace) -> int:
         config=fit_config(args.backend, args.dtype, max_iters=args.max_iters),
         retry_float64=not args.no_retry,
         progress=lambda name: print(f"  fitting {name} ...", flush=True),
+        starts=starts,
     )
     args.out.mkdir(parents=True, exist_ok=True)
     report_path = args.out / "report.json"

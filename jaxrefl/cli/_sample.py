@@ -261,6 +261,9 @@ def _run_brdf(args, path: Path, opts) -> dict:
     files = [p.name for p in measured.write_posterior(res, args.out)]
     rep = res.report()
     print(f"{path.name} ({args.brdf_model}, {args.sampler}):")
+    cert = res.fit.certificate
+    if cert is not None:
+        print(f"  started from the best of {cert.n_starts} starts ({cert.short()} agree)")
     for lab, v in rep["posterior"].items():
         print(
             f"  {lab:12s} {v['mean']:.4g} +- {v['std']:.2g}  "

@@ -15,8 +15,10 @@ Quick use::
     post.summary(), jm.write_posterior(post, "out")      # posterior.nc, corner.png
 
 Parts: :mod:`._metrics` (cosine-weighted L2 of Ngan et al. 2005, log-space and relative
-L2), :mod:`._models` (the named model set), :mod:`._data` (reading, RGB conversion, angle
-limit), :mod:`._fit` (fit one model / all of them), :mod:`._retry` (float32 -> float64),
+L2), :mod:`._models` (the named model set), :mod:`._starts` (multi-start fits from
+data-driven and quasi-random starts, and the certificate of the optimum), :mod:`._data`
+(reading, RGB conversion, angle limit), :mod:`._fit` (fit one model / all of them),
+:mod:`._retry` (float32 -> float64),
 :mod:`._plots` (measured vs fitted lobes), :mod:`._components` (models assembled from
 switched-on components),
 :mod:`._compact` (leave out the pixels a scene does not need), :mod:`._prune` (drop
@@ -52,8 +54,12 @@ from ._metrics import relative_l2 as relative_l2
 from ._metrics import sample_weights as sample_weights
 from ._metrics import usable_samples as usable_samples
 from ._models import DEFAULT_MODELS as DEFAULT_MODELS
+from ._models import FRESNEL_CHOICES as FRESNEL_CHOICES
 from ._models import MODEL_DESCRIPTIONS as MODEL_DESCRIPTIONS
+from ._models import MODEL_NAMES as MODEL_NAMES
 from ._models import build_model as build_model
+from ._models import fresnel_name as fresnel_name
+from ._models import fresnel_variant as fresnel_variant
 from ._models import resolve_models as resolve_models
 from ._plan import Ranking as Ranking
 from ._plan import greedy_design as greedy_design
@@ -79,3 +85,12 @@ from ._retry import cost64 as cost64
 from ._retry import fit_pixels_retry as fit_pixels_retry
 from ._retry import float64_reasons as float64_reasons
 from ._retry import x64 as x64
+from ._starts import Certificate as Certificate
+from ._starts import LobeMoments as LobeMoments
+from ._starts import MultiStart as MultiStart
+from ._starts import certify as certify
+from ._starts import fit_multistart as fit_multistart
+from ._starts import lobe_moments as lobe_moments
+from ._starts import random_thetas as random_thetas
+from ._starts import seed_params as seed_params
+from ._starts import start_thetas as start_thetas

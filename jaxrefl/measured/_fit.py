@@ -1,11 +1,14 @@
 """Fit analytic models to one measured material and report error, parameters and time.
 
-:func:`fit_model` fits one model with :func:`jaxrefl.fit.fit_samples` (lean batched
-Levenberg-Marquardt by default; a :class:`jaxrefl.fit.FitConfig` picks the solver, noise,
-loss and dtype) and returns a
-:class:`ModelFit`; :func:`fit_brdf` prepares the samples once (spectra to RGB or per band,
-angle limit, solid-angle weights) and fits a whole set of models into a :class:`FitReport`
-whose :meth:`FitReport.to_dict` is the ``report.json`` of ``jaxrefl fit-brdf``.
+:func:`fit_model` fits one model from a batch of starts solved together
+(:func:`~jaxrefl.measured._starts.fit_multistart`: the automatic start, starts read off
+the measured highlight and quasi-random ones, the best kept and certified; ``starts=None``
+fits the single automatic start with :func:`jaxrefl.fit.fit_samples`), by the lean batched
+Levenberg-Marquardt by default (a :class:`jaxrefl.fit.FitConfig` picks the solver, noise,
+loss and dtype), and returns a :class:`ModelFit`; :func:`fit_brdf` prepares the samples
+once (spectra to RGB or per band, angle limit, solid-angle weights) and fits a whole set of
+models into a :class:`FitReport` whose :meth:`FitReport.to_dict` is the ``report.json``
+of ``jaxrefl fit-brdf``.
 
 What is minimised: with ``cosine=True`` (default) the residual is
 (f̂ - f) cos(theta_i) per sample and channel, i.e. exactly the quantity inside the
@@ -38,8 +41,9 @@ from jaxrefl.io import MeasuredBRDF
 
 from ._data import restrict, to_rgb
 from ._metrics import METRICS, error_metrics, sample_weights, usable_samples
-from ._models import MODEL_DESCRIPTIONS, resolve_models
+from ._models import MODEL_DESCRIPTIONS, fresnel_name, resolve_models
 from ._retry import choose, float64_enabled, float64_reasons, x64
+from ._starts import Certificate, MultiStart, fit_multistart
 
 __all__ = ["FitReport", "ModelFit", "fit_brdf", "fit_model", "predict"]
 
@@ -47,6 +51,7 @@ Channels = Literal["joint", "separate"]
 _FLOAT32 = np.dtype(np.float32)
 _FLOAT64 = np.dtype(np.float64)
 _MEASURED_CONFIG = FitConfig(dtype=np.float32)
+_MULTISTART = MultiStart()
 
 
 def _check_dtype(config: FitConfig) -> np.dtype:
@@ -142,6 +147,8 @@ class ModelFit:
     channels:       ``"joint"`` or ``"separate"`` (see :func:`fit_model`)
     config:         the fit's configuration (solver, noise, loss; its dtype the one asked for)
     retry:          None, or what the float64 retry found (reasons, costs, which was kept)
+    certificate:    how far the starts agree on the optimum (:class:`Certificate` of the
+                    kept run), None for a single-start fit
     """
 
     name: str
@@ -157,6 +164,13 @@ class ModelFit:
     channels: Channels
     config: FitConfig
     retry: dict[str, Any] | None = None
+    certificate: Certificate | None = None
+
+    @property
+    def fresnel(self) -> str | None:
+        """The Fresnel part of a microfacet model (``"schlick"``, ``"dielectric"``, ...),
+        None for a model without one."""
+        return fresnel_name(self.model)
 
     @property
     def status(self) -> str | dict[str, int]:
@@ -179,6 +193,8 @@ class ModelFit:
             "channels": self.channels,
             "backend": self.result.backend,
             "retry": self.retry,
+            "fresnel": self.fresnel,
+            "certificate": None if self.certificate is None else self.certificate.to_dict(),
         }
 
 
@@ -194,6 +210,7 @@ def fit_model(
     max_theta_deg: float | None = 80.0,
     weight: np.ndarray | None = None,
     timing: bool = True,
+    starts: MultiStart | None = _MULTISTART,
 ) -> ModelFit:
     """Fit ``model`` to ``measured`` (module docstring) and compute the error metrics.
 
@@ -208,6 +225,10 @@ def fit_model(
                    result when it is finite and no worse (see ``_retry``)
     weight:        per-sample solid-angle weights for the metrics (default 1), aligned
                    with ``measured`` before the angle limit is applied
+    starts:        the multi-start settings (:class:`MultiStart`; default: the data-driven
+                   starts and 24 quasi-random ones solved together, the best kept and
+                   certified, see ``_starts``); None: one start, the automatic one of
+                   :func:`jaxrefl.fit.fit_samples`
     """
     name = name or type(model).__name__
     ok = usable_samples(measured.wi, measured.wo, measured.values, max_theta_deg)
@@ -220,10 +241,25 @@ def fit_model(
 
     dtype = _check_dtype(config)
 
+    certs: dict[np.dtype, Certificate] = {}
+
     def run(dt: np.dtype) -> tuple[FitResult, float, float]:
         def fn() -> FitResult:
             cfg = config.replace(dtype=dt)
-            return fit_samples(model, data, channels=channels, cosine=cosine, config=cfg)
+            if starts is None:
+                return fit_samples(model, data, channels=channels, cosine=cosine, config=cfg)
+            r, certs[dt], _ = fit_multistart(
+                model,
+                data.wi,
+                data.wo,
+                f,
+                channels=channels,
+                cosine=cosine,
+                config=cfg,
+                starts=starts,
+                channel_names=tuple(data.channels),
+            )
+            return r
 
         return _timed(dt, fn, timing)
 
@@ -271,6 +307,7 @@ def fit_model(
         channels=channels,
         config=config,
         retry=retry,
+        certificate=certs.get(kept),
     )
 
 
@@ -289,12 +326,31 @@ class FitReport:
         vals = {k: v.metrics[metric] for k, v in self.fits.items()}
         return min(vals, key=lambda k: np.inf if not np.isfinite(vals[k]) else vals[k])
 
+    def fresnel_comparison(self, metric: str = "cosine_weighted_l2") -> dict[str, Any]:
+        """For every microfacet model fitted with both Fresnel terms (a name and its
+        ``_dielectric`` variant): both ``metric`` values and the better term, by model name."""
+        out: dict[str, Any] = {}
+        for k, v in self.fits.items():
+            other = self.fits.get(k + "_dielectric")
+            if v.fresnel != "schlick" or other is None or other.fresnel != "dielectric":
+                continue
+            a, b = v.metrics[metric], other.metrics[metric]
+            out[k] = {
+                "metric": metric,
+                "schlick": a,
+                "dielectric": b,
+                "better": "dielectric" if b < a else "schlick",
+            }
+        return out
+
     def table(self) -> str:
-        """A Markdown table: model, parameters, the three errors, time, status."""
+        """A Markdown table: model, parameters, the three errors, time, status, and how
+        many starts agree on the optimum (``doubtful``: fewer than the stated share)."""
         head = (
-            "| model | P | cos-weighted L2 | log L2 | relative L2 | fit ms | compile s | status |"
+            "| model | P | cos-weighted L2 | log L2 | relative L2 | fit ms | compile s | status "
+            "| starts agree |"
         )
-        rows = [head, "|" + "---|" * 8]
+        rows = [head, "|" + "---|" * 9]
         for k, v in self.fits.items():
             m = v.metrics
             st = v.status if isinstance(v.status, str) else ",".join(v.status)
@@ -303,7 +359,12 @@ class FitReport:
             rows.append(
                 f"| {k} | {v.n_params} | {m['cosine_weighted_l2']:.4g} | {m['log_l2']:.4g} | "
                 f"{m['relative_l2']:.4g} | {1e3 * v.fit_time_s:.1f} | {v.compile_time_s:.2f} | "
-                f"{st} |"
+                f"{st} | {v.certificate.short() if v.certificate else '-'} |"
+            )
+        for k, c in self.fresnel_comparison().items():
+            rows.append(
+                f"\n{k}: {c['better']} Fresnel fits better (cos-weighted L2 Schlick "
+                f"{c['schlick']:.4g}, dielectric {c['dielectric']:.4g})"
             )
         return "\n".join(rows)
 
@@ -328,6 +389,7 @@ class FitReport:
             },
             "best": {k: self.best(k) for k in METRICS},
             "models": {k: v.to_dict() for k, v in self.fits.items()},
+            "fresnel_comparison": self.fresnel_comparison(),
             "jax": {"version": jax.__version__, "backend": jax.default_backend()},
         }
 
@@ -344,6 +406,7 @@ def fit_brdf(
     retry_float64: bool = True,
     timing: bool = True,
     progress: Callable[[str], None] | None = None,
+    starts: MultiStart | None = _MULTISTART,
 ) -> FitReport:
     """Fit every model in ``models`` (default: :data:`~jaxrefl.measured.DEFAULT_MODELS`) to
     one material and collect a :class:`FitReport`.
@@ -385,6 +448,7 @@ def fit_brdf(
             max_theta_deg=None,
             weight=weight,
             timing=timing,
+            starts=starts,
         )
     settings = {
         "spectral": spectral if measured.wavelengths_nm is not None else None,
@@ -394,5 +458,6 @@ def fit_brdf(
         "cosine": cosine,
         "config": config.to_json(),
         "retry_float64": retry_float64,
+        "starts": None if starts is None else starts.to_json(),
     }
     return FitReport(prepared, fits, settings, weight)

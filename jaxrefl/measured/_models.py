@@ -21,6 +21,12 @@ name                       model
 ``DEFAULT_MODELS`` lists them in that order (the set of the foundation issue). The names are
 those of :data:`jaxrefl._names.MEASURED_MODELS`, shared with the command line;
 :func:`build_model` also takes their aliases (``cook_torrance_ggx`` for ``ggx``).
+
+Each Cook-Torrance model also comes with the exact unpolarised dielectric Fresnel term
+(Hecht, *Optics*, sec. 4.6) and a fitted relative index ``eta`` per channel in [1, 4] in
+place of Schlick's F0: ``beckmann_dielectric`` and
+``ggx_dielectric`` (not in the default set; :data:`FRESNEL_CHOICES` names the
+two terms and :func:`fresnel_variant` maps a model name to the variant with either).
 """
 
 from __future__ import annotations
@@ -28,9 +34,29 @@ from __future__ import annotations
 from collections.abc import Callable, Iterable, Mapping
 
 from jaxrefl._names import MEASURED_MODELS, canonical
-from jaxrefl.brdf import BRDF, BlinnPhong, CookTorrance, Lafortune, Lambert, Ward
+from jaxrefl.brdf import (
+    BRDF,
+    BlinnPhong,
+    ConductorFresnel,
+    CookTorrance,
+    DielectricFresnel,
+    Lafortune,
+    Lambert,
+    NoFresnel,
+    SchlickFresnel,
+    Ward,
+)
 
-__all__ = ["DEFAULT_MODELS", "MODEL_DESCRIPTIONS", "build_model", "resolve_models"]
+__all__ = [
+    "DEFAULT_MODELS",
+    "FRESNEL_CHOICES",
+    "MODEL_DESCRIPTIONS",
+    "MODEL_NAMES",
+    "build_model",
+    "fresnel_name",
+    "fresnel_variant",
+    "resolve_models",
+]
 
 _BUILDERS: dict[str, Callable[[], BRDF]] = {
     "lambert": Lambert,
@@ -45,18 +71,57 @@ _BUILDERS: dict[str, Callable[[], BRDF]] = {
 
 #: Every model of the default set, in report order.
 DEFAULT_MODELS: tuple[str, ...] = tuple(_BUILDERS)
+
+#: The Fresnel terms a Cook-Torrance model of this set can have.
+FRESNEL_CHOICES: tuple[str, ...] = ("schlick", "dielectric")
+_DIELECTRIC = "_dielectric"
+
+
+def _dielectric(distribution: str) -> Callable[[], BRDF]:
+    return lambda: CookTorrance(distribution, diffuse="lambert", fresnel="dielectric")
+
+
+for _d in ("beckmann", "ggx"):
+    _BUILDERS[f"{_d}{_DIELECTRIC}"] = _dielectric(_d)
+
+#: Every model name :func:`build_model` knows (the default set first).
+MODEL_NAMES: tuple[str, ...] = tuple(_BUILDERS)
 #: One line per model name.
 MODEL_DESCRIPTIONS: dict[str, str] = dict(MEASURED_MODELS)
 
 
 def build_model(name: str) -> BRDF:
-    """The model called ``name`` (one of :data:`DEFAULT_MODELS`)."""
+    """The model called ``name`` (one of :data:`MODEL_NAMES`)."""
     try:
         return _BUILDERS[canonical(name)]()
     except KeyError:
-        raise ValueError(
-            f"unknown model {name!r}; choose from {', '.join(DEFAULT_MODELS)}"
-        ) from None
+        raise ValueError(f"unknown model {name!r}; choose from {', '.join(MODEL_NAMES)}") from None
+
+
+_FRESNEL_NAMES = {
+    SchlickFresnel: "schlick",
+    DielectricFresnel: "dielectric",
+    ConductorFresnel: "conductor",
+    NoFresnel: "none",
+}
+
+
+def fresnel_name(model: BRDF) -> str | None:
+    """``"schlick"``, ``"dielectric"``, ``"conductor"`` or ``"none"``: the Fresnel part
+    of a microfacet model; None for a model without one."""
+    part = getattr(model, "fresnel", None)
+    return None if part is None else _FRESNEL_NAMES.get(type(part), type(part).__name__)
+
+
+def fresnel_variant(name: str, fresnel: str) -> str:
+    """The name of model ``name`` with Fresnel term ``fresnel`` (one of
+    :data:`FRESNEL_CHOICES`); a model without a Fresnel variant keeps its name."""
+    if fresnel not in FRESNEL_CHOICES:
+        raise ValueError(f"fresnel must be one of {', '.join(FRESNEL_CHOICES)}, not {fresnel!r}")
+    base = canonical(name).removesuffix(_DIELECTRIC)
+    if base + _DIELECTRIC not in _BUILDERS:
+        return canonical(name)
+    return base + (_DIELECTRIC if fresnel == "dielectric" else "")
 
 
 def resolve_models(models: Iterable[str] | Mapping[str, BRDF] | None) -> dict[str, BRDF]:

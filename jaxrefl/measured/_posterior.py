@@ -1,7 +1,9 @@
 """The posterior of an analytic model's parameters given one measured material.
 
 :func:`sample_posterior` fits the model by least squares (:func:`fit_model`, float64, on
-the residuals (f̂ - f) cos(theta_i) of the samples within the angle limit), then samples
+the residuals (f̂ - f) cos(theta_i) of the samples within the angle limit, from the
+data-driven and quasi-random starts of :class:`MultiStart` solved together: the posterior
+starts from the best of them, and the report carries their certificate), then samples
 p(theta, s | f) for the same residuals with Gaussian noise of unknown scale s (Jeffreys
 prior) and the default priors (:func:`jaxrefl.posterior.default_priors`): the material is
 one "pixel" of K samples in C channels (:func:`measured_pixel_data`). The sampler is
@@ -34,10 +36,12 @@ from ._data import load_measured, restrict, to_rgb
 from ._fit import ModelFit, fit_model
 from ._models import build_model
 from ._prune import measured_pixel_data
+from ._starts import MultiStart
 
 __all__ = ["BRDFPosterior", "sample_posterior", "write_posterior"]
 
 NOISE = "Gaussian on f_r cos(theta_i), unknown scale (Jeffreys prior)"
+_MULTISTART = MultiStart()
 _EMCEE_KEYS = ("tau", "burn", "thin", "tau_reliable", "n_steps", "n_walkers")
 
 
@@ -105,7 +109,12 @@ class BRDFPosterior:
             "model": self.model,
             "sampler": self.sampler_name,
             "samples_used": self.n_used,
-            "fit": {"params": mf.to_dict()["params"], "cost": mf.cost, "status": mf.status},
+            "fit": {
+                "params": mf.to_dict()["params"],
+                "cost": mf.cost,
+                "status": mf.status,
+                "certificate": None if mf.certificate is None else mf.certificate.to_dict(),
+            },
             "noise": NOISE,
             "posterior": self.summary(),
             "diagnostics": {
@@ -128,6 +137,7 @@ def sample_posterior(
     max_theta_deg: float | None = 80.0,
     seed: int = 0,
     progress: bool = False,
+    starts: MultiStart | None = _MULTISTART,
 ) -> BRDFPosterior:
     """The posterior of ``model`` (a :func:`build_model` name) given ``measured`` (module
     docstring); spectral data are converted to RGB (:func:`to_rgb`) first.
@@ -137,6 +147,7 @@ def sample_posterior(
                    :class:`jaxrefl.posterior.HMCOptions`
     max_theta_deg: samples with either direction further from the normal are left out
     seed, progress: the sampler's seed and progress bar (emcee only)
+    starts:        the least-squares fit's starts (:class:`MultiStart`; None: one start)
     """
     m = measured if isinstance(measured, MeasuredBRDF) else load_measured(measured)
     if m.wavelengths_nm is not None:
@@ -153,6 +164,7 @@ def sample_posterior(
         config=fit.FitConfig(dtype=np.float64),
         max_theta_deg=max_theta_deg,
         timing=False,
+        starts=starts,
     )
     t_fit = time.perf_counter() - t0
     space = mf.result.space

@@ -1,0 +1,506 @@
+"""Multi-start fits of one measured material: starts that see the data, a batch of diverse
+starts solved together, and a certificate of the optimum.
+
+A fit of a specular lobe from one start can stop next to the Lambertian solution (a lobe too
+narrow or too weak to reach the highlight has no gradient towards it), so a model ranking
+would compare the optimiser's luck. :func:`fit_multistart` therefore solves S starts of the
+same problem in one batched Levenberg-Marquardt call (:func:`jaxrefl.fit.fit_pixels` on the
+problem repeated S times) and keeps the start of lowest cost. The starts
+(:func:`start_thetas`) are
+
+* **data-driven** (:func:`lobe_moments`, :func:`seed_params`): a Lambertian fit to the
+  dimmer 80% of the samples (cosine-weighted least squares), then the achromatic residual
+  r = mean_c (f - albedo/pi) seen as a function of the half-vector angle theta_h (the
+  peak around the mirror direction). Its width gives a Beckmann-like roughness two ways:
+  the residual-weighted second moment alpha^2 = sum r+ tan^2 theta_h / sum r+, and the
+  half-maximum width alpha = tan theta_h(r = peak/2) / sqrt(ln 2) (exp(-tan^2/alpha^2) =
+  1/2 there); each, and half and twice each, gives a start. The width sets the model's
+  shape parameter by name (``alpha``, ``alpha_u``/``alpha_v``; ``exponent`` n = 2/alpha^2,
+  from cos^n theta_h ~ exp(-n theta_h^2 / 2); a Lafortune lobe (-c, -c, c, n) with
+  n = 1/(2 alpha^2), the angle to the mirror direction being about 2 theta_h, and c^n =
+  the peak), and the peak value sets the lobe scale (``specular``: the peak divided by the
+  model's own peak at unit scale, evaluated at a mirror pair 10 degrees off the normal;
+  ``eta``: the index whose normal-incidence F0 = ((eta - 1)/(eta + 1))^2 gives that peak).
+* **quasi-random** (:func:`random_thetas`): scrambled Sobol points (``scipy.stats.qmc``)
+  in a box of the unconstrained space: albedo and specular log-uniform in [0.005, 0.9] and
+  [1e-3, 0.9], alpha in [0.01, 0.8], exponent in [1, 1e4], eta in [1.05, 3], Lafortune
+  rows with n in [1, 5000], peak c^n in [0.01, 100], Cz/|Cx| in [-0.3, 1.3], Cx/Cy in
+  [0.8, 1.25], a quarter of them retro-reflective (Cx, Cy > 0), the rest specular; any
+  other parameter its default +- 2 in theta.
+* **the automatic start** of a single fit (:func:`jaxrefl.fit.initial_theta`: closed-form
+  colours on a roughness grid), so that the kept result is never worse than the single
+  start's (both get the same iteration budget).
+
+The :class:`Certificate` counts the starts whose cost is within ``agree_rtol`` (1%) of the
+best and flags the optimum as doubtful when their share is below ``min_share``: a user
+then sees that the starts disagree, not only the best value found.
+
+Costs are the solver's own 1/2 |r|^2 (whitened and robust as the config says), compared in
+float64. Problems: one for channels fitted jointly, C when every channel is its own problem
+(results then have a leading axis C; the certificate reports the worst channel).
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass
+from typing import Any, ClassVar, Literal
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from scipy.stats import qmc
+
+from jaxrefl.brdf import BRDF
+from jaxrefl.fit import (
+    L2,
+    FitConfig,
+    FitResult,
+    Option,
+    ParamSpace,
+    PixelData,
+    fit_pixels,
+    initial_theta,
+    make_residual,
+    pixel_data,
+)
+from jaxrefl.fit import sample_arrays as _sample_arrays
+
+__all__ = [
+    "Certificate",
+    "LobeMoments",
+    "MultiStart",
+    "certify",
+    "fit_multistart",
+    "lobe_moments",
+    "random_thetas",
+    "seed_params",
+    "start_thetas",
+]
+
+Channels = Literal["joint", "separate"]
+
+# The Lambertian fit of the data-driven start leaves out the brightest fifth of the samples
+# (they likely hold the highlight).
+_DIFFUSE_QUANTILE = 0.8
+# Roughness estimates are kept within the range a measured lobe can show (the goniometer's
+# angular resolution below, a lobe wider than the hemisphere above).
+_ALPHA_RANGE = (0.005, 1.0)
+# Lobe scales of a start stay inside their range: a start at a bound has no slope.
+_SPEC_RANGE = (1e-3, 0.95)
+# Costs below this fraction of the data's own 1/2 |y|^2 are an exact fit, equal within
+# round-off (see certify).
+_EXACT = 1e-6
+# Share of the random Lafortune lobes that start retro-reflective.
+_RETRO_SHARE = 0.25
+# Sample directions of the model's peak at unit scale: a mirror pair 10 degrees off normal.
+_PEAK_THETA = math.radians(10.0)
+
+
+class MultiStart(Option):
+    """How many starts a measured fit solves, and when their agreement is doubtful.
+
+    n_random:   quasi-random starts (Sobol, scrambled with ``seed``), >= 0; default 24
+    data:       include the data-driven starts (default True; 6 starts, one for a model
+                with no lobe)
+
+    The automatic start of a single fit is always solved too (module docstring).
+    seed:       seed of the Sobol scrambling
+    agree_rtol: a start agrees when its cost is within this fraction of the best (0.01)
+    min_share:  the certificate flags the optimum as doubtful when fewer than this share
+                of the starts agree (0.2)
+    """
+
+    kind: ClassVar[str] = "multistart"
+    n_random: int = 24
+    data: bool = True
+    seed: int = 0
+    agree_rtol: float = 0.01
+    min_share: float = 0.2
+
+    def __check_init__(self):
+        if not isinstance(self.n_random, int) or self.n_random < 0:
+            raise ValueError(f"MultiStart needs an integer n_random >= 0, got {self.n_random}")
+        if self.n_random == 0 and not self.data:
+            raise ValueError("MultiStart needs at least one start: n_random > 0 or data=True")
+        if not (math.isfinite(self.agree_rtol) and self.agree_rtol >= 0):
+            raise ValueError(f"MultiStart needs a finite agree_rtol >= 0, got {self.agree_rtol}")
+        if not (0.0 <= self.min_share <= 1.0):
+            raise ValueError(f"MultiStart needs min_share in [0, 1], got {self.min_share}")
+
+
+_DEFAULT_STARTS = MultiStart()
+_FLOAT32_CONFIG = FitConfig(dtype=np.float32)
+
+
+@dataclass(frozen=True)
+class LobeMoments:
+    """What the data say about the lobe (:func:`lobe_moments`).
+
+    albedo:     (C,) Lambertian albedo of the dimmer samples, in [0, 1]
+    peak:       peak of the achromatic residual above the diffuse level, f_r in 1/sr (>= 0)
+    alphas:     roughness estimates (second moment, half maximum), in ``_ALPHA_RANGE``
+    """
+
+    albedo: np.ndarray
+    peak: float
+    alphas: tuple[float, ...]
+
+
+def lobe_moments(
+    wi: np.ndarray, wo: np.ndarray, values: np.ndarray, *, cosine: bool = True
+) -> LobeMoments:
+    """Diffuse level, lobe peak and lobe widths of f_r samples (module docstring).
+
+    wi, wo (K, 3) unit directions above the horizon (z = normal), values (K, C) f_r in 1/sr;
+    non-finite samples are ignored. With ``cosine`` the diffuse fit weights each sample by
+    cos^2 theta_i, as the cosine-weighted residual does.
+    """
+    wi = np.asarray(wi, np.float64)
+    wo = np.asarray(wo, np.float64)
+    f = np.asarray(values, np.float64)
+    ok = np.all(np.isfinite(f), axis=-1) & (wi[:, 2] > 0) & (wo[:, 2] > 0)
+    if not np.any(ok):
+        c = f.shape[-1]
+        return LobeMoments(np.full(c, 0.5), 0.0, (0.2,))
+    wi, wo, f = wi[ok], wo[ok], f[ok]
+    lum = np.mean(f, axis=-1)
+    dim = lum <= np.quantile(lum, _DIFFUSE_QUANTILE)
+    w = wi[dim, 2] ** 2 if cosine else np.ones(int(dim.sum()))
+    albedo = np.clip(np.pi * np.sum(w[:, None] * f[dim], 0) / np.sum(w), 0.0, 1.0)
+    r = np.mean(f - albedo / np.pi, axis=-1)
+    h = wi + wo
+    tan2 = (h[:, 0] ** 2 + h[:, 1] ** 2) / np.maximum(h[:, 2], 1e-12) ** 2
+    pos = np.maximum(r, 0.0)
+    peak = float(np.max(pos))
+    alphas = []
+    if peak > 0:
+        alphas.append(math.sqrt(float(np.sum(pos * tan2) / np.sum(pos))))
+        half = tan2[r >= 0.5 * peak]
+        alphas.append(math.sqrt(float(np.max(half)) / math.log(2.0)))
+    alphas = [float(np.clip(a, *_ALPHA_RANGE)) for a in alphas if np.isfinite(a)] or [0.2]
+    return LobeMoments(albedo, peak, tuple(alphas))
+
+
+def _unit_peak(model: BRDF, p: dict[str, Any]) -> np.ndarray:
+    """(C,) the model's f_r at a mirror pair 10 degrees off the normal, for natural ``p``
+    (albedo set to 0 by the caller)."""
+    s, c = math.sin(_PEAK_THETA), math.cos(_PEAK_THETA)
+    wi = jnp.asarray([s, 0.0, c])
+    wo = jnp.asarray([-s, 0.0, c])
+    return np.asarray(model.eval({k: jnp.asarray(v) for k, v in p.items()}, wi, wo), np.float64)
+
+
+def seed_params(
+    space: ParamSpace, moments: LobeMoments, alpha: float, peak_share: float = 1.0
+) -> dict[str, np.ndarray]:
+    """Natural parameters of a start with lobe width ``alpha`` and height ``peak_share``
+    times the measured peak (module docstring); parameters the width and peak do not set
+    keep the model's default. Colours have C = ``space.channels`` entries."""
+    model, n_ch = space.model, space.channels
+    peak = max(moments.peak * peak_share, 1e-6)
+    alb = np.broadcast_to(np.asarray(moments.albedo, np.float64), (n_ch,))
+    p: dict[str, np.ndarray] = {}
+    for q in model.params:
+        d = np.asarray(q.default, np.float64)
+        p[q.name] = np.broadcast_to(d, (n_ch,)).copy() if q.kind == "color" else d.copy()
+    for name in p:
+        if name in ("alpha", "alpha_u", "alpha_v"):
+            p[name] = np.asarray(alpha)
+        elif name == "exponent":
+            # cos^n theta_h ~ exp(-n theta_h^2 / 2) against exp(-theta_h^2 / alpha^2).
+            p[name] = np.asarray(np.clip(2.0 / alpha**2, 1.0, 1e4))
+        elif name == "lobes":
+            lobes = p[name]
+            n_lobes = lobes.shape[0]
+            for j in range(n_lobes):
+                # Several lobes: widths alpha, alpha/2, 2 alpha, ... sharing the peak.
+                a = alpha * (0.5 ** ((j + 1) // 2) if j % 2 else 2.0 ** (j // 2))
+                n = float(np.clip(0.5 / a**2, 1.0, 5e3))
+                c = (peak / n_lobes) ** (1.0 / n)
+                lobes[j] = (-c, -c, c, n)
+    if "albedo" in p:
+        p["albedo"] = alb.copy()
+    probe = {**p}
+    if "albedo" in probe:
+        probe["albedo"] = np.zeros(n_ch)
+    if "specular" in p:
+        unit = _unit_peak(model, {**probe, "specular": np.ones(n_ch)})
+        p["specular"] = np.clip(peak / np.maximum(unit, 1e-12), *_SPEC_RANGE)
+    if "eta" in p:
+        # eta = 1.5 gives F0 = 0.04; F0 scales the peak, F0 = ((eta-1)/(eta+1))^2 inverts.
+        unit = _unit_peak(model, {**probe, "eta": np.full(n_ch, 1.5)})
+        f0 = np.clip(0.04 * peak / np.maximum(unit, 1e-12), 1e-4, 0.5)
+        p["eta"] = (1.0 + np.sqrt(f0)) / (1.0 - np.sqrt(f0))
+    return p
+
+
+def _from_natural(space: ParamSpace, p: dict[str, np.ndarray]) -> np.ndarray:
+    """theta for natural ``p`` in float64 (x64 switched on for the conversion only)."""
+    with jax.enable_x64(True):
+        return np.asarray(space.from_natural(p, dtype=jnp.float64), np.float64)
+
+
+def _log_uniform(u: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    return np.exp(np.log(lo) + u * (np.log(hi) - np.log(lo)))
+
+
+def random_thetas(space: ParamSpace, n: int, seed: int = 0, *, sobol: bool = True) -> np.ndarray:
+    """(n, P) starts in the box of the module docstring: scrambled Sobol points (``sobol``)
+    or independent uniform ones, in float64."""
+    if n == 0:
+        return np.zeros((0, space.size))
+    if sobol:
+        # Sobol balance is exact for powers of 2 only; any n is still well spread.
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)
+            u = qmc.Sobol(d=space.size, scramble=True, seed=seed).random(n)
+    else:
+        u = np.random.default_rng(seed).uniform(size=(n, space.size))
+    p: dict[str, np.ndarray] = {}
+    generic = []
+    for b in space.blocks:
+        ub = u[:, b.start : b.stop]
+        if b.name == "albedo":
+            v = _log_uniform(ub, 0.005, 0.9)
+        elif b.name == "specular":
+            v = _log_uniform(ub, 1e-3, 0.9)
+        elif b.name in ("alpha", "alpha_u", "alpha_v"):
+            v = _log_uniform(ub, 0.01, 0.8)
+        elif b.name == "exponent":
+            v = _log_uniform(ub, 1.0, 1e4)
+        elif b.name == "eta":
+            v = 1.05 + ub * (3.0 - 1.05)
+        elif b.name == "lobes":
+            rows = ub.reshape(n, -1, 4)
+            nn = _log_uniform(rows[..., 0], 1.0, 5e3)
+            c = _log_uniform(rows[..., 1], 0.01, 100.0) ** (1.0 / nn)
+            cz = c * (-0.3 + 1.6 * rows[..., 2])
+            # The last coordinate picks the lobe's kind and its x/y ratio: a quarter of the
+            # starts are retro-reflective (Cx, Cy > 0: the peak at wo = wi), the rest specular.
+            u4 = rows[..., 3]
+            retro = u4 < _RETRO_SHARE
+            t = np.where(retro, u4 / _RETRO_SHARE, (u4 - _RETRO_SHARE) / (1 - _RETRO_SHARE))
+            ratio = _log_uniform(t, 0.8, 1.25)
+            sx = np.where(retro, 1.0, -1.0)
+            v = np.stack([sx * c * np.sqrt(ratio), sx * c / np.sqrt(ratio), cz, nn], axis=-1)
+        else:
+            generic.append(b)
+            continue
+        p[b.name] = v.reshape((n, *b.shape)) if not b.grey else v
+    theta = np.array(_from_natural(space, p))
+    base = _from_natural(space, {})
+    for b in generic:
+        theta[:, b.start : b.stop] = base[b.start : b.stop] + 4.0 * (u[:, b.start : b.stop] - 0.5)
+    return theta
+
+
+def start_thetas(
+    space: ParamSpace,
+    wi: np.ndarray,
+    wo: np.ndarray,
+    values: np.ndarray,
+    starts: MultiStart,
+    *,
+    cosine: bool = True,
+) -> np.ndarray:
+    """(S, P) float64 starts of one problem: the data-driven ones (each moment estimate of
+    the width, and half and twice it), then ``starts.n_random`` quasi-random ones."""
+    out = []
+    if starts.data:
+        mom = lobe_moments(wi, wo, values, cosine=cosine)
+        has_lobe = any(b.name not in ("albedo",) for b in space.blocks)
+        widths = [a * k for a in mom.alphas for k in (1.0, 0.5, 2.0)] if has_lobe else [0.2]
+        seeds = [seed_params(space, mom, float(np.clip(a, *_ALPHA_RANGE))) for a in widths]
+        stacked = {k: np.stack([s[k] for s in seeds]) for k in seeds[0]}
+        out.append(_from_natural(space, stacked))
+    out.append(random_thetas(space, starts.n_random, starts.seed))
+    theta = np.concatenate(out, axis=0)
+    # A start must be finite: a non-finite entry would stop the whole problem at once.
+    return np.where(np.isfinite(theta), theta, _from_natural(space, {}))
+
+
+@dataclass(frozen=True)
+class Certificate:
+    """How far the starts of a multi-start fit agree on its optimum.
+
+    n_starts:   starts solved (per problem)
+    n_agree:    starts whose cost is within ``rtol`` of the best (the worst problem's count
+                when channels are separate problems)
+    best_cost:  the lowest cost (the solver's 1/2 |r|^2), summed over problems
+    excess:     relative excess (c - c_best)/c_best of the starts that do not agree:
+                ``min``, ``median``, ``max`` over the finite ones (None where there are
+                none), ``failed`` the count of starts without a finite cost
+    rtol, min_share: the thresholds (:class:`MultiStart`)
+    """
+
+    n_starts: int
+    n_agree: int
+    best_cost: float
+    excess: dict[str, Any]
+    rtol: float
+    min_share: float
+
+    @property
+    def share(self) -> float:
+        """Fraction of the starts that agree."""
+        return self.n_agree / max(self.n_starts, 1)
+
+    @property
+    def doubtful(self) -> bool:
+        """True when fewer than ``min_share`` of the starts agree."""
+        return self.share < self.min_share
+
+    def short(self) -> str:
+        """``"18/30"``, with ``" doubtful"`` appended when flagged."""
+        return f"{self.n_agree}/{self.n_starts}" + (" doubtful" if self.doubtful else "")
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "n_starts": self.n_starts,
+            "n_agree": self.n_agree,
+            "share": self.share,
+            "agree_rtol": self.rtol,
+            "min_share": self.min_share,
+            "doubtful": self.doubtful,
+            "best_cost": self.best_cost,
+            "excess_of_the_rest": self.excess,
+        }
+
+
+def certify(
+    costs: np.ndarray, rtol: float = 0.01, min_share: float = 0.2, scale: float = 0.0
+) -> Certificate:
+    """The :class:`Certificate` of costs (S,) of one problem or (N, S) of N problems.
+
+    A start agrees when c - c_best <= rtol max(c_best, ``_EXACT`` scale), where ``scale`` is
+    the cost of a zero prediction (1/2 |y|^2): at an (almost) exact fit every cost is
+    round-off, and those below a millionth of the data's own agree with each other.
+    """
+    c = np.atleast_2d(np.asarray(costs, np.float64))
+    c = np.where(np.isfinite(c), c, np.inf)
+    best = np.min(c, axis=1, keepdims=True)
+    tol = rtol * np.maximum(np.abs(best), _EXACT * scale) + np.finfo(np.float64).tiny
+    agree = c <= best + tol
+    n_agree = int(np.min(np.sum(agree, axis=1)))
+    rel = (c - best) / np.where(best > 0, best, 1.0)
+    rest = rel[~agree & np.isfinite(rel)]
+    excess: dict[str, Any] = {"failed": int(np.sum(~np.isfinite(c)))}
+    for k, fn in (("min", np.min), ("median", np.median), ("max", np.max)):
+        excess[k] = float(fn(rest)) if rest.size else None
+    total = float(np.sum(best)) if np.all(np.isfinite(best)) else math.inf
+    return Certificate(c.shape[1], n_agree, total, excess, rtol, min_share)
+
+
+def _problem(
+    wi: np.ndarray,
+    wo: np.ndarray,
+    values: np.ndarray,
+    channels: Channels,
+    cosine: bool,
+    dtype: np.dtype,
+) -> PixelData:
+    """The samples as N problems (N = 1 joint, C separate), as :func:`jaxrefl.fit.fit_samples`
+    builds them."""
+    obs, scale, weight = _sample_arrays(wi, wo, values, cosine=cosine, dtype=dtype)
+    k, c = obs.shape
+    if channels == "joint":
+        return pixel_data(
+            obs[None],
+            wi[None].astype(dtype),
+            wo[None].astype(dtype),
+            scale=None if scale is None else scale[None],
+            weight=weight[None],
+        )
+    return pixel_data(
+        obs.T[..., None],
+        np.broadcast_to(wi.astype(dtype), (c, k, 3)),
+        np.broadcast_to(wo.astype(dtype), (c, k, 3)),
+        scale=None if scale is None else scale.T[..., None],
+        weight=weight.T[..., None],
+    )
+
+
+def fit_multistart(
+    model: BRDF,
+    wi: np.ndarray,
+    wo: np.ndarray,
+    values: np.ndarray,
+    *,
+    channels: Channels = "joint",
+    cosine: bool = True,
+    config: FitConfig = _FLOAT32_CONFIG,
+    starts: MultiStart = _DEFAULT_STARTS,
+    thetas: np.ndarray | None = None,
+    channel_names: tuple[str, ...] | None = None,
+) -> tuple[FitResult, Certificate, np.ndarray]:
+    """Fit ``model`` to f_r samples from many starts at once and keep the best per problem.
+
+    wi, wo (K, 3), values (K, C) f_r in 1/sr (samples below the horizon get weight 0);
+    ``channels``, ``cosine`` and ``config`` as for :func:`jaxrefl.fit.fit_samples` (config's
+    dtype None: float32). The starts: the automatic one, then :func:`start_thetas`;
+    ``thetas`` (S, P) replaces them all (the thresholds of ``starts`` still certify).
+    Returns the best result shaped as :func:`jaxrefl.fit.fit_samples` returns it (no
+    leading axis when joint, C when separate), its :class:`Certificate`, and the (N, S)
+    costs of every start.
+    """
+    dtype = np.dtype(np.float32 if config.dtype is None else config.dtype)
+    wi = np.asarray(wi, np.float64)
+    wo = np.asarray(wo, np.float64)
+    f = np.asarray(values, np.float64)
+    if f.ndim == 1:
+        f = f[:, None]
+    data = _problem(wi, wo, f, channels, cosine, dtype)
+    n = data.obs.shape[0]
+    names = channel_names if channels == "joint" else None
+    if names is not None and len(names) != data.obs.shape[-1]:
+        names = None
+    space = ParamSpace(model, channels=data.obs.shape[-1], channel_names=names)
+    if thetas is None:
+        per = [
+            start_thetas(space, wi, wo, f if n == 1 else f[:, i : i + 1], starts, cosine=cosine)
+            for i in range(n)
+        ]
+        loss = L2() if config.loss is None else config.loss
+        auto = np.asarray(initial_theta(make_residual(model, space, config.noise, loss), data))
+        t0 = np.concatenate([auto[:, None].astype(np.float64), np.stack(per)], axis=1)
+    else:
+        t0 = np.broadcast_to(np.asarray(thetas, np.float64), (n, *np.shape(thetas)))
+    s = t0.shape[1]
+    batch = jax.tree.map(lambda a: jnp.repeat(a, s, axis=0), data)
+    r = fit_pixels(
+        model,
+        batch,
+        config=config.replace(dtype=dtype),
+        space=space,
+        init=jnp.asarray(t0.reshape(n * s, -1), dtype),
+    )
+    costs = np.asarray(r.cost, np.float64).reshape(n, s)
+    costs = np.where(np.isfinite(costs), costs, np.inf)
+    pick = np.argmin(costs, axis=1) + s * np.arange(n)
+    y = np.where(np.asarray(data.weight) > 0, np.asarray(data.obs, np.float64), 0.0)
+    scale = float(0.5 * np.sum(y * y) / n)
+    cert = certify(costs, starts.agree_rtol, starts.min_share, scale)
+
+    def take(x):
+        x = jnp.asarray(x)[pick]
+        return x[0] if channels == "joint" else x
+
+    theta = take(r.theta)
+    params = space.to_natural(theta)
+    if channels == "separate":
+        kinds = {q.name: q.kind for q in model.params}
+        params = {k: (v[:, 0] if kinds[k] == "color" else v) for k, v in params.items()}
+    best = FitResult(
+        params,
+        theta,
+        take(r.status),
+        take(r.cost),
+        take(r.iterations),
+        take(r.n_used),
+        space,
+        model,
+        r.backend,
+    )
+    return best, cert, costs
