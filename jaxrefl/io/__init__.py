@@ -31,6 +31,7 @@ from ._merl import merl_to_measured as merl_to_measured
 from ._merl import read_merl as read_merl
 from ._merl import read_merl_table as read_merl_table
 from ._merl import write_merl as write_merl
+from ._npz import save_npz_atomic as save_npz_atomic
 from ._photos import PNGError as PNGError
 from ._photos import read_png as read_png
 from ._photos import write_png as write_png

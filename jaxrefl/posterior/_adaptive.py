@@ -70,7 +70,6 @@ import dataclasses
 import enum
 import hashlib
 import math
-import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -499,12 +498,9 @@ def _save_chunk(path: Path, cut: Samples, run_s: float) -> None:
     arrays["no_estimate"] = cut.extra["no_estimate"]
     arrays["method"] = np.str_(cut.method)
     arrays["reparam"] = np.str_(cut.extra.get("reparam", "none"))
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    with open(tmp, "wb") as fh:
-        np.savez(fh, **arrays)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
+    from jaxrefl.io import save_npz_atomic
+
+    save_npz_atomic(path, **arrays)
 
 
 def _load_chunk(path: Path, m: int, labels) -> tuple[Samples, float] | None:

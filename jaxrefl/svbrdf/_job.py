@@ -52,7 +52,7 @@ import numpy as np
 
 from jaxrefl import brdf, fit
 from jaxrefl.fit import Distributed, Status, process_barrier, process_gather, process_share
-from jaxrefl.io import corr_name, map_name
+from jaxrefl.io import corr_name, map_name, save_npz_atomic
 
 from ._auto import ModelChoice, choose_model
 from ._data import pixel_block, resolvable_alpha
@@ -220,15 +220,6 @@ def _capture_fingerprint(capture) -> dict[str, Any]:
         "source": None if capture.source is None else str(capture.source),
         "digest": digest.hexdigest(),
     }
-
-
-def _atomic_savez(path: Path, **arrays) -> None:
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    with open(tmp, "wb") as fh:
-        np.savez(fh, **arrays)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
 
 
 _TILE_KEYS = (
@@ -650,7 +641,7 @@ def fit_capture(
         out = fitter(data, e - s)
         t1 = time.perf_counter()
         if tdir is not None:
-            _atomic_savez(tdir / f"tile_{i:05d}.npz", **out)
+            save_npz_atomic(tdir / f"tile_{i:05d}.npz", **out)
         t2 = time.perf_counter()
         fitter.stage_s["write"] += t2 - t1
         times.append(t2 - t0)
