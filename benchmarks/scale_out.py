@@ -9,9 +9,9 @@ Two jobs on the procedural demo capture (``jaxrefl demo``: 9 flash photos, 8-bit
   pixels) of a ``--fit-size`` square capture;
 * the adaptive uncertainty map (:func:`jaxrefl.svbrdf.uncertainty_maps`: the float64 fit,
   Laplace, then MCMC with :data:`jaxrefl.posterior.MAP_OPTIONS` on the flagged pixels and
-  a 2% audit, no second pass) of a ``--post-size`` square capture, its MCMC pixels in
-  chunks of ``--chunk`` (the chunks are what the processes share); ``--post-rows R``
-  maps the first R rows of that capture only (MCMC on a whole map takes long on a CPU).
+  a 2% audit, no second pass; ``--warmup`` / ``--samples`` shorten its chains) of a
+  ``--post-size`` square capture, its MCMC pixels in chunks of ``--chunk`` (the chunks are
+  what the processes share); ``--post-rows R`` maps the first R rows of that capture only.
 
 Each job runs as N processes on localhost (N = 1: a plain run; N > 1: ``--distributed``
 with a coordinator on a free local port), each a fresh interpreter started from the same
@@ -21,11 +21,12 @@ slowest process's time in the work itself (the fit's tiles, or fit + MCMC), comp
 apart (``compile s``: the fit's, the slowest process's; the MCMC sampler's, the first
 chunk's time minus the median of the others', shown only where every process ran two
 chunks or more). Speed-up is the 1-process time over the
-N-process time; efficiency is speed-up / N. ``CPU s`` is the processes' user + system
-time: with one process XLA already runs its operations on several threads, so on a
-machine of few cores two processes mostly share the same cores. The load average (1 min)
-before and after each run says how busy the machine was: the machine may be shared, and
-a busy one makes every figure slower and the speed-ups smaller.
+N-process time; efficiency is speed-up / N. ``CPU s per process`` is each process's user +
+system time over all its threads (``os.wait4``): with one process XLA already runs its
+operations on several threads, so on a machine of few cores two processes mostly share the
+same cores. The 1-minute load average, sampled every second while the processes run (mean /
+max), says how busy the machine was: it may be shared with other work, which makes every
+figure slower and the speed-ups smaller.
 """
 
 from __future__ import annotations
@@ -35,7 +36,6 @@ import contextlib
 import io
 import json
 import os
-import resource
 import shutil
 import socket
 import subprocess
@@ -67,7 +67,7 @@ if dist is None or dist.is_main:
 """
 
 _POST = """
-import json, sys, time
+import dataclasses, json, sys, time
 import jax
 import numpy as np
 from jaxrefl import fit, svbrdf
@@ -75,11 +75,12 @@ from jaxrefl import posterior as jp
 from jaxrefl.io import load_capture
 
 jax.config.update("jax_enable_x64", True)
-cap_dir, out, model, coord, n, pid, chunk, rows = sys.argv[1:]
+cap_dir, out, model, coord, n, pid, chunk, rows, warmup, samples = sys.argv[1:]
 dist = None if coord == "-" else fit.Distributed(coord, int(n), int(pid))
 if dist is not None:
     dist.initialize()
-opts = jp.AdaptiveOptions(hmc=jp.MAP_OPTIONS, rerun_rhat=None, chunk=int(chunk),
+hmc = dataclasses.replace(jp.MAP_OPTIONS, num_warmup=int(warmup), num_samples=int(samples))
+opts = jp.AdaptiveOptions(hmc=hmc, rerun_rhat=None, chunk=int(chunk),
                           keep_samples=False)
 job = svbrdf.FitJob(model=model, config=fit.FitConfig(dtype=np.float64))
 cap = load_capture(cap_dir)
@@ -99,40 +100,56 @@ def _port() -> int:
 
 
 def _run_group(code: str, args: list[str], n: int, timeout: float) -> dict:
-    """Start ``n`` processes of ``code``; wall seconds, CPU seconds, load before/after."""
+    """Start ``n`` processes of ``code`` and wait for them: wall seconds, each process's CPU
+    seconds (user + system, all its threads, from ``os.wait4``) and the 1-minute load
+    average sampled every second while they run."""
     env = {
         **os.environ,
         "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]),
     }
     env.pop("XLA_FLAGS", None)
     coord = "-" if n == 1 else f"localhost:{_port()}"
-    load0 = os.getloadavg()[0]
-    ru0 = resource.getrusage(resource.RUSAGE_CHILDREN)
-    t0 = time.perf_counter()
-    procs = [
-        subprocess.Popen(
-            [sys.executable, "-c", code, *args[:3], coord, str(n), str(pid), *args[3:]],
-            env=env,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            text=True,
-        )
-        for pid in range(n)
-    ]
-    logs = []
-    for p in procs:
-        try:
-            logs.append(p.communicate(timeout=timeout)[0])
-        except subprocess.TimeoutExpired:
-            for q in procs:
-                q.kill()
-            raise SystemExit(f"a process ran past {timeout:.0f} s") from None
-        if p.returncode != 0:
-            raise SystemExit(f"a process failed ({p.returncode}):\n{logs[-1][-3000:]}")
-    wall = time.perf_counter() - t0
-    ru1 = resource.getrusage(resource.RUSAGE_CHILDREN)
-    cpu = (ru1.ru_utime - ru0.ru_utime) + (ru1.ru_stime - ru0.ru_stime)
-    return {"wall": wall, "cpu": cpu, "load": (load0, os.getloadavg()[0])}
+    loads = [os.getloadavg()[0]]
+    with tempfile.TemporaryDirectory() as logdir:
+        logs = [Path(logdir) / f"process{pid}.log" for pid in range(n)]
+        t0 = time.perf_counter()
+        procs = []
+        for pid in range(n):
+            with logs[pid].open("w") as fh:  # a file, not a pipe: nothing to drain while waiting
+                procs.append(
+                    subprocess.Popen(
+                        [sys.executable, "-c", code, *args[:3], coord, str(n), str(pid), *args[3:]],
+                        env=env,
+                        stdout=fh,
+                        stderr=subprocess.STDOUT,
+                    )
+                )
+        cpu: dict[int, float] = {}
+        while len(cpu) < n:
+            for pid, p in enumerate(procs):
+                if pid in cpu:
+                    continue
+                done, status, ru = os.wait4(p.pid, os.WNOHANG)
+                if done == 0:
+                    continue
+                p.returncode = os.waitstatus_to_exitcode(status)  # reaped here, not by Popen
+                cpu[pid] = ru.ru_utime + ru.ru_stime
+                if p.returncode != 0:
+                    for q in procs:
+                        if q.returncode is None:
+                            q.kill()
+                    raise SystemExit(
+                        f"process {pid} failed ({p.returncode}):\n{logs[pid].read_text()[-3000:]}"
+                    )
+            if time.perf_counter() - t0 > timeout:
+                for q in procs:
+                    if q.returncode is None:
+                        q.kill()
+                raise SystemExit(f"a process ran past {timeout:.0f} s")
+            time.sleep(1.0)
+            loads.append(os.getloadavg()[0])
+        wall = time.perf_counter() - t0
+    return {"wall": wall, "cpu": [cpu[pid] for pid in range(n)], "loads": loads}
 
 
 def _demo(folder: Path, size: int) -> Path:
@@ -157,12 +174,12 @@ def _rows(name: str, runs: dict[int, dict]) -> list[list[object]]:
                 f"{r['wall']:.1f}",
                 f"{r['work']:.1f}",
                 "-" if r["compile"] is None else f"{r['compile']:.1f}",
-                f"{r['cpu']:.0f}",
+                " / ".join(f"{c:.0f}" for c in r["cpu"]),
                 f"{base['wall'] / r['wall']:.2f}",
                 f"{base['wall'] / r['wall'] / n:.2f}",
                 f"{base['work'] / r['work']:.2f}",
                 f"{base['work'] / r['work'] / n:.2f}",
-                f"{r['load'][0]:.1f} / {r['load'][1]:.1f}",
+                f"{sum(r['loads']) / len(r['loads']):.1f} / {max(r['loads']):.1f}",
             ]
         )
     return rows
@@ -176,12 +193,22 @@ def main() -> int:
     ap.add_argument("--model", default="ggx")
     ap.add_argument("--chunk", type=int, default=512, help="MCMC pixels per chunk")
     ap.add_argument(
+        "--warmup", type=int, default=None, help="MCMC warm-up steps (default: MAP_OPTIONS')"
+    )
+    ap.add_argument(
+        "--samples", type=int, default=None, help="MCMC kept steps (default: MAP_OPTIONS')"
+    )
+    ap.add_argument(
         "--post-rows", type=int, default=None, help="the uncertainty map of the first rows only"
     )
     ap.add_argument("--timeout", type=float, default=3600.0, help="seconds per run")
     a = ap.parse_args()
     counts = [int(v) for v in a.processes.split(",")]
     a.post_rows = a.post_size if a.post_rows is None else min(a.post_rows, a.post_size)
+    from jaxrefl.posterior import MAP_OPTIONS
+
+    a.warmup = MAP_OPTIONS.num_warmup if a.warmup is None else a.warmup
+    a.samples = MAP_OPTIONS.num_samples if a.samples is None else a.samples
     tmp = Path(tempfile.mkdtemp(prefix="scale_out_"))
     try:
         fit_cap, post_cap = _demo(tmp, a.fit_size), _demo(tmp, a.post_size)
@@ -195,7 +222,8 @@ def main() -> int:
         for n in counts:
             out = tmp / f"post{n}"
             args = [str(post_cap), str(out), a.model]
-            r = _run_group(_POST, [*args, str(a.chunk), str(a.post_rows)], n, a.timeout)
+            extra = [str(a.chunk), str(a.post_rows), str(a.warmup), str(a.samples)]
+            r = _run_group(_POST, [*args, *extra], n, a.timeout)
             t = json.loads((out / "timings.json").read_text())
             # the sampler's compilation: the first chunk's time minus the others' (process 0's
             # chunks); unmeasured where no process ran two chunks
@@ -212,12 +240,12 @@ def main() -> int:
         "wall s",
         "work s",
         "compile s",
-        "CPU s",
+        "CPU s per process",
         "speed-up (wall)",
         "efficiency (wall)",
         "speed-up (work)",
         "efficiency (work)",
-        "load 1 min before / after",
+        "load 1 min (mean / max)",
     ]
     rows = _rows(f"fit {a.fit_size} x {a.fit_size} ({a.model})", fits)
     crop = "" if a.post_rows == a.post_size else f", rows 0-{a.post_rows - 1}"
@@ -226,7 +254,10 @@ def main() -> int:
     p = posts[min(posts)]
     print(
         f"\nThe uncertainty map samples {p['mcmc_pixels']} pixels in {p['chunks']} chunks "
-        f"(MAP_OPTIONS, no second pass). This machine has {os.cpu_count()} cores."
+        f"(MAP_OPTIONS with {a.warmup} warm-up and {a.samples} kept steps, no second "
+        f"pass). This machine has {os.cpu_count()} cores and is "
+        "shared: other work ran beside these runs wherever the load average exceeds the "
+        "processes' own (about the cores they keep busy), and slowed them."
     )
     print(
         "\nOn GPUs: each process owns one GPU (or one host's GPUs, meshed per process), so "
