@@ -23,6 +23,10 @@ Argument errors exit 2 with argparse's one-line message (:func:`main` returns th
 rather than raising ``SystemExit``, so tests call it in-process). While a command runs, a bad value
 (``ValueError``, ``KeyError``) or an ``OSError`` (naming its path) is one line on stderr and
 exit status 1; Ctrl-C is one line and exit status 130 (128 + SIGINT, the shell convention).
+In a job of several processes (``--distributed``), a process that stops (killed, out of
+memory) ends the others at their next barrier with one line naming it and the command
+that resumes, and exit status :data:`EXIT_PROCESS_STOPPED` (3), at once rather than after
+JAX's heartbeat timeout (:func:`jaxrefl.fit.leave_group`).
 """
 
 from __future__ import annotations
@@ -31,6 +35,7 @@ import argparse
 import importlib
 import os
 import re
+import shlex
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -38,6 +43,7 @@ from typing import Any
 
 __all__ = [
     "COMMANDS",
+    "EXIT_PROCESS_STOPPED",
     "build_parser",
     "fraction",
     "main",
@@ -190,6 +196,28 @@ def _os_message(exc: OSError) -> str:
     return str(exc)
 
 
+# Exit status of a process whose peer in a --distributed job stopped (module docstring).
+EXIT_PROCESS_STOPPED = 3
+
+
+def _process_stopped(name: str, exc: RuntimeError, module: Any, args, argv) -> None:
+    """One line and an immediate exit where ``exc`` is a stopped peer; else nothing."""
+    from jaxrefl.fit import ProcessGroupError, leave_group
+
+    if not isinstance(exc, ProcessGroupError):
+        return
+    hint = getattr(module, "resume_hint", None)
+    where = (
+        hint(args).split(";")[0] if hint is not None else f"the work done so far is in {args.out}"
+    )
+    command = shlex.join(["jaxrefl", *(sys.argv[1:] if argv is None else argv)])
+    print(
+        f"{name}: {exc}; {where}; resume on every process (any number of them) with: {command}",
+        file=sys.stderr,
+    )
+    leave_group(EXIT_PROCESS_STOPPED)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run ``jaxrefl`` with ``argv`` (default: ``sys.argv[1:]``); the exit status."""
     parser = build_parser()
@@ -233,6 +261,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         text = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
         print(f"{name}: error: {text}", file=sys.stderr)
         return 1
+    except RuntimeError as exc:
+        _process_stopped(name, exc, module, args, argv)
+        raise
     finally:
         if clock is not None:
             clock.stop()

@@ -23,7 +23,8 @@ noise, loss and dtype of a fit, taken by every fitting entry point), per-pixel
 reliability flags). :func:`map_sharded` spreads a batch of pixels over this process's
 devices; :class:`Distributed` names the process group of a job split over processes and
 hosts (JAX's distributed runtime), which :func:`process_share`, :func:`process_barrier`
-and :func:`process_gather` coordinate.
+and :func:`process_gather` coordinate; a process that stops makes the others'
+barrier raise :class:`ProcessGroupError`, and :func:`leave_group` ends them at once.
 """
 
 from ._backends import FitInfo as FitInfo
@@ -32,6 +33,8 @@ from ._backends import OptimistixLM as OptimistixLM
 from ._backends import Solver as Solver
 from ._backends import solve as solve
 from ._distributed import Distributed as Distributed
+from ._distributed import ProcessGroupError as ProcessGroupError
+from ._distributed import leave_group as leave_group
 from ._distributed import process_barrier as process_barrier
 from ._distributed import process_gather as process_gather
 from ._distributed import process_share as process_share

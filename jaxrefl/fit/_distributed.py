@@ -18,21 +18,64 @@ seconds) are exchanged with :func:`process_gather` (JAX's
 
 Cross-process collectives on CPU go through Gloo (``jax_cpu_collectives_implementation``,
 JAX's default since 0.4.36; :meth:`Distributed.initialize` sets it where it is unset).
-A process that stops sending heartbeats for ``heartbeat_timeout_s`` seconds makes the
-coordination service stop the others: a dead process never leaves the rest waiting.
+
+A process that dies (killed, out of memory) closes its connections, so the others fail at
+their next barrier or gather at once: :func:`process_barrier` and :func:`process_gather`
+raise :class:`ProcessGroupError`, naming the processes that had not reached that step (each
+process marks its arrival in the coordination service's key-value store first, as orbax
+does for its own barriers). Everything written before is in the output folder, which a
+rerun resumes. Exit with :func:`leave_group`: a normal interpreter exit runs JAX's shutdown
+barrier, which waits for the dead process until ``heartbeat_timeout_s`` and then aborts
+with a C++ stack trace. A process that stops sending heartbeats for ``heartbeat_timeout_s``
+seconds (a host lost from the network) makes the coordination service stop the others, so
+no process is left waiting for ever.
 """
 
 from __future__ import annotations
 
+import itertools
+import os
+import sys
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TypeVar
+from typing import Any, NoReturn, TypeVar
 
 import jax
 import numpy as np
 
-__all__ = ["Distributed", "process_barrier", "process_gather", "process_share"]
+__all__ = [
+    "Distributed",
+    "ProcessGroupError",
+    "leave_group",
+    "process_barrier",
+    "process_gather",
+    "process_share",
+]
 
 T = TypeVar("T")
+
+# Cross-process steps in call order; every process calls them in the same order, so the
+# n-th step has the same number everywhere (the key of the arrivals in the key-value store).
+_STEPS = itertools.count()
+
+
+class ProcessGroupError(RuntimeError):
+    """A barrier or gather failed because a process of the group stopped (died, killed).
+
+    step:      the barrier's name
+    missing:   ids of the processes that had not reached ``step`` (one of them died);
+               None where the coordination service was unreachable (process 0 died)
+    processes: the number of processes in the group
+    """
+
+    def __init__(self, step: str, missing: list[int] | None, processes: int):
+        self.step, self.missing, self.processes = step, missing, processes
+        if missing is None:
+            who = "process 0 (the coordinator) or another process"
+        else:
+            s = "es" if len(missing) > 1 else ""
+            who = f"process{s} " + ", ".join(str(i) for i in missing)
+        super().__init__(f"{who} of {processes} stopped (died or was killed) before {step!r}")
 
 
 @dataclass(frozen=True)
@@ -45,7 +88,9 @@ class Distributed:
     num_processes:  processes in the job (>= 1); None: from the environment
     process_id:     this process, 0 .. num_processes - 1; None: from the environment
     heartbeat_timeout_s: seconds without a heartbeat after which a process counts as
-                    dead and the coordination service stops the others (JAX's default 100)
+                    dead and the coordination service stops the others (JAX's default
+                    100); a process that dies outright is noticed sooner, at the others'
+                    next barrier (:class:`ProcessGroupError`)
     """
 
     coordinator: str | None = None
@@ -109,20 +154,64 @@ def process_share(items: list[T]) -> list[T]:
     return items[jax.process_index() :: jax.process_count()]
 
 
+def _client() -> Any:
+    """The coordination service's client of this process (its key-value store), or None."""
+    from jax._src import distributed  # no public handle; orbax reads it the same way
+
+    return distributed.global_state.client
+
+
+def _step(name: str, collective: Callable[[], T]) -> T:
+    """Run a cross-process ``collective`` named ``name``; :class:`ProcessGroupError` where
+    it fails while a process had not arrived (module docstring)."""
+    key = f"jaxrefl/arrived/{next(_STEPS)}/"
+    client, me, n = _client(), jax.process_index(), jax.process_count()
+    try:
+        client.key_value_set(f"{key}{me}", "1")
+    except Exception:  # marking is for the message only; the collective decides
+        pass
+    try:
+        return collective()
+    except Exception as e:  # Gloo reports a lost peer as a ValueError (XlaRuntimeError)
+        try:
+            arrived = {int(k.rsplit("/", 1)[1]) for k, _ in client.key_value_dir_get(key)}
+            missing: list[int] | None = [i for i in range(n) if i not in arrived | {me}]
+        except Exception:  # the service is process 0's: unreachable when it died
+            missing = None
+        if missing == []:
+            raise  # every process arrived: not a stopped process
+        raise ProcessGroupError(name, missing, n) from e
+
+
 def process_barrier(name: str) -> None:
-    """Wait until every process has called ``barrier(name)`` (nothing with one process)."""
+    """Wait until every process has called ``barrier(name)`` (nothing with one process).
+
+    Raises :class:`ProcessGroupError` where a process stopped before reaching it."""
     if jax.process_count() > 1:
         from jax.experimental import multihost_utils
 
-        multihost_utils.sync_global_devices(name)
+        _step(name, lambda: multihost_utils.sync_global_devices(name))
 
 
-def process_gather(values: np.ndarray) -> np.ndarray:
+def process_gather(values: np.ndarray, name: str = "gather") -> np.ndarray:
     """(processes, ...) ``values`` (same shape and dtype everywhere) of every process, in
-    process order; (1, ...) with one process."""
+    process order; (1, ...) with one process. Raises :class:`ProcessGroupError` where a
+    process stopped before reaching it (``name`` names the step in that message)."""
     values = np.asarray(values)
     if jax.process_count() == 1:
         return values[None]
     from jax.experimental import multihost_utils
 
-    return np.asarray(multihost_utils.process_allgather(values, tiled=False))
+    return np.asarray(_step(name, lambda: multihost_utils.process_allgather(values, tiled=False)))
+
+
+def leave_group(status: int) -> NoReturn:
+    """End this process at once with exit ``status`` after a :class:`ProcessGroupError`.
+
+    Flushes stdout and stderr and exits without Python's clean-up: that clean-up runs JAX's
+    shutdown barrier, which would wait for the stopped process until the heartbeat timeout
+    and then abort. Files already written (tiles, chunks) are complete: they are written
+    atomically."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(status)

@@ -695,7 +695,8 @@ def _collect(tdir, tiles, results, computed: int, compile_s: float, run_s: float
                     f"{tdir}/tile_{i:05d}.npz: missing or unreadable after every process "
                     "finished; is the output folder one shared folder for all processes?"
                 )
-    return process_gather(np.array([computed, compile_s, run_s], np.float64))
+    stats = np.array([computed, compile_s, run_s], np.float64)
+    return process_gather(stats, "jaxrefl fit: timings gathered")
 
 
 def _distributed_timings(report: dict, per: np.ndarray, pixels: float) -> None:
