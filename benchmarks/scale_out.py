@@ -252,10 +252,17 @@ def main() -> int:
     rows += _rows(f"uncertainty {a.post_size} x {a.post_size}{crop} ({a.model})", posts)
     print(table(head, rows))
     p = posts[min(posts)]
+    short = ""
+    if (a.warmup, a.samples) != (MAP_OPTIONS.num_warmup, MAP_OPTIONS.num_samples):
+        full = MAP_OPTIONS.num_warmup + MAP_OPTIONS.num_samples
+        short = (
+            f"; MAP_OPTIONS itself runs {MAP_OPTIONS.num_warmup} and "
+            f"{MAP_OPTIONS.num_samples}, about {full / (a.warmup + a.samples):.1f}x the MCMC time"
+        )
     print(
         f"\nThe uncertainty map samples {p['mcmc_pixels']} pixels in {p['chunks']} chunks "
         f"(MAP_OPTIONS with {a.warmup} warm-up and {a.samples} kept steps, no second "
-        f"pass). This machine has {os.cpu_count()} cores and is "
+        f"pass{short}). This machine has {os.cpu_count()} cores and is "
         "shared: other work ran beside these runs wherever the load average exceeds the "
         "processes' own (about the cores they keep busy), and slowed them."
     )

@@ -163,3 +163,82 @@ def test_bad_distributed_options_are_refused_by_name(capture_dir, tmp_path):
         svbrdf.fit_capture(load_capture(capture_dir), distributed=fit.Distributed())
     args = ["fit", str(capture_dir), "--out", str(tmp_path), "--process-id", "1"]
     assert main(args) == 1  # --process-id without --distributed
+
+
+def test_mcmc_chunks_on_two_devices_equal_one_device():
+    """The adaptive MCMC with two forced host devices (a fresh process: the flag must
+    precede JAX's start) against the same run on one device: each chunk's pixels are split
+    over a 1-D mesh (``map_sharded``), padded to the device count.
+
+    Tolerance: every pixel has its own key, so its chains take the same random steps on
+    either device; only the rounding of a differently laid-out batch differs, which the
+    chains carry along (float64; seen: 1e-7 in the draws), hence atol 1e-5 on every draw and
+    on the map's std. A chunk or shard given the wrong pixels yields draws around another
+    pixel's albedo, more than 0.05 away (MIN_GAP, checked; seen: 0.41). The sampler on the
+    mesh compiles once for both chunks (traced once)."""
+    code = textwrap.dedent(
+        """
+        import math
+        import numpy as np, jax
+        jax.config.update("jax_enable_x64", True)
+        from jaxrefl import brdf, fit
+        from jaxrefl import posterior as jp
+        from jaxrefl.posterior import _batched
+        assert jax.device_count() == 2
+
+        sigma, n, k = 0.02, 6, 6
+        m = brdf.get("lambert")
+        space = fit.ParamSpace(m, channels=3)
+        rng = np.random.default_rng(0)
+        alb = 0.1 + 0.12 * np.arange(n)[:, None] + rng.uniform(0, 0.02, (n, 3))  # apart
+        wi = np.tile(np.array([0.0, 0.0, 1.0]), (n, k, 1))
+        data = fit.pixel_data(alb[:, None, :] / math.pi + sigma * rng.normal(size=(n, k, 3)), wi)
+        lp = jp.log_posterior(m, space, fit.GaussianNoise(sigma))
+        # starts at the true albedos (no fit: one compilation less), Laplace std 0.05
+        theta = np.asarray(space.from_natural({"albedo": alb}, dtype=np.float64))
+        theta_std, flag = np.full_like(theta, 0.05), np.zeros(n, np.int32)
+        # short chains, a diagonal metric in theta (the cheapest sampler to compile)
+        hmc = jp.HMCOptions(num_warmup=20, num_samples=20, num_chains=2,
+                            num_integration_steps=8, dense_mass=False, reparam="none")
+        # two chunks of 3 pixels, each padded to 4 for the two devices
+        o = jp.AdaptiveOptions(mcmc="all", hmc=hmc, chunk=4, seed=7, rerun_rhat=None)
+        args = (lp, data, theta, theta_std, flag, o)
+
+        meshes, traced = [], []
+        real, real_run = _batched.map_sharded, _batched._run
+        def spy(fn, a, ndev):
+            meshes.append(ndev)
+            return real(fn, a, ndev)
+        def counted(*a):
+            traced.append(1)  # on the mesh: once per compilation of the sampler
+            return real_run(*a)
+        _batched.map_sharded, _batched._run = spy, counted
+        two = jp.adaptive_uncertainty(*args)
+        assert len(traced) == 1, traced  # both chunks run one compiled program
+        _batched.device_count = lambda devices=None: 1
+        one = jp.adaptive_uncertainty(*args)
+        assert meshes == [2, 2, 1, 1], meshes
+        a, b = two.samples.theta, one.samples.theta
+        assert a.shape == b.shape == (n, 2, 20, lp.size), (a.shape, b.shape)
+        print("MAX_DIFF", float(np.max(np.abs(a - b))))
+        mean = b.mean(axis=(1, 2))
+        gap = np.abs(mean[:, None, :] - mean[None, :, :]).max(axis=-1)
+        print("MIN_GAP", float(gap[~np.eye(n, dtype=bool)].min()))
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-5)
+        np.testing.assert_allclose(two.std, one.std, rtol=0, atol=1e-5)
+        print("ok")
+        """
+    )
+    root = str(Path(__file__).resolve().parents[1])
+    env = {**_env(), "XLA_FLAGS": "--xla_force_host_platform_device_count=2"}
+    out = subprocess.run(
+        [sys.executable, "-c", code],
+        env=env,
+        cwd=root,
+        capture_output=True,
+        text=True,
+        timeout=600,  # generous: a shared machine slows the two compilations
+    )
+    assert out.returncode == 0 and "ok" in out.stdout, (out.stdout, out.stderr[-3000:])
+    gap = float(out.stdout.split("MIN_GAP")[1].split()[0])
+    assert gap > 0.05, out.stdout  # mis-assigned pixels would be told apart by far

@@ -62,9 +62,28 @@ def map_sharded(fn: Callable[..., Any], args: tuple, n_devices: int) -> Any:
         return jnp.concatenate([x, jnp.repeat(x[-1:], pad, axis=0)], axis=0)
 
     args = jax.tree.map(padded, args)
-    mesh = Mesh(np.asarray(jax.local_devices()[:n_devices]), ("pixels",))
-    spec = PartitionSpec("pixels")
-    # Checking replication is irrelevant here (nothing is replicated); it also does not
-    # know every primitive of the solver.
-    out = jax.shard_map(fn, mesh=mesh, in_specs=spec, out_specs=spec, check_vma=False)(*args)
+    out = _sharded(fn, n_devices)(*args)
     return jax.tree.map(lambda x: x[:n], out)
+
+
+def _sharded(fn: Callable[..., Any], n_devices: int) -> Callable[..., Any]:
+    """``fn`` under ``shard_map`` over this process's first ``n_devices``, jitted.
+
+    JAX compiles per function object, and ``shard_map`` makes a new one at every call: the
+    result is kept on ``fn`` itself (freed with it), so that a caller passing the same
+    ``fn`` again (one sampler for every MCMC chunk) compiles it once."""
+    cache = getattr(fn, "_jaxrefl_sharded", None)
+    if cache is None:
+        cache = {}
+        try:
+            fn._jaxrefl_sharded = cache  # type: ignore[attr-defined]
+        except AttributeError:  # e.g. a bound method: compiled at each call
+            pass
+    if n_devices not in cache:
+        mesh = Mesh(np.asarray(jax.local_devices()[:n_devices]), ("pixels",))
+        spec = PartitionSpec("pixels")
+        # Checking replication is irrelevant here (nothing is replicated); it also does not
+        # know every primitive of the solver.
+        sharded = jax.shard_map(fn, mesh=mesh, in_specs=spec, out_specs=spec, check_vma=False)
+        cache[n_devices] = jax.jit(sharded)
+    return cache[n_devices]

@@ -40,6 +40,7 @@ Pixels with no estimate (NaN theta) are run from theta = 0 and come back NaN. Wi
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -293,6 +294,24 @@ def _map_draws(rp: ConditionalAlbedo, pos, data: PixelData, normals, batch_size:
     return jax.lax.map(pixel, (pos, data, normals), batch_size=batch_size)
 
 
+# One sampler function per (log-posterior, settings): the mesh (map_sharded) compiles per
+# function object, so a new closure for every chunk would compile the sampler every chunk.
+_SAMPLERS: dict[Any, Callable[..., Any]] = {}
+
+
+def _sampler(target: LogPosterior | ConditionalAlbedo, opts: HMCOptions) -> Callable[..., Any]:
+    """``_run`` with ``target`` and ``opts`` bound, the same object for equal arguments."""
+    leaves, treedef = jax.tree.flatten(target)
+    key = (treedef, tuple(leaves), opts)
+    try:
+        hash(key)
+    except TypeError:  # array leaves: not a key; a function of its own
+        return lambda *a: _run(target, opts, *a)
+    if key not in _SAMPLERS:
+        _SAMPLERS[key] = lambda *a: _run(target, opts, *a)
+    return _SAMPLERS[key]
+
+
 def sample_pixels(
     lp: LogPosterior,
     data: PixelData,
@@ -369,7 +388,7 @@ def sample_pixels(
     ndev = device_count(devices)
 
     def call():
-        run = lambda *a: _run(target, opts, *a)  # noqa: E731
+        run = _sampler(target, opts)
         out = jax.block_until_ready(map_sharded(run, args, ndev))
         return jax.tree.map(lambda a: a[:n], out)
 
