@@ -22,13 +22,15 @@ JAX's default since 0.4.36; :meth:`Distributed.initialize` sets it where it is u
 A process that dies (killed, out of memory) closes its connections, so the others fail at
 their next barrier or gather at once: :func:`process_barrier` and :func:`process_gather`
 raise :class:`ProcessGroupError`, naming the processes that had not reached that step (each
-process marks its arrival in the coordination service's key-value store first, as orbax
-does for its own barriers). Everything written before is in the output folder, which a
-rerun resumes. Exit with :func:`leave_group`: a normal interpreter exit runs JAX's shutdown
-barrier, which waits for the dead process until ``heartbeat_timeout_s`` and then aborts
-with a C++ stack trace. A process that stops sending heartbeats for ``heartbeat_timeout_s``
-seconds (a host lost from the network) makes the coordination service stop the others, so
-no process is left waiting for ever.
+process first marks its arrival in the coordination service's key-value store, through
+JAX's client handle ``jax._src.distributed.global_state.client``, which orbax uses too).
+Everything written before is in the output folder, which a rerun resumes. End the process
+with :func:`leave_group`: a normal interpreter exit runs JAX's shutdown barrier, which
+waits for the dead process until ``heartbeat_timeout_s`` and then aborts with a C++ stack
+trace. Where process 0 dies, its coordination service goes with it, and JAX ends the
+others at once itself (status 134, with its own log). A process that stops sending
+heartbeats for ``heartbeat_timeout_s`` seconds (a host lost from the network) makes the
+coordination service stop the others, so no process is left waiting for ever.
 """
 
 from __future__ import annotations
@@ -156,7 +158,7 @@ def process_share(items: list[T]) -> list[T]:
 
 def _client() -> Any:
     """The coordination service's client of this process (its key-value store), or None."""
-    from jax._src import distributed  # no public handle; orbax reads it the same way
+    from jax._src import distributed  # no public handle (module docstring)
 
     return distributed.global_state.client
 
