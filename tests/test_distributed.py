@@ -242,3 +242,13 @@ def test_mcmc_chunks_on_two_devices_equal_one_device():
     assert out.returncode == 0 and "ok" in out.stdout, (out.stdout, out.stderr[-3000:])
     gap = float(out.stdout.split("MIN_GAP")[1].split()[0])
     assert gap > 0.05, out.stdout  # mis-assigned pixels would be told apart by far
+
+
+def test_process_group_error_names_the_stopped_processes():
+    e = fit.ProcessGroupError("jaxrefl fit: tiles written", [1, 3], 4)
+    assert str(e) == (
+        "processes 1, 3 of 4 stopped (died or was killed) before 'jaxrefl fit: tiles written'"
+    )
+    assert e.missing == [1, 3] and e.processes == 4
+    lost = fit.ProcessGroupError("s", None, 2)  # the coordination service was unreachable
+    assert str(lost).startswith("process 0 (the coordinator) or another process of 2 stopped")
