@@ -51,7 +51,7 @@ def test_inference_data_netcdf_round_trip(lambert, tmp_path):
         lp,
         np.asarray(r.theta[1]),
         (d0,),
-        jp.EmceeOptions(n_walkers=8, n_steps=1500),
+        jp.EmceeOptions(n_walkers=8, max_steps=1500),
         natural=lp.natural,
         labels=lp.labels,
         seed=1,
@@ -173,7 +173,7 @@ def test_cli_sample_brdf_file(shared_data, tmp_path):
     src = shared_data / "brdf" / "cornell" / "acryl_blue.astm"
     out = tmp_path / "brdf"
     argv = ["sample", str(src), "--out", str(out), "--brdf-model", "lambert"]
-    argv += ["--steps", "400", "--walkers", "10", "--quiet"]
+    argv += ["--max-steps", "400", "--walkers", "10", "--quiet"]
     assert main(argv) == 0
     rep = json.loads((out / "report.json").read_text())
     assert rep["kind"] == "brdf" and set(rep["posterior"]) >= {"albedo.R", "noise_scale"}
@@ -183,7 +183,7 @@ def test_cli_sample_brdf_file(shared_data, tmp_path):
     assert post.posterior.attrs["method"] == "emcee"
 
     # The library call behind it: the same draws and report, typed.
-    sampler = jp.EmceeOptions(n_walkers=10, n_steps=400)
+    sampler = jp.EmceeOptions(n_walkers=10, max_steps=400)
     res = jm.sample_posterior(src, "lambert", sampler)
     assert isinstance(res, jm.BRDFPosterior) and res.sampler_name == "emcee"
     for j, lab in enumerate(res.samples.labels):

@@ -42,7 +42,10 @@ from ._diagnostics import posterior_predictive as posterior_predictive
 from ._diagnostics import save_netcdf as save_netcdf
 from ._diagnostics import split_rhat as split_rhat
 from ._diagnostics import to_inference_data as to_inference_data
+from ._emcee import Convergence as Convergence
 from ._emcee import EmceeOptions as EmceeOptions
+from ._emcee import autocorr_check as autocorr_check
+from ._emcee import convergence as convergence
 from ._emcee import sample_emcee as sample_emcee
 from ._logpost import LogPosterior as LogPosterior
 from ._logpost import SharedLight as SharedLight
