@@ -34,6 +34,7 @@ from ._batched import HMCOptions as HMCOptions
 from ._batched import Samples as Samples
 from ._batched import sample_pixels as sample_pixels
 from ._diagnostics import diagnostics as diagnostics
+from ._diagnostics import log_likelihood_draws as log_likelihood_draws
 from ._diagnostics import plot_corner as plot_corner
 from ._diagnostics import plot_ppc as plot_ppc
 from ._diagnostics import plot_rank as plot_rank

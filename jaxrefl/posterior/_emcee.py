@@ -218,7 +218,7 @@ def sample_emcee(
     names = tuple(labels) or tuple(f"theta{i}" for i in range(d))
 
     def log_prob(x: np.ndarray) -> np.ndarray:
-        out = np.asarray(_log_prob_walkers(logdensity, jnp.asarray(x, dtype), args), np.float64)
+        out = np.asarray(_log_prob_walkers(logdensity, x.astype(dtype), args), np.float64)
         return np.where(np.isnan(out), -np.inf, out)
 
     def to_natural(theta: np.ndarray) -> np.ndarray:
