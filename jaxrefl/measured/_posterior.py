@@ -22,7 +22,7 @@ data, weights, censoring flags and pointwise log-likelihood) and ``corner.png``;
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -45,6 +45,7 @@ __all__ = ["BRDFPosterior", "sample_posterior", "write_posterior"]
 
 NOISE = "Gaussian on f_r cos(theta_i), unknown scale (Jeffreys prior)"
 _MULTISTART = MultiStart()
+FILE_DRAWS = 2000  # draws in posterior.nc: with the log-likelihood, ~35 MB for 4,300 values
 _EMCEE_KEYS = ("tau", "burn", "thin", "tau_reliable", "n_steps", "max_steps", "n_walkers")
 
 
@@ -116,15 +117,28 @@ class BRDFPosterior:
             for j, lab in enumerate(self.samples.labels)
         }
 
-    def inference_data(self):
+    def inference_data(self, max_draws: int = FILE_DRAWS):
         """ArviZ InferenceData of the draws (no pixel axis: one material) with the observed
         data (dims ``sample``, ``channel`` R/G/B: the samples within the angle limit, in the
         file's order), the likelihood's weights and censoring flags (``constant_data``) and
-        the pointwise log-likelihood (``log_likelihood``: ``az.loo`` / ``az.compare`` rank
-        models sampled on the same file)."""
+        the pointwise log-likelihood (``log_likelihood``, float32: ``az.loo`` /
+        ``az.compare`` rank models sampled on the same file). Every chain's draws are
+        thinned by the smallest step that keeps at most ``max_draws`` in all (attr
+        ``file_thin``): the log-likelihood holds draws x observations values."""
+        s = self.samples
+        _n, c, m, _d = s.theta.shape
+        step = max(1, -(-c * m // max_draws))
+        s = replace(
+            s,
+            theta=s.theta[:, :, ::step],
+            natural=s.natural[:, :, ::step],
+            stats={k: np.asarray(v)[:, :, ::step] for k, v in s.stats.items()},
+        )
         one = jax.tree.map(lambda a: a[None], self.data)
-        ll = jp.log_likelihood_draws(self.posterior, self.samples, one)
-        idata = jp.to_inference_data(self.samples, one, log_likelihood=ll, observation="sample")
+        ll = jp.log_likelihood_draws(self.posterior, s, one).astype(np.float32)
+        idata = jp.to_inference_data(
+            s, one, log_likelihood=ll, observation="sample", attrs={"file_thin": step}
+        )
         return idata.isel(pixel=0).map(lambda ds: ds.drop_vars("pixel", errors="ignore"))
 
     def report(self) -> dict[str, Any]:

@@ -49,7 +49,7 @@ __all__ = ["CaptureUncertainty", "laplace_theta_std", "uncertainty_maps", "write
 NOISE = "Gaussian, unknown scale per pixel (Jeffreys prior)"
 _NOISE_START = 1e-2  # the chains' starting noise scale where the fit gave none
 _PPC_DRAWS = 50  # posterior predictive draws per MCMC pixel in posterior.nc
-LOG_LIKELIHOOD_MAX = 20_000_000  # pointwise log-likelihood values kept in posterior.nc (160 MB)
+LOG_LIKELIHOOD_MAX = 20_000_000  # pointwise log-likelihood values in posterior.nc (float32: 80 MB)
 
 
 @dataclass
@@ -85,7 +85,7 @@ class CaptureUncertainty:
         """ArviZ InferenceData of the MCMC pixels (None when no pixel was sampled or
         ``AdaptiveOptions.keep_samples`` is False): posterior, sample stats, observed data
         (dims ``pixel``, ``photo``, ``channel``), weights and censoring flags
-        (``constant_data``), the pointwise log-likelihood (``log_likelihood``, where it
+        (``constant_data``), the pointwise log-likelihood (``log_likelihood``, float32, where it
         holds at most :data:`LOG_LIKELIHOOD_MAX` values; else attr
         ``log_likelihood_left_out`` says why) and ``n_draws`` posterior predictive draws
         per pixel. The ``pixel`` axis (in the order of :attr:`UncertaintyMap.mcmc_pixels`)
@@ -106,7 +106,7 @@ class CaptureUncertainty:
         size = n * c * m * int(np.prod(sub.obs.shape[1:]))
         ll = None
         if size <= LOG_LIKELIHOOD_MAX:
-            ll = jp.log_likelihood_draws(self.posterior, u.samples, sub)
+            ll = jp.log_likelihood_draws(self.posterior, u.samples, sub).astype(np.float32)
         else:
             attrs["log_likelihood_left_out"] = (
                 f"{size} values (pixels x draws x photos x channels) exceed "
