@@ -471,7 +471,7 @@ CLI_CASES = [
     (cmd, opt, v)
     for cmd, opts in (
         ("fit", ("--resolution", "--downsample", "--tile-pixels", "--max-photos")),
-        ("sample", ("--steps", "--walkers", "--chains", "--samples", "--downsample")),
+        ("sample", ("--max-steps", "--walkers", "--chains", "--samples", "--downsample")),
     )
     for opt in opts
     for v in ("0", "-1", "-100", "x", "1.5")

@@ -51,7 +51,7 @@ def test_inference_data_netcdf_round_trip(lambert, tmp_path):
         lp,
         np.asarray(r.theta[1]),
         (d0,),
-        jp.EmceeOptions(n_walkers=8, n_steps=1500),
+        jp.EmceeOptions(n_walkers=8, max_steps=1500),
         natural=lp.natural,
         labels=lp.labels,
         seed=1,
@@ -132,6 +132,23 @@ def test_cli_sample_capture_end_to_end(tmp_path):
         assert sp["max_rhat_before"]["min"] > 1.1
     post = az.from_netcdf(str(out / "posterior.nc"))
     assert post.posterior["albedo_R"].shape[-1] == 16
+    # named coordinates: each MCMC pixel's row and column, photos, channels R/G/B
+    idx = post.posterior["pixel"].values
+    np.testing.assert_array_equal(post.posterior["row"].values, idx // 4)
+    np.testing.assert_array_equal(post.posterior["col"].values, idx % 4)
+    assert list(post.constant_data["censored"].dims) == ["pixel", "photo", "channel"]
+    assert post.log_likelihood["obs"].shape[2:] == post.observed_data["obs"].shape
+    assert list(post.posterior_predictive["channel"].values) == ["R", "G", "B"]
+    # the PNGs a user looks at: std maps, R-hat map, pair plots of three MCMC pixels
+    pngs = [f for f in rep["files"] if f.endswith(".png")]
+    assert pngs[:2] == ["posterior_std.png", "rhat.png"] and len(pngs) == 5
+    assert all(f.startswith("pair_r") for f in pngs[2:])
+    from PIL import Image
+
+    for f in pngs:
+        with Image.open(out / f) as png:
+            png.verify()
+            assert png.format == "PNG" and min(png.size) > 100, f
     assert main(["sample", str(tmp_path / "missing"), "--out", str(out)]) == 1
 
     # The library call behind it gives the same maps and report as a typed result.
@@ -153,7 +170,7 @@ def test_cli_sample_capture_end_to_end(tmp_path):
     mine, cli = lib["uncertainty"], rep["uncertainty"]
     assert set(mine.pop("timings")) == set(cli.pop("timings"))
     assert cli == mine
-    assert rep["files"] == ["uncertainty.exr", "posterior.nc"]
+    assert rep["files"][:2] == ["uncertainty.exr", "posterior.nc"]
     again = [p.name for p in svbrdf.write_uncertainty(res, tmp_path / "lib")]
     assert again == rep["files"]
     back = az.from_netcdf(str(tmp_path / "lib" / "posterior.nc"))
@@ -168,26 +185,36 @@ def test_cli_sample_capture_end_to_end(tmp_path):
         svbrdf.uncertainty_maps(cap, svbrdf.FitJob(model="lambert"), options)
 
 
-def test_cli_sample_brdf_file(shared_data, tmp_path):
+def test_cli_sample_brdf_file(shared_data, tmp_path, capsys):
     """A Cornell BRDF, Lambert model (cheap), emcee: posterior.nc, corner.png, report."""
     src = shared_data / "brdf" / "cornell" / "acryl_blue.astm"
     out = tmp_path / "brdf"
     argv = ["sample", str(src), "--out", str(out), "--brdf-model", "lambert"]
-    argv += ["--steps", "400", "--walkers", "10", "--quiet"]
-    assert main(argv) == 0
+    argv += ["--max-steps", "400", "--walkers", "10", "--quiet"]
+    # 400 steps are fewer than 50 autocorrelation times: outputs written, exit status 3
+    assert main(argv) == 3
+    assert "not converged: chain of 400 steps" in capsys.readouterr().err
     rep = json.loads((out / "report.json").read_text())
     assert rep["kind"] == "brdf" and set(rep["posterior"]) >= {"albedo.R", "noise_scale"}
+    assert rep["converged"] is False and rep["convergence"]["chain_length"] == 400
+    assert "tau" in rep["convergence"]["reasons"][0]
+    c = rep["convergence"]
+    assert c["max_rhat"] == rep["diagnostics"]["max_rhat"] and len(c["tau"]) == 4
     assert rep["diagnostics"]["min_ess_bulk"] > 20
     assert (out / "corner.png").stat().st_size > 1000
     post = az.from_netcdf(str(out / "posterior.nc"))
     assert post.posterior.attrs["method"] == "emcee"
+    assert "pixel" not in post.posterior.dims  # one material
+    assert list(post.log_likelihood["obs"].dims) == ["chain", "draw", "sample", "channel"]
+    assert list(post.constant_data["weight"].dims) == ["sample", "channel"]
+    assert list(post.observed_data["channel"].values) == ["R", "G", "B"]
 
     # The library call behind it: the same draws and report, typed.
-    sampler = jp.EmceeOptions(n_walkers=10, n_steps=400)
+    sampler = jp.EmceeOptions(n_walkers=10, max_steps=400)
     res = jm.sample_posterior(src, "lambert", sampler)
     assert isinstance(res, jm.BRDFPosterior) and res.sampler_name == "emcee"
     for j, lab in enumerate(res.samples.labels):
-        drawn = post.posterior[lab.replace(".", "_")].values[..., 0]  # (walkers, draws)
+        drawn = post.posterior[lab.replace(".", "_")].values  # (walkers, draws)
         np.testing.assert_array_equal(res.samples.natural[0, ..., j], drawn, err_msg=lab)
     lib = jsonable(res.report())[0]
     assert list(rep) == ["input", "kind", *lib, "files"]

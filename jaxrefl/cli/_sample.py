@@ -4,7 +4,7 @@
                    [--model ggx] [--mcmc flagged|all|none] [--audit 0.02]
                    [--warmup N] [--samples N] [--chains N] [--rerun-rhat R] [--seed S]
     jaxrefl sample BRDF_FILE --out OUT_DIR [--brdf-model ggx]
-                   [--sampler emcee|hmc] [--steps N] [--walkers N]
+                   [--sampler emcee|hmc] [--max-steps N] [--walkers N]
 
 A capture (any layout :func:`jaxrefl.io.load_capture` reads; ``--downsample`` first, then
 the ``--pixels`` crop: rows R0:R1, columns C0:C1) goes through
@@ -25,14 +25,22 @@ A measured BRDF file (Cornell .astm, MERL .binary, CURET; spectra converted to R
 through :func:`jaxrefl.measured.sample_posterior`: the least-squares fit of
 ``--brdf-model`` (f_r cos theta_i residuals, 80 degree limit), then emcee
 (:class:`~jaxrefl.posterior.EmceeOptions` from ``--steps``, ``--walkers``; the default) or
-HMC (``--warmup``/``--samples``/``--chains``), the noise scale unknown. Writes
-OUT_DIR/posterior.nc and OUT_DIR/corner.png (:func:`jaxrefl.measured.write_posterior`) and
-OUT_DIR/report.json (:meth:`jaxrefl.measured.BRDFPosterior.report`).
+HMC (``--warmup``/``--samples``/``--chains``), the noise scale unknown. emcee runs until
+its chain is at least 50 integrated autocorrelation times long with split R-hat <= 1.01
+and bulk ESS >= 400 for every parameter (:func:`jaxrefl.posterior.sample_emcee`), or
+``--max-steps``. Writes OUT_DIR/posterior.nc and OUT_DIR/corner.png
+(:func:`jaxrefl.measured.write_posterior`) and OUT_DIR/report.json
+(:meth:`jaxrefl.measured.BRDFPosterior.report`).
+
+Exit status 3 (outputs written): the draws missed a convergence target (``converged:
+false`` in report.json, with the reasons, tau, chain length, R-hat and ESS, and one line
+on stderr saying what to raise).
 """
 
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -42,6 +50,8 @@ from ._distributed import add_distributed_arguments, distributed_from_args
 from ._main import check_out_dir, fraction, non_negative_float, non_negative_int, positive_int
 from ._options import fit_config
 
+NOT_CONVERGED = 3  # exit status: outputs written, but the draws missed a convergence target
+EMCEE_MAX_STEPS = 30_000  # jaxrefl.posterior.EmceeOptions().max_steps (not imported: no JAX)
 HELP = "posterior sampling: uncertainty maps with diagnostics (capture or BRDF file)"
 
 
@@ -118,7 +128,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--sampler", default="emcee", choices=("emcee", "hmc"), help="sampler for a BRDF file"
     )
-    p.add_argument("--steps", type=positive_int, default=3000, help="emcee steps")
+    p.add_argument(
+        "--max-steps",
+        type=positive_int,
+        default=EMCEE_MAX_STEPS,
+        help="emcee's cap on steps; it stops earlier once converged (exit status 3 if not)",
+    )
     p.add_argument(
         "--walkers",
         type=positive_int,
@@ -174,7 +189,22 @@ def run(args: argparse.Namespace) -> int:
         return 0  # process 0 writes the outputs
     _json(args.out / "report.json", report)
     print(f"wrote {', '.join(report['files'])} and report.json to {args.out}/")
+    if report.get("converged") is False:
+        why = "; ".join(report["convergence"]["reasons"])
+        print(f"jaxrefl sample: not converged: {why}{_raise_hint(args)}", file=sys.stderr)
+        return NOT_CONVERGED
     return 0
+
+
+def _raise_hint(args) -> str:
+    if args.sampler == "emcee":
+        return f" (raise --max-steps, now {args.max_steps})"
+    return " (raise --samples or --warmup)"
+
+
+def _progress(args) -> bool:
+    """Progress bars go to stderr: shown unless --quiet or stderr is not a terminal."""
+    return not args.quiet and sys.stderr.isatty()
 
 
 def _options(args):
@@ -210,7 +240,7 @@ def _run_capture(args, path: Path, opts, dist) -> dict:
         cap,
         job,
         options,
-        progress=not args.quiet,
+        progress=_progress(args),
         out_dir=None if dist is None else args.out,  # the processes' exchange (resume)
         distributed=dist,
     )
@@ -254,9 +284,9 @@ def _run_brdf(args, path: Path, opts) -> dict:
 
     sampler = opts
     if args.sampler == "emcee":
-        sampler = jp.EmceeOptions(n_walkers=args.walkers, n_steps=args.steps)
+        sampler = jp.EmceeOptions(n_walkers=args.walkers, max_steps=args.max_steps)
     res = measured.sample_posterior(
-        path, args.brdf_model, sampler, seed=args.seed, progress=not args.quiet
+        path, args.brdf_model, sampler, seed=args.seed, progress=_progress(args)
     )
     files = [p.name for p in measured.write_posterior(res, args.out)]
     rep = res.report()
@@ -269,4 +299,12 @@ def _run_brdf(args, path: Path, opts) -> dict:
             f"  {lab:12s} {v['mean']:.4g} +- {v['std']:.2g}  "
             f"R-hat {v['rhat']:.3f}  ESS {v['ess_bulk']:.0f}"
         )
+    c = rep["convergence"]
+    chain = f"chain of {c['chain_length']} steps"
+    if c["max_tau"]:
+        chain += f" = {c['chain_length'] / c['max_tau']:.0f} x max tau ({c['max_tau']:.0f})"
+    verdict = "converged" if c["converged"] else "NOT converged"
+    print(
+        f"  {verdict}: {chain}, max R-hat {c['max_rhat']:.3f}, min bulk ESS {c['min_ess_bulk']:.0f}"
+    )
     return {"input": str(path), "kind": "brdf", **rep, "files": files}

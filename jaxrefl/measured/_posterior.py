@@ -8,18 +8,21 @@ p(theta, s | f) for the same residuals with Gaussian noise of unknown scale s (J
 prior) and the default priors (:func:`jaxrefl.posterior.default_priors`): the material is
 one "pixel" of K samples in C channels (:func:`measured_pixel_data`). The sampler is
 chosen by the type of its settings: :class:`jaxrefl.posterior.EmceeOptions` runs emcee
-(the default; walkers start about the LM optimum), :class:`jaxrefl.posterior.HMCOptions`
+(the default; walkers start about the LM optimum and run until the chain is 50
+autocorrelation times long with R-hat <= 1.01 and bulk ESS >= 400, or its ``max_steps``:
+:attr:`BRDFPosterior.convergence` says which), :class:`jaxrefl.posterior.HMCOptions`
 the batched HMC sampler on this one pixel. Both start from the optimum with the noise
 scale at the residual std sqrt(2 cost / (n - P)).
 
 :func:`write_posterior` writes ``posterior.nc`` (ArviZ InferenceData with the observed
-data) and ``corner.png``; :meth:`BRDFPosterior.report` is the JSON-ready summary.
+data, weights, censoring flags and pointwise log-likelihood) and ``corner.png``;
+:meth:`BRDFPosterior.report` is the JSON-ready summary.
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -42,7 +45,8 @@ __all__ = ["BRDFPosterior", "sample_posterior", "write_posterior"]
 
 NOISE = "Gaussian on f_r cos(theta_i), unknown scale (Jeffreys prior)"
 _MULTISTART = MultiStart()
-_EMCEE_KEYS = ("tau", "burn", "thin", "tau_reliable", "n_steps", "n_walkers")
+FILE_DRAWS = 2000  # draws in posterior.nc: with the log-likelihood, ~35 MB for 4,300 values
+_EMCEE_KEYS = ("tau", "burn", "thin", "tau_reliable", "n_steps", "max_steps", "n_walkers")
 
 
 @dataclass
@@ -67,6 +71,24 @@ class BRDFPosterior:
     n_used: int
     sampler: jp.EmceeOptions | jp.HMCOptions
     timings: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def convergence(self) -> jp.Convergence:
+        """Whether the draws may be trusted (:func:`jaxrefl.posterior.convergence`): emcee's
+        verdict at its stop (chain >= n_tau tau, R-hat, bulk ESS); for HMC, R-hat <=
+        1.01 and bulk ESS >= 400 for every parameter."""
+        c = self.samples.extra.get("convergence")
+        if c is not None:
+            return jp.Convergence(
+                converged=c["converged"],
+                reasons=tuple(c["reasons"]),
+                tau=tuple(c["tau"]),
+                n_steps=c["chain_length"],
+                max_rhat=c["max_rhat"],
+                min_ess_bulk=c["min_ess_bulk"],
+            )
+        x = self.samples.natural[0]  # (chains, draws, D)
+        return jp.convergence(x, labels=self.samples.labels)
 
     @property
     def sampler_name(self) -> str:
@@ -95,18 +117,41 @@ class BRDFPosterior:
             for j, lab in enumerate(self.samples.labels)
         }
 
-    def inference_data(self):
-        """ArviZ InferenceData of the draws with the observed data."""
-        return jp.to_inference_data(self.samples, jax.tree.map(lambda a: a[None], self.data))
+    def inference_data(self, max_draws: int = FILE_DRAWS):
+        """ArviZ InferenceData of the draws (no pixel axis: one material) with the observed
+        data (dims ``sample``, ``channel`` R/G/B: the samples within the angle limit, in the
+        file's order), the likelihood's weights and censoring flags (``constant_data``) and
+        the pointwise log-likelihood (``log_likelihood``, float32: ``az.loo`` /
+        ``az.compare`` rank models sampled on the same file). Every chain's draws are
+        thinned by the smallest step that keeps at most ``max_draws`` in all (attr
+        ``file_thin``): the log-likelihood holds draws x observations values."""
+        s = self.samples
+        _n, c, m, _d = s.theta.shape
+        step = max(1, -(-c * m // max_draws))
+        s = replace(
+            s,
+            theta=s.theta[:, :, ::step],
+            natural=s.natural[:, :, ::step],
+            stats={k: np.asarray(v)[:, :, ::step] for k, v in s.stats.items()},
+        )
+        one = jax.tree.map(lambda a: a[None], self.data)
+        ll = jp.log_likelihood_draws(self.posterior, s, one).astype(np.float32)
+        idata = jp.to_inference_data(
+            s, one, log_likelihood=ll, observation="sample", attrs={"file_thin": step}
+        )
+        return idata.isel(pixel=0).map(lambda ds: ds.drop_vars("pixel", errors="ignore"))
 
     def report(self) -> dict[str, Any]:
-        """JSON-ready summary: model, sampler, the fit, noise model, :meth:`summary`,
+        """JSON-ready summary: model, ``converged`` and the :attr:`convergence` verdict (its
+        reasons, tau, chain length, R-hat, ESS), sampler, the fit, noise model, :meth:`summary`,
         diagnostics (worst R-hat and ESS, divergences, acceptance; emcee's tau, burn-in and
         thinning) and timings."""
         s, dg, mf = self.samples, self.diagnostics(), self.fit
         emcee = {k: s.extra[k] for k in _EMCEE_KEYS} if self.sampler_name == "emcee" else {}
         return {
             "model": self.model,
+            "converged": self.convergence.converged,
+            "convergence": self.convergence.to_dict(),
             "sampler": self.sampler_name,
             "samples_used": self.n_used,
             "fit": {

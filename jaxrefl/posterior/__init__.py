@@ -34,6 +34,7 @@ from ._batched import HMCOptions as HMCOptions
 from ._batched import Samples as Samples
 from ._batched import sample_pixels as sample_pixels
 from ._diagnostics import diagnostics as diagnostics
+from ._diagnostics import log_likelihood_draws as log_likelihood_draws
 from ._diagnostics import plot_corner as plot_corner
 from ._diagnostics import plot_ppc as plot_ppc
 from ._diagnostics import plot_rank as plot_rank
@@ -42,7 +43,10 @@ from ._diagnostics import posterior_predictive as posterior_predictive
 from ._diagnostics import save_netcdf as save_netcdf
 from ._diagnostics import split_rhat as split_rhat
 from ._diagnostics import to_inference_data as to_inference_data
+from ._emcee import Convergence as Convergence
 from ._emcee import EmceeOptions as EmceeOptions
+from ._emcee import autocorr_check as autocorr_check
+from ._emcee import convergence as convergence
 from ._emcee import sample_emcee as sample_emcee
 from ._logpost import LogPosterior as LogPosterior
 from ._logpost import SharedLight as SharedLight

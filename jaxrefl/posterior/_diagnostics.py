@@ -2,12 +2,21 @@
 
 :func:`to_inference_data` puts :class:`~jaxrefl.posterior.Samples` into an
 ``arviz.InferenceData`` with groups ``posterior`` (natural parameters; dims ``(chain,
-draw, pixel)`` for several pixels), ``sample_stats`` (``acceptance_rate``, ``diverging``,
-``lp``), ``observed_data`` (``obs`` (pixel, k, c), ``weight``, ``censored``) and, if asked,
-``posterior_predictive`` (``obs``: a thinned set of draws' predictions plus noise).
-Variable names are the parameter labels with dots as underscores (``albedo.R`` ->
-``albedo_R``; NetCDF names stay portable); the labels are kept in ``attrs``.
-:func:`save_netcdf` writes it (``idata.to_netcdf``), ``arviz.from_netcdf`` reads it back.
+draw, pixel)``), ``sample_stats`` (``acceptance_rate``, ``diverging``, ``lp``),
+``observed_data`` (``obs`` (pixel, OBSERVATION, channel)), ``constant_data`` (the
+likelihood's ``weight`` (its power, 0: masked out) and ``censored`` (+1 saturated: the
+value is at least obs; -1 dark: at most obs; 0 a value)) and, if given,
+``log_likelihood`` (``obs``: the pointwise log-likelihood of every observation at every
+draw, :func:`log_likelihood_draws`, so ``az.loo`` and ``az.compare`` rank models fitted
+to the same data) and ``posterior_predictive`` (``obs``: a thinned set of draws'
+predictions plus noise). OBSERVATION names the K axis (``photo`` for a capture, ``sample``
+for a measured file); ``channel`` has coordinates R, G, B for three channels. Variable
+names are the parameter labels with dots as underscores (``albedo.R`` -> ``albedo_R``;
+NetCDF names stay portable); the labels are kept in ``attrs``. :func:`save_netcdf` writes
+it (``idata.to_netcdf``), ``arviz.from_netcdf`` reads it back.
+
+ArviZ 0.x only: ArviZ 1.0 replaced ``InferenceData`` by xarray's ``DataTree`` and changed
+``from_dict``; ``pyproject.toml`` pins ``arviz<1`` until this module moves to it.
 
 Diagnostics (:func:`diagnostics`): rank-normalised split R-hat, bulk and tail ESS (Vehtari
 et al. 2021, *Rank-normalization, folding, and localization: an improved R-hat*, via
@@ -26,13 +35,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxrefl.fit import PixelData
+from jaxrefl.fit import L2, PixelData
 
 from ._batched import Samples
 from ._fastdiag import ess_bulk, ess_tail, rhat_rank
 
 __all__ = [
     "diagnostics",
+    "log_likelihood_draws",
     "plot_corner",
     "plot_ppc",
     "plot_rank",
@@ -43,6 +53,9 @@ __all__ = [
     "to_inference_data",
     "var_name",
 ]
+
+
+_CHANNELS = {3: ("R", "G", "B"), 1: ("Y",)}  # channel coordinates by channel count
 
 
 def _az():
@@ -88,19 +101,50 @@ def posterior_predictive(
     return pred + sd * rng.normal(size=pred.shape)
 
 
+def log_likelihood_draws(lp, samples: Samples, data: PixelData, normals=None) -> np.ndarray:
+    """(N, chains, draws, K, C) the pointwise log-likelihood of every observation at every
+    draw (:meth:`LogPosterior.pointwise_log_likelihood`): for ArviZ's ``log_likelihood``
+    group. With the L2 loss (Gaussian noise) the normalising constant -w log sqrt(2 pi) of
+    every uncensored observation, which the sampler leaves out, is added, so the values are
+    log densities; masked observations (weight 0) get 0. Draws with NaN get NaN."""
+    n, c, m, d = samples.theta.shape
+    th = jnp.asarray(np.nan_to_num(samples.theta).reshape(n, c * m, d), data.obs.dtype)
+    if normals is None:
+        normals = jnp.zeros((n, 1, 3), data.obs.dtype)
+    point = lp.for_data(data).pointwise_log_likelihood
+
+    def pixel(args):
+        t, dd, nn = args
+        return jax.vmap(lambda tt: point(tt, dd, nn if lp.light is not None else None))(t)
+
+    ll = np.asarray(jax.jit(lambda a: jax.lax.map(pixel, a))((th, data, normals)))
+    if isinstance(lp.residual.loss, L2):
+        ok = np.asarray(lp.residual.usable(data)) & (np.asarray(data.censored) == 0)
+        w = np.where(ok, np.asarray(data.weight, np.float64), 0.0)
+        ll = ll - (0.5 * np.log(2 * np.pi) * w)[:, None]
+    ll = ll.reshape(n, c, m, *ll.shape[2:])
+    bad = ~np.all(np.isfinite(samples.theta), axis=-1)
+    ll[bad] = np.nan
+    return ll
+
+
 def to_inference_data(
     samples: Samples,
     data: PixelData | None = None,
     *,
     pixels: np.ndarray | None = None,
     predictive: np.ndarray | None = None,
+    log_likelihood: np.ndarray | None = None,
+    observation: str = "k",
     attrs: dict[str, Any] | None = None,
 ):
     """``arviz.InferenceData`` of ``samples`` (module docstring).
 
-    pixels:     the pixel indices (coordinate ``pixel``), default 0..N-1
-    data:       the observations (``observed_data``), same N
-    predictive: (N, draws, K, C) from :func:`posterior_predictive` (``posterior_predictive``)
+    pixels:      the pixel indices (coordinate ``pixel``), default 0..N-1
+    data:        the observations (``observed_data``, ``constant_data``), same N
+    predictive:  (N, draws, K, C) from :func:`posterior_predictive` (``posterior_predictive``)
+    log_likelihood: (N, chains, draws, K, C) from :func:`log_likelihood_draws`
+    observation: the name of the K axis of the data (``photo``, ``sample``)
     """
     az = _az()
     n = samples.n_pixels
@@ -112,24 +156,34 @@ def to_inference_data(
     stats = {k: np.moveaxis(np.asarray(v), 0, -1) for k, v in samples.stats.items()}
     dims: dict[str, list[str]] = {k: ["pixel"] for k in (*post, *stats)}
     coords: dict[str, Any] = {"pixel": pix}
-    obs = None
+    obs_dims = ["pixel", observation, "channel"]
+    obs = const = ll = ppc = None
     if data is not None:
-        obs = {
-            "obs": np.asarray(data.obs),
+        k, c = np.asarray(data.obs).shape[1:]
+        coords[observation] = np.arange(k)
+        coords["channel"] = list(_CHANNELS.get(c, range(c)))
+        obs = {"obs": np.asarray(data.obs)}
+        const = {
             "weight": np.asarray(data.weight),
             "censored": np.asarray(data.censored).astype(np.int8),
         }
-        for k in obs:
-            dims[k] = ["pixel", "k", "c"]
-    ppc = None
+        for key in (*obs, *const):
+            dims[key] = obs_dims
+    if log_likelihood is not None:
+        if data is None:
+            raise ValueError("log_likelihood needs the data it was computed on (data=)")
+        # (N, chains, draws, K, C) -> (chains, draws, N, K, C)
+        ll = {"obs": np.moveaxis(np.asarray(log_likelihood), 0, 2)}
     if predictive is not None:
         # (N, draws, K, C) -> (chain 1, draw, pixel, K, C)
         ppc = {"obs": np.swapaxes(np.asarray(predictive), 0, 1)[None]}
-        dims["obs"] = ["pixel", "k", "c"]
+        dims["obs"] = obs_dims
     idata = az.from_dict(
         posterior=post,
         sample_stats=stats,
+        log_likelihood=ll,
         observed_data=obs,
+        constant_data=const,
         posterior_predictive=ppc,
         coords=coords,
         dims=dims,

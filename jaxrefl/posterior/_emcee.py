@@ -1,14 +1,21 @@
-"""emcee's affine-invariant ensemble sampler for single-material and small global problems.
+"""emcee's affine-invariant ensemble sampler for single-material and small global problems,
+run until its chain is long enough to trust.
 
 The log-probability is compiled once and evaluated for all walkers in one call
 (``vectorize=True``: emcee hands it a (walkers, D) array). Walkers start in a small ball
-about the LM optimum (``scale`` times the Laplace theta-space std, or 1e-2). After the run
-the integrated autocorrelation time tau of every parameter is estimated
-(Sokal's windowed estimator, ``emcee.autocorr.integrated_time``); the first
-``burn_factor * max tau`` steps are dropped and the chains are thinned by
-``max(1, tau_min / 2)``, as emcee's documentation recommends. When the run is shorter than
-``50 tau`` the estimate is unreliable: the result says so (``tau_reliable``) instead of
-raising.
+about the LM optimum (``scale`` times the Laplace theta-space std, or 1e-2).
+
+Stopping rule (:func:`autocorr_check`, :func:`convergence`): every ``check_every`` steps
+the integrated autocorrelation time tau of every parameter is estimated on the whole chain
+(Sokal's windowed estimator over the walkers' mean autocorrelation,
+``emcee.autocorr.integrated_time``, the estimator of emcee's ``get_autocorr_time``). The
+run stops once the chain is at least ``n_tau`` (default 50) times the largest tau long,
+emcee's own reliability rule (``tol``), *and* the kept draws reach the diagnostic targets:
+rank-normalised split R-hat <= ``max_rhat`` and bulk ESS >= ``min_ess`` for every
+parameter (Vehtari et al. 2021, computed as ArviZ does, walkers as chains). It stops at
+``max_steps`` otherwise, and the result says why it is not converged
+(:class:`Convergence`). Kept draws: the first ``burn_factor * max tau`` steps are dropped
+and the chains thinned by ``max(1, tau_min / 2)``, as emcee's documentation recommends.
 
 Walkers of an ensemble are not independent chains; ArviZ treats each walker as a chain,
 so R-hat over walkers is a (conservative) mixing check, not Gelman–Rubin's.
@@ -29,8 +36,12 @@ from jaxtyping import ArrayLike, Float
 from jaxrefl.fit import PixelData
 
 from ._batched import Samples
+from ._fastdiag import ess_bulk, rhat_rank
 
-__all__ = ["EmceeOptions", "sample_emcee"]
+__all__ = ["Convergence", "EmceeOptions", "autocorr_check", "convergence", "sample_emcee"]
+
+MAX_RHAT = 1.01  # Vehtari et al. (2021) recommend R-hat < 1.01 before using the draws
+MIN_ESS = 400.0  # and a bulk ESS of at least 100 per chain of 4 (stable quantiles)
 
 
 @dataclass(frozen=True)
@@ -38,25 +49,130 @@ class EmceeOptions:
     """Settings of :func:`sample_emcee` (module docstring), immutable.
 
     n_walkers:   walkers of the ensemble; None: max(32, 2 D + 2) for D parameters
-    n_steps:     steps of every walker (>= 1); at least 50 tau for a reliable tau
+    max_steps:   the cap on steps of every walker (>= 1); the run stops earlier once converged
+    check_every: steps between convergence checks (>= 1)
+    n_tau:       the chain must be at least this many times the largest tau long (> 0)
+    max_rhat:    the largest split R-hat accepted (>= 1)
+    min_ess:     the smallest bulk ESS accepted (>= 0)
     scale:       the start ball's radius in units of the theta-space std (> 0)
     burn_factor: the burn-in, in units of the largest tau (>= 0; at most half the run)
     """
 
     n_walkers: int | None = None
-    n_steps: int = 2000
+    max_steps: int = 30_000
+    check_every: int = 500
+    n_tau: float = 50.0
+    max_rhat: float = MAX_RHAT
+    min_ess: float = MIN_ESS
     scale: float = 0.5
     burn_factor: float = 2.0
 
     def __post_init__(self) -> None:
         if self.n_walkers is not None and self.n_walkers < 2:
             raise ValueError(f"n_walkers must be >= 2, got {self.n_walkers}")
-        if self.n_steps < 1:
-            raise ValueError(f"n_steps must be >= 1, got {self.n_steps}")
+        if self.max_steps < 1:
+            raise ValueError(f"max_steps must be >= 1, got {self.max_steps}")
+        if self.check_every < 1:
+            raise ValueError(f"check_every must be >= 1, got {self.check_every}")
+        if not self.n_tau > 0:
+            raise ValueError(f"n_tau must be positive, got {self.n_tau}")
+        if not self.max_rhat >= 1:
+            raise ValueError(f"max_rhat must be >= 1, got {self.max_rhat}")
+        if not self.min_ess >= 0:
+            raise ValueError(f"min_ess must be >= 0, got {self.min_ess}")
         if not self.scale > 0:
             raise ValueError(f"scale must be positive, got {self.scale}")
         if not self.burn_factor >= 0:
             raise ValueError(f"burn_factor must be >= 0, got {self.burn_factor}")
+
+
+@dataclass(frozen=True)
+class Convergence:
+    """Whether a chain may be trusted, and why not (:func:`convergence`).
+
+    converged:    True when every target is met (``reasons`` empty)
+    reasons:      one line per target missed, e.g. "chain of 3000 steps is 20 tau (needs 50)"
+    tau:          (D,) integrated autocorrelation times in steps (emcee); empty for HMC
+    n_steps:      the chain's length in steps per walker (per chain for HMC)
+    max_rhat:     the largest split R-hat over parameters
+    min_ess_bulk: the smallest bulk ESS over parameters
+    """
+
+    converged: bool
+    reasons: tuple[str, ...]
+    tau: tuple[float, ...]
+    n_steps: int
+    max_rhat: float
+    min_ess_bulk: float
+
+    def to_dict(self) -> dict:
+        """JSON-ready: every field, ``reasons`` as a list."""
+        return {
+            "converged": self.converged,
+            "reasons": list(self.reasons),
+            "tau": list(self.tau),
+            "max_tau": max(self.tau) if self.tau else None,
+            "chain_length": self.n_steps,
+            "max_rhat": self.max_rhat,
+            "min_ess_bulk": self.min_ess_bulk,
+        }
+
+
+def autocorr_check(
+    chain: Float[ArrayLike, "steps walkers D"], n_tau: float = 50.0
+) -> tuple[np.ndarray, bool]:
+    """(tau (D,), long enough): emcee's integrated autocorrelation time of every parameter
+    of ``chain`` and whether the chain is at least ``n_tau`` times the largest tau long
+    (``emcee.autocorr.integrated_time(chain, tol=n_tau)``, which refuses shorter chains)."""
+    x = np.asarray(chain, dtype=np.float64)
+    if x.ndim != 3:
+        raise ValueError(f"chain must be (steps, walkers, D), got shape {x.shape}")
+    try:
+        return np.asarray(emcee.autocorr.integrated_time(x, tol=n_tau)), True
+    except emcee.autocorr.AutocorrError as err:  # shorter than n_tau * tau: tau in err.tau
+        return np.asarray(err.tau, dtype=np.float64), False
+
+
+def convergence(
+    draws: Float[ArrayLike, "chains draws D"],
+    *,
+    tau: Float[ArrayLike, " D"] | None = None,
+    n_steps: int | None = None,
+    n_tau: float = 50.0,
+    max_rhat: float = MAX_RHAT,
+    min_ess: float = MIN_ESS,
+    labels: tuple[str, ...] = (),
+) -> Convergence:
+    """The verdict on kept ``draws`` (chains, draws, D): split R-hat <= ``max_rhat`` and
+    bulk ESS >= ``min_ess`` for every parameter; with ``tau`` (emcee) also a chain of
+    ``n_steps`` >= ``n_tau`` * max tau. ``labels`` name the parameters in the reasons."""
+    x = np.moveaxis(np.asarray(draws, dtype=np.float64), -1, 0)  # (D, chains, draws)
+    d = x.shape[0]
+    names = labels or tuple(f"theta{i}" for i in range(d))
+    n = int(x.shape[-1] if n_steps is None else n_steps)
+    rhat, ess = rhat_rank(x), ess_bulk(x)
+    reasons = []
+    t = () if tau is None else tuple(float(v) for v in np.asarray(tau))
+    if t and not n >= n_tau * max(t):
+        j = int(np.argmax(t))
+        reasons.append(
+            f"chain of {n} steps is {n / t[j]:.1f} tau of {names[j]} (tau {t[j]:.0f} steps; "
+            f"needs {n_tau:g})"
+        )
+    if not np.all(rhat <= max_rhat):  # NaN counts as missed
+        j = int(np.nanargmax(rhat)) if np.any(np.isfinite(rhat)) else 0
+        reasons.append(f"R-hat of {names[j]} is {rhat[j]:.3f} (needs <= {max_rhat:g})")
+    if not np.all(ess >= min_ess):
+        j = int(np.nanargmin(ess)) if np.any(np.isfinite(ess)) else 0
+        reasons.append(f"bulk ESS of {names[j]} is {ess[j]:.0f} (needs >= {min_ess:g})")
+    return Convergence(
+        converged=not reasons,
+        reasons=tuple(reasons),
+        tau=t,
+        n_steps=n,
+        max_rhat=float(np.max(rhat)),
+        min_ess_bulk=float(np.min(ess)),
+    )
 
 
 @eqx.filter_jit
@@ -78,14 +194,19 @@ def sample_emcee(
 ) -> Samples:
     """Run emcee on ``logdensity(theta (D,), *args) -> scalar`` (a JAX function or an
     equinox Module such as :class:`LogPosterior`; compiled once per structure and shapes,
-    so repeated calls with new ``args`` (data) of the same shapes do not recompile).
+    so repeated calls with new ``args`` (data) of the same shapes do not recompile) until
+    converged or ``max_steps`` (module docstring).
 
     theta0:  (D,) start (e.g. :meth:`LogPosterior.init_theta` of the LM optimum)
     options: :class:`EmceeOptions` (None: its defaults)
-    natural: maps theta draws (..., D) to natural values (e.g. ``LogPosterior.natural``)
+    natural: maps theta draws (..., D) to natural values (e.g. ``LogPosterior.natural``);
+             R-hat and ESS are judged on the natural values
     theta_std: (D,) the start ball's shape (e.g. the Laplace std; None: 1e-2 everywhere)
+    progress: a tqdm bar over the steps (to stderr)
     Returns :class:`Samples` with N = 1, walkers as chains (after burn-in and thinning);
-    ``extra`` holds ``tau``, ``burn``, ``thin``, ``tau_reliable`` and ``acceptance``.
+    ``extra`` holds ``tau``, ``burn``, ``thin``, ``tau_reliable`` (chain >= n_tau tau),
+    ``acceptance``, ``n_steps`` (the chain's length), ``n_walkers``, ``max_steps`` and
+    ``convergence`` (:meth:`Convergence.to_dict`).
     """
     if args and isinstance(args[0], PixelData) and hasattr(logdensity, "for_data"):
         logdensity = logdensity.for_data(args[0])  # drops the unused censored branch
@@ -93,12 +214,15 @@ def sample_emcee(
     d = x0.size
     o = EmceeOptions() if options is None else options
     n_walkers = max(32, 2 * d + 2) if o.n_walkers is None else int(o.n_walkers)
-    n_steps, burn_factor = o.n_steps, o.burn_factor
     dtype = jnp.asarray(0.0).dtype
+    names = tuple(labels) or tuple(f"theta{i}" for i in range(d))
 
     def log_prob(x: np.ndarray) -> np.ndarray:
-        out = np.asarray(_log_prob_walkers(logdensity, jnp.asarray(x, dtype), args), np.float64)
+        out = np.asarray(_log_prob_walkers(logdensity, x.astype(dtype), args), np.float64)
         return np.where(np.isnan(out), -np.inf, out)
+
+    def to_natural(theta: np.ndarray) -> np.ndarray:
+        return theta if natural is None else np.asarray(natural(jnp.asarray(theta)), np.float64)
 
     rng = np.random.default_rng(seed)
     sd = np.full(d, 1e-2) if theta_std is None else np.asarray(theta_std, dtype=np.float64)
@@ -109,23 +233,47 @@ def sample_emcee(
     compile_s = time.perf_counter() - t0
     sampler = emcee.EnsembleSampler(n_walkers, d, log_prob, vectorize=True)
     sampler.random_state = np.random.RandomState(seed).get_state()  # reproducible moves
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=o.max_steps, desc="emcee steps", unit="step")
     t1 = time.perf_counter()
-    sampler.run_mcmc(p0, n_steps, progress=progress)
+    state, done = p0, 0
+    while True:
+        n = min(o.check_every, o.max_steps - done)
+        for step in sampler.sample(state, iterations=n):
+            state = step  # the last one carries on
+            if bar is not None:
+                bar.update(1)
+        done += n
+        chain = sampler.get_chain()  # (steps, walkers, D)
+        tau, long_enough = autocorr_check(chain, o.n_tau)
+        burn = min(int(np.ceil(o.burn_factor * np.max(tau))), done // 2)
+        thin = max(1, int(0.5 * np.min(tau)))
+        kept = np.swapaxes(chain[burn::thin], 0, 1)  # (walkers, draws, D)
+        verdict = convergence(
+            to_natural(kept),
+            tau=tau,
+            n_steps=done,
+            n_tau=o.n_tau,
+            max_rhat=o.max_rhat,
+            min_ess=o.min_ess,
+            labels=names,
+        )
+        if verdict.converged or done >= o.max_steps:
+            break
+    if bar is not None:
+        bar.close()
     run_s = time.perf_counter() - t1
-    chain = sampler.get_chain()  # (steps, walkers, D)
-    tau = emcee.autocorr.integrated_time(chain, quiet=True, tol=50)
-    reliable = bool(n_steps >= 50 * np.max(tau))
-    burn = min(int(np.ceil(burn_factor * np.max(tau))), n_steps // 2)
-    thin = max(1, int(0.5 * np.min(tau)))
-    kept = chain[burn::thin]  # (draws, walkers, D)
     lp = sampler.get_log_prob()[burn::thin]
-    theta = np.swapaxes(kept, 0, 1)[None]  # (1, walkers, draws, D)
-    nat = theta if natural is None else np.asarray(natural(jnp.asarray(theta)), np.float64)
+    theta = kept[None]  # (1, walkers, draws, D)
+    nat = to_natural(theta)
     acc = np.broadcast_to(sampler.acceptance_fraction[None, :, None], theta.shape[:3])
     return Samples(
         theta=theta,
         natural=nat,
-        labels=tuple(labels) or tuple(f"theta{i}" for i in range(d)),
+        labels=names,
         stats={
             "acceptance_rate": np.array(acc),
             "diverging": np.zeros(theta.shape[:3], bool),
@@ -138,9 +286,11 @@ def sample_emcee(
             "tau": tau.tolist(),
             "burn": burn,
             "thin": thin,
-            "tau_reliable": reliable,
+            "tau_reliable": long_enough,
             "acceptance": float(np.mean(sampler.acceptance_fraction)),
-            "n_steps": n_steps,
+            "n_steps": done,
             "n_walkers": n_walkers,
+            "max_steps": o.max_steps,
+            "convergence": verdict.to_dict(),
         },
     )

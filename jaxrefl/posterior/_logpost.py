@@ -194,6 +194,17 @@ class LogPosterior(eqx.Module):
     ) -> Float[Array, ""]:
         """log p(data | theta) (module docstring); ``pred``: :meth:`predict` at theta where
         the caller already has it."""
+        return jnp.sum(self.pointwise_log_likelihood(theta, data, normals, pred))
+
+    def pointwise_log_likelihood(
+        self,
+        theta: Float[Array, " D"],
+        data: PixelData,
+        normals: Array | None = None,
+        pred: Array | None = None,
+    ) -> Float[Array, "K C"]:
+        """The terms of :meth:`log_likelihood`, one per observation (K, C): w_kc times its
+        value or censored term (module docstring); 0 where masked out."""
         _, _, log_s = self.split(theta)
         dtype = theta.dtype
         ok = self.residual.usable(data)
@@ -209,10 +220,10 @@ class LogPosterior(eqx.Module):
         dark = data.censored < 0
         value = -self.residual.loss.rho(z) - jnp.log(sd)
         if not self.censoring:  # for_data saw no censored observation
-            return jnp.sum(w * value)
+            return w * value
         # One log Phi for both sides: log Phi(z) where saturated, log Phi(-z) where dark.
         ll = jnp.where(sat | dark, log_ndtr(jnp.where(sat, z, -z)), value)
-        return jnp.sum(w * ll)
+        return w * ll
 
     def __call__(
         self, theta: Float[Array, " D"], data: PixelData, normals: Array | None = None

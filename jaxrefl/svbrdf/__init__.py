@@ -67,3 +67,4 @@ from ._uncertainty import CaptureUncertainty as CaptureUncertainty
 from ._uncertainty import laplace_theta_std as laplace_theta_std
 from ._uncertainty import uncertainty_maps as uncertainty_maps
 from ._uncertainty import write_uncertainty as write_uncertainty
+from ._uncertainty_plots import write_uncertainty_plots as write_uncertainty_plots

@@ -17,10 +17,12 @@ where Laplace is not to be trusted.
    and the residual noise std (1e-2 where that is not a positive number).
 
 :func:`write_uncertainty` writes ``uncertainty.exr`` (mean, std, q05, q95 per parameter,
-method, R-hat, ESS; :func:`jaxrefl.posterior.write_uncertainty_exr`) and, where pixels were
-sampled, ``posterior.nc`` (ArviZ InferenceData of the MCMC pixels with their observations
-and posterior predictive draws). :meth:`CaptureUncertainty.report` is the JSON-ready
-summary (counts by method, R-hat/ESS distributions, audit std ratios, timings).
+method, R-hat, ESS; :func:`jaxrefl.posterior.write_uncertainty_exr`), where pixels were
+sampled ``posterior.nc`` (ArviZ InferenceData of the MCMC pixels with their observations,
+weights, censoring flags, pointwise log-likelihood and posterior predictive draws), and
+PNGs (:func:`jaxrefl.svbrdf.write_uncertainty_plots`). :meth:`CaptureUncertainty.report`
+is the JSON-ready summary (counts by method, R-hat/ESS distributions, audit std ratios,
+timings).
 """
 
 from __future__ import annotations
@@ -40,12 +42,14 @@ from jaxrefl.fit import PixelData
 
 from ._data import pixel_block
 from ._job import CaptureFit, FitJob, fit_capture, map_name
+from ._uncertainty_plots import write_uncertainty_plots
 
 __all__ = ["CaptureUncertainty", "laplace_theta_std", "uncertainty_maps", "write_uncertainty"]
 
 NOISE = "Gaussian, unknown scale per pixel (Jeffreys prior)"
 _NOISE_START = 1e-2  # the chains' starting noise scale where the fit gave none
 _PPC_DRAWS = 50  # posterior predictive draws per MCMC pixel in posterior.nc
+LOG_LIKELIHOOD_MAX = 20_000_000  # pointwise log-likelihood values in posterior.nc (float32: 80 MB)
 
 
 @dataclass
@@ -80,9 +84,13 @@ class CaptureUncertainty:
     def inference_data(self, n_draws: int = _PPC_DRAWS):
         """ArviZ InferenceData of the MCMC pixels (None when no pixel was sampled or
         ``AdaptiveOptions.keep_samples`` is False): posterior, sample stats, observed data
-        and ``n_draws`` posterior predictive draws per pixel; attrs ``rows``, ``cols``
-        (each pixel's place in the map, in the order of :attr:`UncertaintyMap.mcmc_pixels`),
-        ``width``, ``height``."""
+        (dims ``pixel``, ``photo``, ``channel``), weights and censoring flags
+        (``constant_data``), the pointwise log-likelihood (``log_likelihood``, float32, where it
+        holds at most :data:`LOG_LIKELIHOOD_MAX` values; else attr
+        ``log_likelihood_left_out`` says why) and ``n_draws`` posterior predictive draws
+        per pixel. The ``pixel`` axis (in the order of :attr:`UncertaintyMap.mcmc_pixels`)
+        carries coordinates ``row`` and ``col``, each pixel's place in the map; attrs
+        ``rows``, ``cols``, ``width``, ``height``."""
         u = self.map
         if u.samples is None:
             return None
@@ -92,10 +100,28 @@ class CaptureUncertainty:
             self.posterior, u.samples, sub, n_draws=n_draws, seed=self.options.seed
         )
         rows, cols = np.divmod(idx, self.width)
-        attrs = {"rows": rows.tolist(), "cols": cols.tolist(), "width": self.width}
-        return jp.to_inference_data(
-            u.samples, sub, pixels=idx, predictive=ppc, attrs={**attrs, "height": self.height}
+        attrs: dict[str, Any] = {"rows": rows.tolist(), "cols": cols.tolist()}
+        attrs.update(width=self.width, height=self.height)
+        n, c, m, _d = u.samples.theta.shape
+        size = n * c * m * int(np.prod(sub.obs.shape[1:]))
+        ll = None
+        if size <= LOG_LIKELIHOOD_MAX:
+            ll = jp.log_likelihood_draws(self.posterior, u.samples, sub).astype(np.float32)
+        else:
+            attrs["log_likelihood_left_out"] = (
+                f"{size} values (pixels x draws x photos x channels) exceed "
+                f"{LOG_LIKELIHOOD_MAX}: sample a crop (--pixels) for az.loo"
+            )
+        idata = jp.to_inference_data(
+            u.samples,
+            sub,
+            pixels=idx,
+            predictive=ppc,
+            log_likelihood=ll,
+            observation="photo",
+            attrs=attrs,
         )
+        return idata.assign_coords(row=("pixel", rows), col=("pixel", cols))
 
     def report(self) -> dict[str, Any]:
         """JSON-ready summary: model and size, noise and priors, the sampler settings of
@@ -217,8 +243,9 @@ def uncertainty_maps(
 
 
 def write_uncertainty(result: CaptureUncertainty, out_dir: str | Path) -> list[Path]:
-    """Write ``uncertainty.exr`` and, where pixels were sampled and their draws kept,
-    ``posterior.nc`` (:meth:`CaptureUncertainty.inference_data`) into ``out_dir``
+    """Write ``uncertainty.exr``, where pixels were sampled and their draws kept
+    ``posterior.nc`` (:meth:`CaptureUncertainty.inference_data`), and the PNGs of
+    :func:`write_uncertainty_plots` (std maps, R-hat map, pair plots) into ``out_dir``
     (created if missing); returns the paths written."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -230,4 +257,4 @@ def write_uncertainty(result: CaptureUncertainty, out_dir: str | Path) -> list[P
     idata = result.inference_data()
     if idata is not None:
         files.append(Path(jp.save_netcdf(idata, out / "posterior.nc")))
-    return files
+    return files + write_uncertainty_plots(result, out)
