@@ -63,6 +63,13 @@ from ._outputs import write_outputs as write_outputs
 from ._outputs import write_previews as write_previews
 from ._pooled import PoolChoice as PoolChoice
 from ._pooled import choose_pooled as choose_pooled
+from ._predictive import LEVELS as LEVELS
+from ._predictive import Discrepancy as Discrepancy
+from ._predictive import ModelCheck as ModelCheck
+from ._predictive import Predictive as Predictive
+from ._predictive import estimate_discrepancy as estimate_discrepancy
+from ._predictive import model_check as model_check
+from ._predictive import predictive as predictive
 from ._uncertainty import CaptureUncertainty as CaptureUncertainty
 from ._uncertainty import laplace_theta_std as laplace_theta_std
 from ._uncertainty import uncertainty_maps as uncertainty_maps
