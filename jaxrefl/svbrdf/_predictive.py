@@ -110,12 +110,15 @@ class Discrepancy:
     var:      (B,) tau^2 there (radiance units squared, >= 0)
     rows:     held-out training observations the estimate used
     folds:    the training photos held out in turn
+    replaces_noise: tau^2 is the whole variance beyond the parameter term: the fit's noise
+              term is replaced by it (:func:`estimate_discrepancy` ``replace_noise``)
     """
 
     radiance: np.ndarray
     var: np.ndarray
     rows: int = 0
     folds: tuple[int, ...] = ()
+    replaces_noise: bool = False
 
     @classmethod
     def zero(cls) -> Discrepancy:
@@ -132,6 +135,7 @@ class Discrepancy:
             "std": np.sqrt(self.var).tolist(),
             "rows": self.rows,
             "folds": list(self.folds),
+            "replaces_noise": self.replaces_noise,
         }
 
 
@@ -333,8 +337,11 @@ def predictive(
     value = np.concatenate([(d.weight > 0) & (d.censored == 0) for d in datas])
     nvar = _noise_var(fitter, cf.maps["noise_std"], mean)
     dvar = disc(mean)
+    if disc.replaces_noise:  # a variance function of the radiance in place of the noise
+        nvar, dvar = dvar, np.zeros_like(dvar)
     # The posterior predictive check on the pixel's own training photos (module docstring).
     ref = float(np.nanmedian(nvar[:, fitter.train])) if np.any(fitter.train) else np.nan
+    ref = nvar if disc.replaces_noise else ref
     use = value & fitter.train[None, :, None] & np.isfinite(mean)
     r2 = np.where(use, (obs - np.nan_to_num(mean)) ** 2, 0.0)
     chi2 = np.sum(r2 / (ref + dvar), axis=(1, 2))
@@ -391,6 +398,7 @@ def estimate_discrepancy(
     max_pixels: int = 4096,
     bins: int = 8,
     seed: int = 0,
+    replace_noise: bool = False,
 ) -> Discrepancy:
     """tau^2(mu) from the training photos of ``cf`` alone (module docstring).
 
@@ -399,7 +407,13 @@ def estimate_discrepancy(
     training photo is predicted by the job's model fitted on the other training photos, in
     stacked rows of the job's tile size (the fit's compiled programs serve). For ``pooled``,
     the shared width and F0 prior are the job's (chosen on all its training photos), so each
-    row's fit has seen its photo through them: slightly optimistic."""
+    row's fit has seen its photo through them: slightly optimistic.
+
+    ``replace_noise``: estimate the whole observation variance beyond the parameter term,
+    v(mu), the same way (median-matched per bin, against the parameter variance alone) and
+    use it in place of the fit's noise term: a heteroscedastic noise model measured on
+    held-out training photos, for a fit whose one noise scale (``pooled``'s) is too wide for
+    dark pixels and too narrow for bright ones."""
     from ._auto import _stack
     from ._pooled import _subsample
 
@@ -440,7 +454,7 @@ def estimate_discrepancy(
         )
         ok &= np.isfinite(mu) & np.isfinite(nv)
         e2s.append(((y - mu) ** 2)[ok])
-        vs.append((pv + nv)[ok])
+        vs.append((pv if replace_noise else pv + nv)[ok])
         mus.append(mu[ok])
     e2, v, m = (np.concatenate(x) if x else np.zeros(0) for x in (e2s, vs, mus))
     if e2.size == 0:
@@ -455,5 +469,9 @@ def estimate_discrepancy(
             tau2.append(_solve_tau2(e2[sel], v[sel]))
     order = np.argsort(centres)
     return Discrepancy(
-        np.asarray(centres)[order], np.asarray(tau2)[order], int(e2.size), tuple(train)
+        np.asarray(centres)[order],
+        np.asarray(tau2)[order],
+        int(e2.size),
+        tuple(train),
+        replaces_noise=replace_noise,
     )
