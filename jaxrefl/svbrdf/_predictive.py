@@ -36,21 +36,9 @@ The central interval of level p is mu +- z_p sqrt(v), z_p the standard normal's
 valid observations inside it (censored observations are bounds, not values, and are left
 out).
 
-Where the model cannot be right (bits of :class:`ModelCheck`, the ``misspecified`` map):
-
-* ``AT_MODEL_BOUND``: the optimum (the posterior's mode) sits at a bound that is a limit of
-  the *model*, not of physics: the upper end of a reflectance (albedo or specular F0 at 1,
-  or at the dielectric cap 0.25 of the grey-F0 models: the photos ask for more than the
-  model allows), or either end of the GGX width alpha (its floor is the capture's resolvable
-  width, its ceiling 1) on a pixel with a specular lobe (some F0 channel above its lower
-  bound: without a lobe alpha is not identified and its bound says nothing). A value at the
-  lower end of a reflectance (0) is one a surface can have and is not flagged. "At" is
-  :meth:`jaxrefl.fit.ParamSpace.at_bound`'s test (within 1e-3 of the range).
-* ``PPC_FAILED``: the pixel's own training photos reject the model: T = sum over its
-  uncensored training observations of r^2 / (v_ref + tau^2(mu)), with r the residual at the
-  optimum and v_ref the capture's noise variance (the median over pixels of v_noise, since a
-  pixel's own residual variance cannot test its own residuals), exceeds the chi-square
-  quantile of n - P degrees of freedom at 1 - :data:`PPC_ALPHA`.
+Where the model cannot be right: :meth:`Predictive.check` holds the bits of
+:class:`ModelCheck` (:mod:`jaxrefl.svbrdf._check`), its posterior predictive check
+evaluated with the discrepancy term (v = the capture's noise variance + tau^2(mu)).
 
 The intervals of a flagged pixel are not calibrated: its model is wrong there, so neither its
 parameter intervals nor its predictive intervals mean what their level says. Reports count
@@ -59,7 +47,6 @@ flagged pixels apart (:meth:`Predictive.coverage` takes a pixel mask).
 
 from __future__ import annotations
 
-import enum
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -71,14 +58,13 @@ from scipy import stats
 
 from jaxrefl.io import corr_name
 
+from ._check import PPC_ALPHA, ModelCheck, bound_check, check_counts, ppc_failed
 from ._data import pixel_block
 from ._job import CaptureFit, _TileFitter, map_name
 
 __all__ = [
     "LEVELS",
-    "PPC_ALPHA",
     "Discrepancy",
-    "ModelCheck",
     "Predictive",
     "estimate_discrepancy",
     "model_check",
@@ -86,20 +72,9 @@ __all__ = [
 ]
 
 LEVELS: tuple[float, ...] = (0.5, 0.9)
-# The posterior predictive check's false-alarm rate per pixel: of 65,536 well-modelled
-# pixels about 66 are flagged by chance.
-PPC_ALPHA = 1e-3
 # The median of a chi-square of one degree of freedom: the median of e^2 / v for a Gaussian e
 # of variance v (stats.chi2.ppf(0.5, 1)).
 _CHI2_1_MEDIAN = float(stats.chi2.ppf(0.5, 1))
-
-
-class ModelCheck(enum.IntFlag):
-    """Bits of the ``misspecified`` map (module docstring); 0 = no evidence against the model.
-    The numbers are stored in maps and reports and do not change."""
-
-    AT_MODEL_BOUND = 1
-    PPC_FAILED = 2
 
 
 @dataclass(frozen=True)
@@ -209,9 +184,7 @@ class Predictive:
 
     def check_counts(self) -> dict[str, int]:
         """Pixels per :class:`ModelCheck` bit, and ``misspecified`` (any bit)."""
-        out = {b.name or str(int(b)): int(np.sum((self.check & b) != 0)) for b in ModelCheck}
-        out["misspecified"] = int(np.sum(self.misspecified))
-        return out
+        return check_counts(self.check)
 
 
 # ----------------------------------------------------------------------------- moments
@@ -270,25 +243,6 @@ def _noise_var(fitter: _TileFitter, noise_map: np.ndarray, mu: np.ndarray) -> np
     return s2 * unit * unit
 
 
-def _bound_check(space, theta: np.ndarray) -> np.ndarray:
-    """(N,) bool: ``AT_MODEL_BOUND`` (module docstring)."""
-    ok = np.all(np.isfinite(theta), -1)
-    t = jnp.asarray(np.where(ok[:, None], theta, 0.0))
-    x = np.asarray(space.natural_vector(t))
-    at = np.asarray(space.at_bound(t))
-    hi = np.isfinite(space.upper) & (np.asarray(space.upper) - x <= 0.5 * (x - space.lower))
-    labels = space.labels
-    refl = np.array([lab.split(".")[0] in ("albedo", "specular") for lab in labels])
-    spec = np.array([lab.split(".")[0] == "specular" for lab in labels])
-    alpha = np.array([lab == "alpha" for lab in labels])
-    flag = np.any(at & hi & refl, -1)
-    if alpha.any() and spec.any():
-        lo_spec = at[:, spec] & ~hi[:, spec]
-        lobe = ~np.all(lo_spec, -1)
-        flag |= np.any(at[:, alpha], -1) & lobe
-    return flag & ok
-
-
 def predictive(
     capture,
     cf: CaptureFit,
@@ -302,8 +256,6 @@ def predictive(
 
     Every photo is predicted, the fit's own training photos and its held-out ones; only the
     held-out ones give an honest coverage (:meth:`Predictive.coverage`)."""
-    if not 0.0 < ppc_alpha < 1.0:
-        raise ValueError(f"ppc_alpha must be in (0, 1), got {ppc_alpha}")
     disc = Discrepancy.zero() if discrepancy is None else discrepancy
     _k, h, w, _c = capture.shape
     if cf.theta.shape[0] != h * w:
@@ -344,10 +296,11 @@ def predictive(
     ref = nvar if disc.replaces_noise else ref
     use = value & fitter.train[None, :, None] & np.isfinite(mean)
     r2 = np.where(use, (obs - np.nan_to_num(mean)) ** 2, 0.0)
-    chi2 = np.sum(r2 / (ref + dvar), axis=(1, 2))
+    # Floored at the smallest normal: only a variance function that is 0 somewhere reaches it.
+    chi2 = np.sum(r2 / np.maximum(ref + dvar, np.finfo(np.float64).tiny), axis=(1, 2))
     dof = np.sum(use, axis=(1, 2)) - space.size
-    fail = (dof > 0) & (chi2 > stats.chi2.isf(ppc_alpha, np.maximum(dof, 1)))
-    check = np.where(_bound_check(space, theta), int(ModelCheck.AT_MODEL_BOUND), 0)
+    fail = ppc_failed(chi2, dof, ppc_alpha)
+    check = np.where(bound_check(space, theta), int(ModelCheck.AT_MODEL_BOUND), 0)
     check = check | np.where(fail, int(ModelCheck.PPC_FAILED), 0)
     return Predictive(
         mean=mean,
@@ -378,7 +331,8 @@ def _solve_tau2(e2: np.ndarray, v: np.ndarray) -> float:
     on a monotone function; 0 where the model's own variance already suffices)."""
 
     def excess(t):
-        return float(np.median(e2 / (v + t))) - _CHI2_1_MEDIAN
+        # Floored at the smallest normal: only v = 0 (no parameter term) at t = 0 reaches it.
+        return float(np.median(e2 / np.maximum(v + t, np.finfo(np.float64).tiny))) - _CHI2_1_MEDIAN
 
     if e2.size == 0 or excess(0.0) <= 0:
         return 0.0
