@@ -172,7 +172,9 @@ class CaptureFit:
              standard deviations (``albedo_std.R``, ``specular_std``, ``alpha_std``,
              ``roughness_std``), correlations ``corr_<a>_<b>``, ``status`` (fit
              :class:`jaxrefl.fit.Status`), ``laplace_flag`` (:class:`jaxrefl.fit.LaplaceFlag`
-             bits), ``noise_std`` (estimated), ``cost``, ``n_used``, ``iterations``
+             bits), ``misspecified`` (:class:`jaxrefl.svbrdf.ModelCheck` bits: where the
+             model cannot be right, :mod:`jaxrefl.svbrdf._check`), ``noise_std``
+             (estimated), ``cost``, ``n_used``, ``iterations``
     report:  what ``report.json`` holds (timings, counts, held-out error, model)
     """
 

@@ -30,13 +30,17 @@ with three variances, all in the capture's linear radiance units squared:
   median, 0.455 (a median, not a mean: a few wild highlights must not set the width of every
   interval). Between bin centres tau^2 is interpolated linearly, constant beyond. A held-out
   photo of the job is never looked at.
+* With ``estimate_discrepancy(..., replace_noise=True)`` the same median-matched estimate is
+  made against the parameter variance alone, and v(mu) *replaces* the fit's noise term: a
+  heteroscedastic noise model measured on held-out training photos (``pooled`` has one
+  noise scale for the capture, too wide for dark pixels and too narrow for bright ones).
 
 The central interval of level p is mu +- z_p sqrt(v), z_p the standard normal's
 (1 + p)/2 quantile. :meth:`Predictive.coverage` counts the share of a photo's uncensored,
 valid observations inside it (censored observations are bounds, not values, and are left
 out).
 
-Where the model cannot be right: :meth:`Predictive.check` holds the bits of
+Where the model cannot be right: :attr:`Predictive.check` holds the bits of
 :class:`ModelCheck` (:mod:`jaxrefl.svbrdf._check`), its posterior predictive check
 evaluated with the discrepancy term (v = the capture's noise variance + tau^2(mu)).
 
@@ -292,8 +296,10 @@ def predictive(
     if disc.replaces_noise:  # a variance function of the radiance in place of the noise
         nvar, dvar = dvar, np.zeros_like(dvar)
     # The posterior predictive check on the pixel's own training photos (module docstring).
-    ref = float(np.nanmedian(nvar[:, fitter.train])) if np.any(fitter.train) else np.nan
-    ref = nvar if disc.replaces_noise else ref
+    # The capture's noise variance (the median over pixels), or the variance function itself.
+    ref: np.ndarray | float = nvar
+    if not disc.replaces_noise:
+        ref = float(np.nanmedian(nvar[:, fitter.train])) if np.any(fitter.train) else np.nan
     use = value & fitter.train[None, :, None] & np.isfinite(mean)
     r2 = np.where(use, (obs - np.nan_to_num(mean)) ** 2, 0.0)
     # Floored at the smallest normal: only a variance function that is 0 somewhere reaches it.
@@ -315,7 +321,7 @@ def predictive(
         dof=dof,
         no_covariance=~formed & np.all(np.isfinite(theta), -1),
         discrepancy=disc,
-        extra={"noise_ref_var": ref},
+        extra={"noise_ref_var": float(np.nanmedian(ref))},
     )
 
 
