@@ -64,6 +64,12 @@ def test_out_of_range_f0_is_flagged_and_in_range_is_not(fitted):
     assert np.mean(out != 0) > 0.9, pred.check_counts()
     assert np.mean((out & ModelCheck.AT_MODEL_BOUND) != 0) > 0.9
     assert np.mean(inside != 0) < 0.02, pred.check_counts()
+    # the fit's own map (checked against the noise alone) agrees, and the report counts it
+    _cap, cf, _disc, _pred = fitted
+    m = cf.maps["misspecified"]
+    assert m.dtype == np.uint32
+    assert np.mean(m[:, SPLIT:] != 0) > 0.9 and np.mean(m[:, :SPLIT] != 0) < 0.02
+    assert cf.report["misspecified_counts"]["misspecified"] == int(np.sum(m != 0))
 
 
 def test_held_out_intervals_cover_at_the_nominal_rate(fitted):

@@ -131,6 +131,7 @@ class Predictive:
     chi2, dof:  (N,) the posterior predictive check's statistic and degrees of freedom
     no_covariance: (N,) bool: no Laplace covariance (the parameter term is missing)
     discrepancy: the :class:`Discrepancy` used
+    extra:      ``noise_ref_var``: the check's reference noise variance (the median)
     """
 
     mean: np.ndarray
