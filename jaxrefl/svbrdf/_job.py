@@ -777,7 +777,12 @@ def _model_check(fitter: _TileFitter, cat) -> np.ndarray:
     check, and for Gaussian noise the check of the training photos' squared errors against
     the capture's noise variance (the median over pixels, in radiance units)."""
     theta = cat["theta"]
-    check = np.where(bound_check(fitter.space, theta), int(ModelCheck.AT_MODEL_BOUND), 0)
+    ok = np.all(np.isfinite(theta), -1)
+    dn = np.abs(np.asarray(fitter.space.dnatural(jnp.asarray(np.where(ok[:, None], theta, 0.0)))))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        theta_std = cat["std"] / dn  # the delta method reversed (laplace_theta_std)
+    bound = bound_check(fitter.space, theta, theta_std)
+    check = np.where(bound, int(ModelCheck.AT_MODEL_BOUND), 0)
     if not isinstance(fitter.noise, fit.GaussianNoise):
         return check
     var = np.asarray(cat["noise_var"], np.float64)

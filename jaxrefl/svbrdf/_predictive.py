@@ -307,7 +307,12 @@ def predictive(
     chi2 = np.sum(r2 / np.maximum(ref + dvar, np.finfo(np.float64).tiny), axis=(1, 2))
     dof = np.sum(use, axis=(1, 2)) - space.size
     fail = ppc_failed(chi2, dof, ppc_alpha)
-    check = np.where(bound_check(space, theta), int(ModelCheck.AT_MODEL_BOUND), 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ok_t = np.all(np.isfinite(theta), -1)
+        dn = np.asarray(space.dnatural(jnp.asarray(np.where(ok_t[:, None], theta, 0.0))))
+        theta_std = std / np.abs(dn)  # the delta method reversed (laplace_theta_std)
+    bound = bound_check(space, theta, theta_std)
+    check = np.where(bound, int(ModelCheck.AT_MODEL_BOUND), 0)
     check = check | np.where(fail, int(ModelCheck.PPC_FAILED), 0)
     return Predictive(
         mean=mean,
