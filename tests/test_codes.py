@@ -200,6 +200,15 @@ def test_same_residual_is_identity_or_equal_leaves():
     assert not same_residual(a, make_residual(model, noise=GaussianNoise(0.5)))
 
 
+def test_model_check_bits_are_the_stored_ones_and_counted_per_bit():
+    from jaxrefl.svbrdf import ModelCheck, check_counts
+
+    assert {b.name: int(b) for b in ModelCheck} == {"AT_MODEL_BOUND": 1, "PPC_FAILED": 2}
+    c = np.array([[0, 1, 3], [2, 2, 0]], np.uint32)
+    want = {"AT_MODEL_BOUND": 2, "PPC_FAILED": 3, "misspecified": 4}
+    assert check_counts(c) == want
+
+
 # ----------------------------------------------------------------------------- posterior methods
 def test_method_codes_are_the_stored_ones_and_name_the_methods_table():
     from jaxrefl.posterior import MCMC_METHODS, METHODS, Method

@@ -210,6 +210,12 @@ def print_summary(report: dict) -> None:
     )
     flags = report["laplace_flag_counts"]
     print(f"Laplace uncertainty reliable on {flags['reliable']} of {report['pixels']} pixels")
+    bad = report.get("misspecified_counts", {}).get("misspecified")
+    if bad:
+        print(
+            f"misspecified (the model cannot be right; intervals not calibrated): {bad} of "
+            f"{report['pixels']} pixels (map 'misspecified')"
+        )
     if report.get("train_rmse") is not None:
         print(f"fit RMSE (linear radiance, fitted photos): {report['train_rmse']:.5f}")
     if "heldout_rmse" in report and report["heldout_rmse"] is not None:

@@ -26,12 +26,17 @@ held-out photos), :mod:`._job` (tiled fit with Laplace uncertainty and resume),
 :mod:`._holdout` (leave-one-photo-out against a baseline), :mod:`._outputs` (EXR maps,
 report, previews), :mod:`._export` (textures, a Mitsuba 3 scene and a glTF 2.0 material
 for renderers), :mod:`._uncertainty` (the fit's Laplace std, then MCMC where Laplace is
-flagged: posterior uncertainty maps).
+flagged: posterior uncertainty maps), :mod:`._check` (where the model cannot be right: the
+``misspecified`` map), :mod:`._predictive` (posterior predictive intervals of photos, with a
+model-discrepancy term measured on training photos; their coverage of held-out photos).
 """
 
 from ._auto import AUTO_CANDIDATES as AUTO_CANDIDATES
 from ._auto import ModelChoice as ModelChoice
 from ._auto import choose_model as choose_model
+from ._check import PPC_ALPHA as PPC_ALPHA
+from ._check import ModelCheck as ModelCheck
+from ._check import check_counts as check_counts
 from ._data import is_colocated as is_colocated
 from ._data import pixel_block as pixel_block
 from ._data import resolvable_alpha as resolvable_alpha
@@ -63,6 +68,12 @@ from ._outputs import write_outputs as write_outputs
 from ._outputs import write_previews as write_previews
 from ._pooled import PoolChoice as PoolChoice
 from ._pooled import choose_pooled as choose_pooled
+from ._predictive import LEVELS as LEVELS
+from ._predictive import Discrepancy as Discrepancy
+from ._predictive import Predictive as Predictive
+from ._predictive import estimate_discrepancy as estimate_discrepancy
+from ._predictive import model_check as model_check
+from ._predictive import predictive as predictive
 from ._uncertainty import CaptureUncertainty as CaptureUncertainty
 from ._uncertainty import laplace_theta_std as laplace_theta_std
 from ._uncertainty import uncertainty_maps as uncertainty_maps

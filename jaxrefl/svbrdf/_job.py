@@ -55,6 +55,7 @@ from jaxrefl.fit import Distributed, Status, process_barrier, process_gather, pr
 from jaxrefl.io import corr_name, map_name, save_npz_atomic
 
 from ._auto import ModelChoice, choose_model
+from ._check import ModelCheck, bound_check, check_counts, ppc_failed
 from ._data import pixel_block, resolvable_alpha
 from ._models import ALPHA_RANGE, TWO_STAGE, capture_model
 from ._pooled import PoolChoice, choose_pooled
@@ -171,7 +172,9 @@ class CaptureFit:
              standard deviations (``albedo_std.R``, ``specular_std``, ``alpha_std``,
              ``roughness_std``), correlations ``corr_<a>_<b>``, ``status`` (fit
              :class:`jaxrefl.fit.Status`), ``laplace_flag`` (:class:`jaxrefl.fit.LaplaceFlag`
-             bits), ``noise_std`` (estimated), ``cost``, ``n_used``, ``iterations``
+             bits), ``misspecified`` (:class:`jaxrefl.svbrdf.ModelCheck` bits: where the
+             model cannot be right, :mod:`jaxrefl.svbrdf._check`), ``noise_std``
+             (estimated), ``cost``, ``n_used``, ``iterations``
     report:  what ``report.json`` holds (timings, counts, held-out error, model)
     """
 
@@ -763,10 +766,37 @@ def _maps(fitter: _TileFitter, cat, h: int, w: int) -> dict[str, np.ndarray]:
     maps["cost"] = cat["cost"]
     maps["n_used"] = cat["n_used"].astype(np.uint32)
     maps["iterations"] = cat["iterations"].astype(np.uint32)
+    maps["misspecified"] = _model_check(fitter, cat).astype(np.uint32)
     return {
         k: np.asarray(v).reshape(h, w).astype(v.dtype if v.dtype == np.uint32 else np.float32)
         for k, v in maps.items()
     }
+
+
+def _model_check(fitter: _TileFitter, cat) -> np.ndarray:
+    """(N,) :class:`ModelCheck` bits of the fit (:mod:`jaxrefl.svbrdf._check`): the bound
+    check, and for Gaussian noise the check of the training photos' squared errors against
+    the capture's noise variance (the median over pixels, in radiance units)."""
+    theta = cat["theta"]
+    ok = np.all(np.isfinite(theta), -1)
+    dn = np.abs(np.asarray(fitter.space.dnatural(jnp.asarray(np.where(ok[:, None], theta, 0.0)))))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        theta_std = cat["std"] / dn  # the delta method reversed (laplace_theta_std)
+    bound = bound_check(fitter.space, theta, theta_std)
+    check = np.where(bound, int(ModelCheck.AT_MODEL_BOUND), 0)
+    if not isinstance(fitter.noise, fit.GaussianNoise):
+        return check
+    var = np.asarray(cat["noise_var"], np.float64)
+    if fitter.known_noise is None and fitter.noise.sigma is not None:
+        # the estimated scale multiplies the model's variance (its mean over channels)
+        var = var * float(np.mean(np.asarray(fitter.noise.sigma, np.float64) ** 2))
+    good = var[np.isfinite(var) & (var > 0)]
+    if good.size == 0:
+        return check
+    train = fitter.train
+    chi2 = np.sum(cat["sse"][:, train], axis=1) / float(np.median(good))
+    dof = np.sum(cat["cnt"][:, train], axis=1) - fitter.space.size
+    return check | np.where(ppc_failed(chi2, dof), int(ModelCheck.PPC_FAILED), 0)
 
 
 def _rmse(sse: np.ndarray, cnt: np.ndarray) -> float | None:
@@ -809,6 +839,9 @@ def _report(fitter, cat, capture, job, maps, compile_s, times, n_tiles, loaded) 
         "pixels": n_px,
         "status_counts": fit.describe(maps["status"]),
         "laplace_flag_counts": fit.flag_counts(maps["laplace_flag"]),
+        # Pixels whose model cannot be right (jaxrefl.svbrdf._check): their Laplace and
+        # predictive intervals are not calibrated.
+        "misspecified_counts": check_counts(maps["misspecified"]),
         "timings": {
             "compile_s": compile_s,
             "run_s": run_s,

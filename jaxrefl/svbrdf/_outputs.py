@@ -6,8 +6,10 @@
 ``status.Y``, ...; the table in :mod:`jaxrefl.io._channels`, which Mitsuba 3's
 ``Bitmap(...).split()`` and OpenEXR layer readers split into RGB and Y images), with
 metadata ``jaxrefl/model``, ``jaxrefl/units``, ``jaxrefl/correlations`` (layer -> the two
-parameter labels), ``jaxrefl/status_codes``, ``jaxrefl/laplace_flags`` and
-``jaxrefl/version``. Writes are atomic (:func:`jaxrefl.io.write_exr`).
+parameter labels), ``jaxrefl/status_codes``, ``jaxrefl/laplace_flags``,
+``jaxrefl/model_checks`` (the bits of the ``misspecified`` map,
+:mod:`jaxrefl.svbrdf._check`) and ``jaxrefl/version``. Writes are atomic
+(:func:`jaxrefl.io.write_exr`).
 
 Previews (8-bit PNG, at most ``preview_side`` pixels a side, strided):
 ``params.png`` (albedo, specular, roughness with colour bars in their units, and the fit
@@ -32,6 +34,7 @@ import numpy as np
 from jaxrefl import fit
 from jaxrefl._jsonsafe import report_json
 
+from ._check import ModelCheck
 from ._data import pixel_block
 from ._job import CaptureFit, status_meanings
 from ._models import CAPTURE_MODELS
@@ -73,6 +76,8 @@ def write_maps(result: CaptureFit, path: Path) -> Path:
         },
         "status_codes": status_meanings(),
         "laplace_flags": {b.name: int(b.value) for b in fit.LaplaceFlag},
+        # the misspecified map's bits: pixels whose intervals are not calibrated
+        "model_checks": {b.name: int(b.value) for b in ModelCheck},
     }
     if result.extra.get("pooled") is not None:
         meta["pooled"] = result.extra["pooled"].as_dict()

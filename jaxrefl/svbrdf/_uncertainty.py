@@ -139,7 +139,11 @@ class CaptureUncertainty:
             "priors": {b.name: repr(p) for b, p in zip(lp.space.blocks, lp.priors, strict=True)},
             "sampler": {**vars(o.hmc)},
             "second_pass": {"rerun_rhat": o.rerun_rhat, "options": {**vars(second)}},
-            "fit_report": {k: self.fit.report[k] for k in ("status_counts", "laplace_flag_counts")},
+            # misspecified pixels (jaxrefl.svbrdf._check): their intervals are not calibrated
+            "fit_report": {
+                k: self.fit.report.get(k)
+                for k in ("status_counts", "laplace_flag_counts", "misspecified_counts")
+            },
             "uncertainty": self.map.report(),
             "timings": dict(self.timings),
         }

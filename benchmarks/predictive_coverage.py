@@ -1,0 +1,289 @@
+"""Calibration on real photos: do 50% and 90% predictive intervals cover what they claim?
+
+For ``bath_tile`` and ``yellow_box`` (``../shared/data/svbrdf_flash``, read at ``--size``),
+every photo is held out in turn: the job (``--model``, ``pooled`` by default: the model
+``auto`` chose in every fold of ``benchmarks/real_captures.py``) is fitted on the other
+photos, the model-discrepancy term is estimated from those training photos alone
+(:func:`jaxrefl.svbrdf.estimate_discrepancy`), and the posterior predictive distribution of
+the held-out photo's pixels (:func:`jaxrefl.svbrdf.predictive`: Laplace parameter
+uncertainty + the fit's Gaussian noise + the discrepancy) gives central 50% and 90%
+intervals. The table gives, per held-out photo, the share of its uncensored observations
+inside them: with all three terms, without the discrepancy term, and over the pixels not
+flagged as misspecified (:class:`jaxrefl.svbrdf.ModelCheck`).
+
+Then a synthetic capture (the demo's flash rig, ``--synthetic-size`` pixels a side, GGX +
+Lambert, grey F0 drawn up to 0.5 while the ``ggx`` model allows 0.25, Gaussian noise of std
+0.004) is fitted with ``ggx`` with photo 8 held out: coverage of the true parameters by the
+Laplace 50% and 90% intervals (Gaussian in the unconstrained space, mapped to natural
+units), and of the held-out photo by the predictive intervals, split by the flag.
+
+    python benchmarks/predictive_coverage.py [--size 256] [--captures bath_tile,yellow_box]
+        [--model pooled] [--synthetic-size 32] [--no-write]
+
+It prints the tables and writes them, dated and with the machine, to the section
+``predictive_coverage`` of ``docs/benchmarks.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+
+from _common import run_and_record, table  # noqa: E402
+
+LEVELS = (0.5, 0.9)
+SYN_SIGMA = 0.004
+SYN_HELD = 8
+
+
+def _shared() -> Path:
+    env = os.environ.get("JAXREFL_SHARED_DATA")
+    return Path(env) if env else HERE.parent.parent / "shared" / "data"
+
+
+def _pct(x: float) -> str:
+    return "-" if not np.isfinite(x) else f"{100 * x:.1f}"
+
+
+def real_capture(name: str, size: int, model: str) -> None:
+    from jaxrefl.io import load_capture
+    from jaxrefl.svbrdf import FitJob, estimate_discrepancy, fit_capture, predictive
+
+    cap = load_capture(_shared() / "svbrdf_flash" / name, resolution=size)
+    k = cap.n_photos
+    rows = []
+    tot = {key: [0.0, 0] for key in ("all50", "all90", "ok50", "ok90", "fn50", "fn90")}
+    fit_s = disc_s = pred_s = compile_s = 0.0
+    for i in range(k):
+        t0 = time.perf_counter()
+        cf = fit_capture(cap, FitJob(model=model, holdout=(i,)))
+        t1 = time.perf_counter()
+        disc = estimate_discrepancy(cap, cf)
+        t2 = time.perf_counter()
+        pred = predictive(cap, cf, disc)
+        vfn = predictive(cap, cf, estimate_discrepancy(cap, cf, replace_noise=True))
+        t3 = time.perf_counter()
+        compile_s += cf.report["timings"]["compile_s"]
+        fit_s += t1 - t0 - cf.report["timings"]["compile_s"]
+        disc_s += t2 - t1
+        pred_s += t3 - t2
+        ok = ~pred.misspecified
+        c = {}
+        for lv in LEVELS:
+            c[f"all{lv}"], n_all = pred.coverage(i, lv)
+            c[f"nod{lv}"], _ = pred.coverage(i, lv, terms=("param", "noise"))
+            c[f"ok{lv}"], n_ok = pred.coverage(i, lv, ok)
+            c[f"fn{lv}"], _ = vfn.coverage(i, lv)
+        for tag, n in (("all", n_all), ("ok", n_ok), ("fn", n_all)):
+            for lv in LEVELS:
+                key = f"{tag}{round(100 * lv)}"
+                if np.isfinite(c[f"{tag}{lv}"]):
+                    tot[key][0] += c[f"{tag}{lv}"] * n
+                    tot[key][1] += n
+        med = float(np.nanmedian(pred.mean[:, i]))
+        rows.append(
+            [
+                str(i),
+                _pct(c["all0.5"]),
+                _pct(c["all0.9"]),
+                _pct(c["nod0.5"]),
+                _pct(c["nod0.9"]),
+                _pct(c["ok0.5"]),
+                _pct(c["ok0.9"]),
+                _pct(c["fn0.5"]),
+                _pct(c["fn0.9"]),
+                f"{100 * np.mean(pred.misspecified):.1f}",
+                f"{np.sqrt(float(disc(med))):.4f}",
+                f"{np.sqrt(np.nanmedian(pred.noise_var[:, i])):.4f}",
+                f"{np.sqrt(np.nanmedian(pred.param_var[:, i])):.4f}",
+                str(n_all),
+            ]
+        )
+        print(f"  {name}: photo {i} held out ({t3 - t0:.0f} s)", file=sys.stderr, flush=True)
+
+    def pooled(key):
+        s, n = tot[key]
+        return s / n if n else float("nan")
+
+    rows.append(
+        [
+            "all",
+            _pct(pooled("all50")),
+            _pct(pooled("all90")),
+            "",
+            "",
+            _pct(pooled("ok50")),
+            _pct(pooled("ok90")),
+            _pct(pooled("fn50")),
+            _pct(pooled("fn90")),
+            "",
+            "",
+            "",
+            "",
+            "",
+        ]
+    )
+    print(f"### {name}, {size} x {size}, model `{model}`, each of {k} photos held out in turn")
+    print()
+    print(
+        table(
+            [
+                "held-out photo",
+                "50% cover",
+                "90% cover",
+                "50% no disc.",
+                "90% no disc.",
+                "50% unflagged",
+                "90% unflagged",
+                "50% var. fn",
+                "90% var. fn",
+                "flagged %",
+                "disc. std at median",
+                "noise std",
+                "param std (median)",
+                "values",
+            ],
+            rows,
+        )
+    )
+    print()
+    print(
+        f"Coverage in %, of the held-out photo's uncensored observations (target 45-55 and "
+        f"85-95). Seconds over the {k} folds: fit {fit_s:.0f} (compile {compile_s:.0f} apart), "
+        f"discrepancy {disc_s:.0f}, both predictives {pred_s:.0f}. Columns: all three terms; "
+        "parameter + noise only; all three over the pixels not flagged; 'var. fn': the fit's "
+        "noise term replaced by a variance function of the radiance measured on held-out "
+        "training photos (`estimate_discrepancy(..., replace_noise=True)`)."
+    )
+    print()
+
+
+def _synthetic(size: int, seed: int = 0):
+    """(capture, truth): the demo rig, GGX + Lambert, grey F0 up to 0.5."""
+    import jax.numpy as jnp
+
+    from jaxrefl.demo import demo_capture, demo_scene
+    from jaxrefl.io import Capture
+
+    scene = demo_scene(size=size)
+    rng = np.random.default_rng(seed)
+    f0 = rng.uniform(0.0, 0.5, (size, size))
+    truth = {
+        "albedo": rng.uniform(0.05, 0.8, (size, size, 3)),
+        "specular": np.repeat(f0[..., None], 3, -1),
+        "alpha": rng.uniform(0.2, 0.8, (size, size)) ** 2,
+    }
+    k = len(scene.positions)
+    cap = demo_capture(scene, np.zeros((k, size, size, 3), np.float32))
+    geo = cap.per_pixel_geometry(dtype=np.float64)
+    p = {n: jnp.asarray(v) for n, v in truth.items()}
+    f = np.asarray(scene.model.eval(p, jnp.asarray(geo["wi"]), jnp.asarray(geo["wo"])))
+    img = f * geo["irradiance"] * geo["cos_i"][..., None]
+    img = img + SYN_SIGMA * rng.standard_normal(img.shape)
+    return Capture(**{**cap.__dict__, "images": img.astype(np.float32)}), truth
+
+
+def synthetic(size: int) -> None:
+    import jax.numpy as jnp
+    from scipy import stats
+
+    from jaxrefl.svbrdf import FitJob, estimate_discrepancy, fit_capture, laplace_theta_std
+    from jaxrefl.svbrdf import predictive as predict
+
+    cap, truth = _synthetic(size)
+    t0 = time.perf_counter()
+    cf = fit_capture(cap, FitJob(model="ggx", holdout=(SYN_HELD,)))
+    pred = predict(cap, cf, estimate_discrepancy(cap, cf))
+    wall = time.perf_counter() - t0
+    _model, space = cf.model()
+    theta = np.asarray(cf.theta, np.float64)
+    s_t = laplace_theta_std(cf, space)
+    n = theta.shape[0]
+    want = {
+        "albedo.R": truth["albedo"][..., 0],
+        "albedo.G": truth["albedo"][..., 1],
+        "albedo.B": truth["albedo"][..., 2],
+        "specular": truth["specular"][..., 0],
+        "alpha": truth["alpha"],
+    }
+    true = np.stack([want[lab].reshape(-1) for lab in space.labels], -1)
+    flag = pred.misspecified
+    in_range = truth["specular"][..., 0].reshape(-1) <= 0.25
+    groups = {
+        "unflagged": ~flag,
+        "flagged": flag,
+        "all": np.ones(n, bool),
+        "F0 in model range": in_range,
+        "F0 beyond 0.25": ~in_range,
+    }
+    rows = []
+    for gname, sel in groups.items():
+        cells = [gname, str(int(np.sum(sel)))]
+        for lab in ("albedo.R", "specular", "alpha"):
+            j = space.labels.index(lab)
+            for lv in LEVELS:
+                z = float(stats.norm.ppf(0.5 + 0.5 * lv))
+                ok = sel & np.isfinite(s_t[:, j]) & np.all(np.isfinite(theta), -1)
+                lo_t, hi_t = theta.copy(), theta.copy()
+                lo_t[:, j] -= z * np.nan_to_num(s_t[:, j])
+                hi_t[:, j] += z * np.nan_to_num(s_t[:, j])
+                lo = np.asarray(space.natural_vector(jnp.asarray(np.nan_to_num(lo_t))))[:, j]
+                hi = np.asarray(space.natural_vector(jnp.asarray(np.nan_to_num(hi_t))))[:, j]
+                inside = (true[:, j] >= np.minimum(lo, hi)) & (true[:, j] <= np.maximum(lo, hi))
+                cells.append(_pct(float(np.mean(inside[ok]))) if ok.any() else "-")
+        for lv in LEVELS:
+            cov, _n = pred.coverage(SYN_HELD, lv, sel)
+            cells.append(_pct(cov))
+        rows.append(cells)
+    print(
+        f"### Synthetic capture, {size} x {size}, grey F0 uniform in [0, 0.5], model `ggx` "
+        f"(F0 <= 0.25), noise std {SYN_SIGMA}, photo {SYN_HELD} held out"
+    )
+    print()
+    heads = ["pixels", "count"]
+    for lab in ("albedo.R", "F0", "alpha"):
+        heads += [f"{lab} 50%", f"{lab} 90%"]
+    heads += ["photo 50%", "photo 90%"]
+    print(table(heads, rows))
+    print()
+    counts = pred.check_counts()
+    print(
+        "Coverage in % of the true parameter by its Laplace interval, and of the held-out "
+        "photo by the predictive interval. Flags: "
+        + ", ".join(f"{k} {v}" for k, v in counts.items())
+        + f" of {n} pixels; {wall:.0f} s with compilation."
+    )
+    print()
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--size", type=int, default=256)
+    ap.add_argument("--captures", default="bath_tile,yellow_box")
+    ap.add_argument("--model", default="pooled")
+    ap.add_argument("--synthetic-size", type=int, default=32)
+    args = ap.parse_args()
+    print(
+        "Noise model: additive Gaussian, independent between photos and channels, one "
+        "variance per pixel (the fit's: `pooled` one sigma for the capture, the per-pixel "
+        "models each pixel's residual variance), plus a discrepancy variance tau^2(radiance) "
+        "estimated from the training photos' leave-one-photo-out errors only."
+    )
+    print()
+    for name in [c for c in args.captures.split(",") if c]:
+        real_capture(name, args.size, args.model)
+    if args.synthetic_size > 0:
+        synthetic(args.synthetic_size)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(run_and_record("predictive_coverage", "Predictive coverage", main))
