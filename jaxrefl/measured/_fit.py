@@ -129,7 +129,7 @@ def _status_summary(result: FitResult) -> str | dict[str, int]:
 
 def _same(a: BRDF, b: BRDF) -> bool:
     """The same model (type and static settings)."""
-    return type(a) is type(b) and a == b
+    return type(a) is type(b) and bool(a == b)
 
 
 def _to_list(x: Any) -> Any:

@@ -357,7 +357,7 @@ def nested_model(model: BRDF) -> BRDF | None:
 
 def _is_nested(model: BRDF, smaller: BRDF) -> bool:
     inner = nested_model(model)
-    return inner is not None and type(inner) is type(smaller) and inner == smaller
+    return inner is not None and type(inner) is type(smaller) and bool(inner == smaller)
 
 
 def _lobe_shapes(wi: np.ndarray, wo: np.ndarray, resid: np.ndarray, w: np.ndarray):
@@ -560,8 +560,8 @@ def _nested_starts(
             f"this fit {n}: fit both with the same channels"
         )
     with jax.enable_x64(True):
-        nat = nested.space.to_natural(jnp.asarray(theta.reshape(n, -1)))
-        nat = {k: np.asarray(v, np.float64) for k, v in nat.items()}
+        natural = nested.space.to_natural(jnp.asarray(theta.reshape(n, -1)))
+        nat = {k: np.asarray(v, np.float64) for k, v in natural.items()}
     out = []
     for i in range(n):
         p = {k: v[i] for k, v in nat.items()}
