@@ -174,3 +174,9 @@ def test_nested_starts_find_the_second_lafortune_lobe():
     np.testing.assert_allclose(r.params["albedo"], ALBEDO, rtol=1e-5)
     with pytest.raises(ValueError, match="nested model"):
         jm.nested_thetas(r.space, l2, {}, wi, wo, f)
+    # fit_brdf fits the one-lobe model first, whatever the order asked, and nests from it
+    # (the same compiled programs as above).
+    rep = jm.fit_brdf(m, ["lafortune_2", "lafortune_1"], starts=STARTS, **kw)
+    assert list(rep.fits) == ["lafortune_2", "lafortune_1"]
+    assert rep.fits["lafortune_2"].certificate.n_starts == 42
+    assert rep.fits["lafortune_2"].cost < 1e-9 * rep.fits["lafortune_1"].cost
