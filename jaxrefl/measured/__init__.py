@@ -16,7 +16,7 @@ Quick use::
 
 Parts: :mod:`._metrics` (cosine-weighted L2 of Ngan et al. 2005, log-space and relative
 L2), :mod:`._models` (the named model set), :mod:`._starts` (multi-start fits from
-data-driven and quasi-random starts, and the certificate of the optimum), :mod:`._data`
+data-driven, quasi-random and nested starts, and the certificate of the optimum), :mod:`._data`
 (reading, RGB conversion, angle limit), :mod:`._fit` (fit one model / all of them),
 :mod:`._retry` (float32 -> float64),
 :mod:`._plots` (measured vs fitted lobes), :mod:`._components` (models assembled from
@@ -91,6 +91,8 @@ from ._starts import MultiStart as MultiStart
 from ._starts import certify as certify
 from ._starts import fit_multistart as fit_multistart
 from ._starts import lobe_moments as lobe_moments
+from ._starts import nested_model as nested_model
+from ._starts import nested_thetas as nested_thetas
 from ._starts import random_thetas as random_thetas
 from ._starts import seed_params as seed_params
 from ._starts import start_thetas as start_thetas

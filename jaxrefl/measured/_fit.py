@@ -43,7 +43,7 @@ from ._data import restrict, to_rgb
 from ._metrics import METRICS, error_metrics, sample_weights, usable_samples
 from ._models import MODEL_DESCRIPTIONS, fresnel_name, resolve_models
 from ._retry import choose, float64_enabled, float64_reasons, x64
-from ._starts import Certificate, MultiStart, fit_multistart
+from ._starts import Certificate, MultiStart, fit_multistart, nested_model
 
 __all__ = ["FitReport", "ModelFit", "fit_brdf", "fit_model", "predict"]
 
@@ -125,6 +125,11 @@ def _status_summary(result: FitResult) -> str | dict[str, int]:
     if s.ndim == 0:
         return Status(int(s)).name
     return {k: v for k, v in result.status_counts().items() if v}
+
+
+def _same(a: BRDF, b: BRDF) -> bool:
+    """The same model (type and static settings)."""
+    return type(a) is type(b) and bool(a == b)
 
 
 def _to_list(x: Any) -> Any:
@@ -211,6 +216,7 @@ def fit_model(
     weight: np.ndarray | None = None,
     timing: bool = True,
     starts: MultiStart | None = _MULTISTART,
+    nested: ModelFit | FitResult | None = None,
 ) -> ModelFit:
     """Fit ``model`` to ``measured`` (module docstring) and compute the error metrics.
 
@@ -229,6 +235,12 @@ def fit_model(
                    starts and 24 quasi-random ones solved together, the best kept and
                    certified, see ``_starts``); None: one start, the automatic one of
                    :func:`jaxrefl.fit.fit_samples`
+    nested:        for a model that contains a smaller one
+                   (:func:`~jaxrefl.measured.nested_model`: Lafortune with L - 1 lobes for
+                   L), the smaller model's fit to the same samples and channels; its
+                   optimum plus one new lobe joins the starts (``starts.nested``). When
+                   None, the smaller model is fitted first by this function with the same
+                   settings (recursively; its time is not in ``fit_time_s``)
     """
     name = name or type(model).__name__
     ok = usable_samples(measured.wi, measured.wo, measured.values, max_theta_deg)
@@ -240,6 +252,22 @@ def fit_model(
     cos_i = data.wi[:, 2]
 
     dtype = _check_dtype(config)
+    inner = nested_model(model) if starts is not None and starts.nested else None
+    if inner is not None and nested is None:
+        nested = fit_model(
+            inner,
+            data,
+            channels=channels,
+            cosine=cosine,
+            config=config,
+            retry_float64=retry_float64,
+            max_theta_deg=None,
+            timing=False,
+            starts=starts,
+        )
+    seed_fit = nested.result if isinstance(nested, ModelFit) else nested
+    if inner is None:
+        seed_fit = None
 
     certs: dict[np.dtype, Certificate] = {}
 
@@ -258,6 +286,7 @@ def fit_model(
                 config=cfg,
                 starts=starts,
                 channel_names=tuple(data.channels),
+                nested=seed_fit,
             )
             return r
 
@@ -433,8 +462,14 @@ def fit_brdf(
     weight = weight_all[ok]
     if len(prepared) == 0:
         raise ValueError(f"{measured.source}: no usable samples within {max_theta_deg} degrees")
-    fits = {}
-    for name, model in built.items():
+    fits: dict[str, ModelFit] = {}
+    # A model that contains another (Lafortune with L - 1 lobes for L) starts from its fit:
+    # fit the smaller ones first, report in the order asked.
+    order = sorted(built, key=lambda k: getattr(built[k], "num_lobes", 0))
+    for name in order:
+        model = built[name]
+        inner = nested_model(model)
+        found = [v for v in fits.values() if inner is not None and _same(v.model, inner)]
         if progress is not None:
             progress(name)
         fits[name] = fit_model(
@@ -449,7 +484,9 @@ def fit_brdf(
             weight=weight,
             timing=timing,
             starts=starts,
+            nested=found[0] if found else None,
         )
+    fits = {k: fits[k] for k in built}
     settings = {
         "spectral": spectral if measured.wavelengths_nm is not None else None,
         "illuminant": illuminant if channels == "joint" and data is not measured else None,
