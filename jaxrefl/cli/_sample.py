@@ -24,7 +24,7 @@ Laplace/MCMC std ratios on the audit pixels, timings).
 A measured BRDF file (Cornell .astm, MERL .binary, CURET; spectra converted to RGB) goes
 through :func:`jaxrefl.measured.sample_posterior`: the least-squares fit of
 ``--brdf-model`` (f_r cos theta_i residuals, 80 degree limit), then emcee
-(:class:`~jaxrefl.posterior.EmceeOptions` from ``--steps``, ``--walkers``; the default) or
+(:class:`~jaxrefl.posterior.EmceeOptions` from ``--max-steps``, ``--walkers``; the default) or
 HMC (``--warmup``/``--samples``/``--chains``), the noise scale unknown. emcee runs until
 its chain is at least 50 integrated autocorrelation times long with split R-hat <= 1.01
 and bulk ESS >= 400 for every parameter (:func:`jaxrefl.posterior.sample_emcee`), or
