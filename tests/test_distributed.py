@@ -98,7 +98,7 @@ def test_two_processes_resume_a_dead_one_and_equal_one_process(capture_dir, tmp_
     out = tmp_path / "fit"
     # 1. Two processes: process 0 is the command line below; process 1 (the library, the
     #    same job) dies after its first tile (1). Process 0 fits its share (0, 2), finds at
-    #    the next barrier that process 1 stopped, and ends with one line and exit status 3.
+    #    the next barrier that process 1 stopped, and ends with one line and exit status 4.
     port = _port()
     cli = [
         *("fit", str(capture_dir), "--out", str(out), "--model", "lambert"),
@@ -119,7 +119,7 @@ def test_two_processes_resume_a_dead_one_and_equal_one_process(capture_dir, tmp_
     rc0, log0 = _finish(procs[0], SURVIVOR_S)
     survived_s = time.monotonic() - died
     assert rc1 == 17, log1[-3000:]
-    assert rc0 == 3, (rc0, survived_s, log0[-3000:])  # cli.EXIT_PROCESS_STOPPED
+    assert rc0 == 4, (rc0, survived_s, log0[-3000:])  # cli.EXIT_PROCESS_STOPPED
     lines = [ln for ln in log0.splitlines() if ln.startswith("jaxrefl fit: ")]
     assert len(lines) == 1 and "Traceback" not in log0, log0[-3000:]
     assert "process 1 of 2 stopped (died or was killed)" in lines[0], lines

@@ -25,8 +25,9 @@ rather than raising ``SystemExit``, so tests call it in-process). While a comman
 exit status 1; Ctrl-C is one line and exit status 130 (128 + SIGINT, the shell convention).
 In a job of several processes (``--distributed``), a process that stops (killed, out of
 memory) ends the others at their next barrier with one line naming it and the command
-that resumes, and exit status :data:`EXIT_PROCESS_STOPPED` (3), at once rather than after
-JAX's heartbeat timeout (:func:`jaxrefl.fit.leave_group`).
+that resumes, and exit status :data:`EXIT_PROCESS_STOPPED` (4), at once rather than after
+JAX's heartbeat timeout (:func:`jaxrefl.fit.leave_group`). Exit status 3 belongs to
+``jaxrefl sample``: outputs written, a convergence target missed.
 """
 
 from __future__ import annotations
@@ -196,8 +197,9 @@ def _os_message(exc: OSError) -> str:
     return str(exc)
 
 
-# Exit status of a process whose peer in a --distributed job stopped (module docstring).
-EXIT_PROCESS_STOPPED = 3
+# Exit status of a process whose peer in a --distributed job stopped (module docstring);
+# distinct from 3, which ``jaxrefl sample`` returns for draws that missed a convergence target.
+EXIT_PROCESS_STOPPED = 4
 
 
 def _process_stopped(name: str, exc: RuntimeError, module: Any, args, argv) -> None:
