@@ -7,7 +7,9 @@ models with the exact dielectric Fresnel term and a fitted eta), samples within 
 
 * ``default``: :func:`jaxrefl.measured.fit_model` as ``jaxrefl fit-brdf`` runs it (the
   data-driven and 24 quasi-random starts solved together, for Lafortune with L lobes also
-  the nested starts from the (L-1)-lobe fit, float64 retry), its certificate;
+  the nested starts from the (L-1)-lobe fit; starts stopped at the iteration budget
+  continued, and perturbed generations of the best while the starts disagree; float64
+  retry), its certificate;
 * ``best of 64``: 64 independent uniform starts in the same box of the unconstrained space
   (another seed, :func:`jaxrefl.measured.random_thetas` with ``sobol=False``), solved
   together with a 200-iteration budget, the best kept.

@@ -180,3 +180,38 @@ def test_nested_starts_find_the_second_lafortune_lobe():
     assert list(rep.fits) == ["lafortune_2", "lafortune_1"]
     assert rep.fits["lafortune_2"].certificate.n_starts == 42
     assert rep.fits["lafortune_2"].cost < 1e-9 * rep.fits["lafortune_1"].cost
+
+
+def test_continued_and_perturbed_starts_reach_the_best_of_64(shared_data):
+    """CURET sample 61, Lafortune with two lobes: a rugged cost on which the first
+    generation's starts stop in many basins (a doubtful certificate). Measured: without the
+    continuation and the perturbed generations the fit stops 2.8% above the best of 64
+    independent uniform starts of 200 iterations each (the benchmark's reference,
+    ``benchmarks/measured_optimum.py``); with them (the default) 0.4% above it."""
+    m = jm.restrict(
+        jm.load_measured(shared_data / "brdf" / "curet" / "abrdf.dat", curet_sample=61), 80.0
+    )
+    model = jm.build_model("lafortune_2")
+    kw = dict(name="lafortune_2", max_theta_deg=None, timing=False)
+    plain = jm.fit_model(model, m, starts=jm.MultiStart(rounds=0, generations=0), **kw)
+    default = jm.fit_model(model, m, **kw)
+    space = fit.ParamSpace(model, channels=len(m.channels))
+    cfg = fit.FitConfig(solver=fit.LMOptions(max_iters=200), dtype=np.float32)
+    ref, _, _ = jm.fit_multistart(
+        model, m.wi, m.wo, m.values, config=cfg,
+        thetas=jm.random_thetas(space, 64, 1, sobol=False),
+    )  # fmt: skip
+    d = (jm.predict(ref, m.wi, m.wo) - np.asarray(m.values)) * m.wi[:, 2:3]
+    best = float(0.5 * np.sum(d * d))
+    assert plain.cost > 1.01 * best
+    assert default.cost <= 1.01 * best
+    # The certificate counts every start of every generation.
+    n_first = plain.certificate.n_starts
+    assert default.certificate.n_starts > n_first
+    assert default.certificate.n_starts % n_first == 0
+
+
+def test_multistart_refuses_bad_continuation_settings():
+    for bad in (dict(rounds=-1), dict(polish=0), dict(generations=-2), dict(rounds=1.5)):
+        with pytest.raises(ValueError, match="MultiStart needs"):
+            jm.MultiStart(**bad)

@@ -232,8 +232,9 @@ def fit_model(
     weight:        per-sample solid-angle weights for the metrics (default 1), aligned
                    with ``measured`` before the angle limit is applied
     starts:        the multi-start settings (:class:`MultiStart`; default: the data-driven
-                   starts and 24 quasi-random ones solved together, the best kept and
-                   certified, see ``_starts``); None: one start, the automatic one of
+                   starts and 24 quasi-random ones solved together, continued and
+                   perturbed while they disagree, the best kept and certified, see
+                   ``_starts``); None: one start, the automatic one of
                    :func:`jaxrefl.fit.fit_samples`
     nested:        for a model that contains a smaller one
                    (:func:`~jaxrefl.measured.nested_model`: Lafortune with L - 1 lobes for

@@ -46,6 +46,24 @@ problem repeated S times) and keeps the start of lowest cost. The starts
   data-driven starts instead. Keeping the (L-1)-lobe optimum in a start makes the L-lobe
   cost never exceed it by more than the solver's tolerance.
 
+**Continuation.** Every start gets the solver's iteration budget; a narrow Lafortune lobe
+(exponent in the hundreds) can need several budgets to converge, so that the best start
+found after one budget may still be descending. While one of the ``polish`` lowest-cost
+starts of a problem has stopped at the budget (``MAX_ITERATIONS``), every start that did
+continues from where it stopped, for up to ``rounds`` more budgets; a continued start keeps
+its old result if the new one is not lower. The continuation runs the same batch through
+the same compiled program (same shapes, same static solver settings), so it compiles
+nothing.
+
+**Perturbed generations.** Where the starts disagree (the certificate below is doubtful:
+the landscape has many basins, as multi-lobe Lafortune fits often do), the ``polish`` best
+results so far seed a new generation of as many starts: each best result plus a Gaussian
+step in the unconstrained space of scale 0.25, 0.5, 1 or 2 (a basin-hopping step, Wales &
+Doye 1997), solved and continued like the first. Generations follow one another, up to
+``generations``, while the certificate stays doubtful and the last one lowered some
+problem's best cost by more than ``agree_rtol``; the best over all generations is kept and
+all of them are certified together. They run through the same compiled program.
+
 The :class:`Certificate` counts the starts whose cost is within ``agree_rtol`` (1%) of the
 best and flags the optimum as doubtful when their share is below ``min_share``: a user
 then sees that the starts disagree, not only the best value found.
@@ -75,6 +93,7 @@ from jaxrefl.fit import (
     Option,
     ParamSpace,
     PixelData,
+    Status,
     fit_pixels,
     initial_theta,
     make_residual,
@@ -132,6 +151,12 @@ class MultiStart(Option):
 
     The automatic start of a single fit is always solved too (module docstring).
     seed:       seed of the Sobol scrambling
+    rounds:     continuation budgets (module docstring), >= 0; default 4
+    polish:     how many of the lowest-cost starts of a problem must have converged (or
+                stopped for another reason than the budget) for the continuation to end,
+                >= 1; default 4; also how many best results the perturbed generation
+                starts from
+    generations: perturbed generations at most (module docstring), >= 0; default 3
     agree_rtol: a start agrees when its cost is within this fraction of the best (0.01)
     min_share:  the certificate flags the optimum as doubtful when fewer than this share
                 of the starts agree (0.2)
@@ -142,12 +167,23 @@ class MultiStart(Option):
     data: bool = True
     nested: bool = True
     seed: int = 0
+    rounds: int = 4
+    polish: int = 4
+    generations: int = 3
     agree_rtol: float = 0.01
     min_share: float = 0.2
 
     def __check_init__(self):
         if not isinstance(self.n_random, int) or self.n_random < 0:
             raise ValueError(f"MultiStart needs an integer n_random >= 0, got {self.n_random}")
+        if not isinstance(self.rounds, int) or self.rounds < 0:
+            raise ValueError(f"MultiStart needs an integer rounds >= 0, got {self.rounds}")
+        if not isinstance(self.generations, int) or self.generations < 0:
+            raise ValueError(
+                f"MultiStart needs an integer generations >= 0, got {self.generations}"
+            )
+        if not isinstance(self.polish, int) or self.polish < 1:
+            raise ValueError(f"MultiStart needs an integer polish >= 1, got {self.polish}")
         if self.n_random == 0 and not self.data:
             raise ValueError("MultiStart needs at least one start: n_random > 0 or data=True")
         if not (math.isfinite(self.agree_rtol) and self.agree_rtol >= 0):
@@ -570,6 +606,97 @@ def _nested_starts(
     return np.stack(out)
 
 
+def _finite_costs(r: FitResult, n: int, s: int) -> np.ndarray:
+    c = np.asarray(r.cost, np.float64).reshape(n, s)
+    return np.where(np.isfinite(c), c, np.inf)
+
+
+# Perturbation scales (unconstrained units) of the second generation of starts.
+_PERTURB_SCALES = (0.25, 0.5, 1.0, 2.0)
+
+
+def _perturbed(
+    theta: np.ndarray, costs: np.ndarray, starts: MultiStart, generation: int
+) -> np.ndarray:
+    """(N * S, P) starts of a perturbed generation from the results so far (N, G * S, P)
+    and their costs (N, G * S): the ``starts.polish`` lowest-cost results of each problem,
+    each perturbed by Gaussian steps of every scale in ``_PERTURB_SCALES`` in turn
+    (module docstring); S = G * S / G of the first generation."""
+    n, _, p = theta.shape
+    s = theta.shape[1] // generation
+    rng = np.random.default_rng([starts.seed, generation])
+    top = np.argsort(costs, axis=1)[:, : min(starts.polish, s)]
+    m = np.arange(s)
+    base = theta[np.arange(n)[:, None], top[:, m % top.shape[1]]]
+    step = np.asarray(_PERTURB_SCALES)[(m // top.shape[1]) % len(_PERTURB_SCALES)]
+    out = base + step[None, :, None] * rng.standard_normal((n, s, p))
+    return out.reshape(n * s, p)
+
+
+def _stack(a: FitResult, b: FitResult) -> FitResult:
+    """Two batched results as one, ``a``'s rows first."""
+
+    def cat(x, y):
+        return jnp.concatenate([jnp.asarray(x), jnp.asarray(y)])
+
+    return FitResult(
+        jax.tree.map(cat, a.params, b.params),
+        cat(a.theta, b.theta),
+        cat(a.status, b.status),
+        cat(a.cost, b.cost),
+        cat(a.iterations, b.iterations),
+        cat(a.n_used, b.n_used),
+        a.space,
+        a.model,
+        a.backend,
+    )
+
+
+def _continue(
+    model: BRDF,
+    batch: PixelData,
+    config: FitConfig,
+    space: ParamSpace,
+    r: FitResult,
+    n: int,
+    s: int,
+    starts: MultiStart,
+) -> FitResult:
+    """The continuation of the module docstring: up to ``starts.rounds`` more budgets for
+    the starts that stopped at the iteration limit, while one of each problem's
+    ``starts.polish`` best has."""
+    for _ in range(starts.rounds):
+        status = np.asarray(r.status).reshape(n, s)
+        costs = _finite_costs(r, n, s)
+        top = np.argsort(costs, axis=1)[:, : starts.polish]
+        if not np.any(np.take_along_axis(status, top, axis=1) == Status.MAX_ITERATIONS):
+            break
+        more = fit_pixels(model, batch, config=config, space=space, init=r.theta)
+        # A start that had stopped for another reason keeps its result, and so does one
+        # whose continuation did not lower its cost (the LM restarts its damping).
+        hit = np.asarray(r.status) == Status.MAX_ITERATIONS
+        lower = np.asarray(_finite_costs(more, n, s) < costs).reshape(-1)
+        take = hit & lower
+        iters = np.asarray(r.iterations) + np.where(hit, np.asarray(more.iterations), 0)
+
+        def pick(a, b, take=take):
+            a, b = np.asarray(a), np.asarray(b)
+            return jnp.asarray(np.where(take.reshape(-1, *([1] * (a.ndim - 1))), b, a))
+
+        r = FitResult(
+            jax.tree.map(pick, r.params, more.params),
+            pick(r.theta, more.theta),
+            pick(r.status, more.status),
+            pick(r.cost, more.cost),
+            jnp.asarray(iters),
+            pick(r.n_used, more.n_used),
+            space,
+            model,
+            r.backend,
+        )
+    return r
+
+
 def fit_multistart(
     model: BRDF,
     wi: np.ndarray,
@@ -629,11 +756,35 @@ def fit_multistart(
         space=space,
         init=jnp.asarray(t0.reshape(n * s, -1), dtype),
     )
-    costs = np.asarray(r.cost, np.float64).reshape(n, s)
-    costs = np.where(np.isfinite(costs), costs, np.inf)
-    pick = np.argmin(costs, axis=1) + s * np.arange(n)
+    cfg = config.replace(dtype=dtype)
+    r = _continue(model, batch, cfg, space, r, n, s, starts)
+    costs = _finite_costs(r, n, s)
     y = np.where(np.asarray(data.weight) > 0, np.asarray(data.obs, np.float64), 0.0)
     scale = float(0.5 * np.sum(y * y) / n)
+    # Generations side by side: row g * n * s + i * s + j holds start j of problem i in
+    # generation g; costs (n, G * s) in the same order along axis 1.
+    thetas_all = np.asarray(r.theta, np.float64).reshape(n, s, -1)
+    gen, improved = 1, True
+    while (
+        thetas is None
+        and gen <= starts.generations
+        and improved
+        and certify(costs, starts.agree_rtol, starts.min_share, scale).doubtful
+    ):
+        t1 = _perturbed(thetas_all, costs, starts, gen)
+        r1 = fit_pixels(model, batch, config=cfg, space=space, init=jnp.asarray(t1, dtype))
+        r1 = _continue(model, batch, cfg, space, r1, n, s, starts)
+        c1 = _finite_costs(r1, n, s)
+        best = np.min(costs, axis=1)
+        improved = bool(np.any(np.min(c1, axis=1) < best - starts.agree_rtol * np.abs(best)))
+        r = _stack(r, r1)
+        costs = np.concatenate([costs, c1], axis=1)
+        thetas_all = np.concatenate(
+            [thetas_all, np.asarray(r1.theta, np.float64).reshape(n, s, -1)], axis=1
+        )
+        gen += 1
+    j = np.argmin(costs, axis=1)
+    pick = (j // s) * n * s + np.arange(n) * s + j % s
     cert = certify(costs, starts.agree_rtol, starts.min_share, scale)
 
     def take(x):
