@@ -168,10 +168,7 @@ def real_capture(name: str, size: int, model: str) -> None:
 
 def _synthetic(size: int, seed: int = 0):
     """(capture, truth): the demo rig, GGX + Lambert, grey F0 up to 0.5."""
-    import jax.numpy as jnp
-
-    from jaxrefl.demo import demo_capture, demo_scene
-    from jaxrefl.io import Capture
+    from jaxrefl.demo import demo_scene, photograph_maps
 
     scene = demo_scene(size=size)
     rng = np.random.default_rng(seed)
@@ -181,14 +178,7 @@ def _synthetic(size: int, seed: int = 0):
         "specular": np.repeat(f0[..., None], 3, -1),
         "alpha": rng.uniform(0.2, 0.8, (size, size)) ** 2,
     }
-    k = len(scene.positions)
-    cap = demo_capture(scene, np.zeros((k, size, size, 3), np.float32))
-    geo = cap.per_pixel_geometry(dtype=np.float64)
-    p = {n: jnp.asarray(v) for n, v in truth.items()}
-    f = np.asarray(scene.model.eval(p, jnp.asarray(geo["wi"]), jnp.asarray(geo["wo"])))
-    img = f * geo["irradiance"] * geo["cos_i"][..., None]
-    img = img + SYN_SIGMA * rng.standard_normal(img.shape)
-    return Capture(**{**cap.__dict__, "images": img.astype(np.float32)}), truth
+    return photograph_maps(scene, truth, SYN_SIGMA, rng), truth
 
 
 def synthetic(size: int) -> None:

@@ -17,6 +17,7 @@ reads back like a real one.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import jax.numpy as jnp
@@ -26,7 +27,7 @@ from jaxtyping import Array, Float
 from . import brdf
 from .scene import GammaResponse, PinholeCamera, PointLight, planar_points, render
 
-__all__ = ["DemoScene", "demo_capture", "demo_scene", "render_demo"]
+__all__ = ["DemoScene", "demo_capture", "demo_scene", "photograph_maps", "render_demo"]
 
 SIDE_CM = 11.136
 LIGHT_POWER = 1500.0
@@ -138,3 +139,26 @@ def demo_capture(scene: DemoScene, images: Float[np.ndarray, "K H W 3"]):
         side=scene.side_cm,
         points=np.asarray(scene.points, np.float64),
     )
+
+
+def photograph_maps(
+    scene: DemoScene,
+    params: dict[str, np.ndarray],
+    sigma: float = 0.0,
+    rng: np.random.Generator | None = None,
+):
+    """A :func:`demo_capture` of the demo rig photographing other parameter maps: ``params``
+    (natural units, (H, W, ...) arrays keyed by ``scene.model.param_names``, H x W the
+    scene's size) rendered as linear radiance L = f_r E cos(theta_i) (no encoding, no
+    clipping), plus independent Gaussian noise of std ``sigma`` drawn from ``rng``. For
+    synthetic captures with a known truth (coverage and calibration checks)."""
+    k = len(scene.positions)
+    h, w = np.shape(scene.points)[:2]
+    cap = demo_capture(scene, np.zeros((k, h, w, 3), np.float32))
+    geo = cap.per_pixel_geometry(dtype=np.float64)
+    p = {n: jnp.asarray(v) for n, v in params.items()}
+    f = np.asarray(scene.model.eval(p, jnp.asarray(geo["wi"]), jnp.asarray(geo["wo"])))
+    img = f * geo["irradiance"] * geo["cos_i"][..., None]
+    if sigma > 0:
+        img = img + sigma * (rng or np.random.default_rng()).standard_normal(img.shape)
+    return dataclasses.replace(cap, images=img.astype(np.float32))

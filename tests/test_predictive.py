@@ -3,12 +3,10 @@
 
 from __future__ import annotations
 
-import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxrefl.demo import demo_capture, demo_scene
-from jaxrefl.io import Capture
+from jaxrefl.demo import demo_scene, photograph_maps
 from jaxrefl.svbrdf import (
     Discrepancy,
     FitJob,
@@ -37,14 +35,7 @@ def _capture(seed: int = 0):
         "specular": np.repeat(f0[..., None], 3, -1),
         "alpha": rng.uniform(0.1, 0.3, (SIZE, SIZE)),
     }
-    k = len(scene.positions)
-    cap = demo_capture(scene, np.zeros((k, SIZE, SIZE, 3), np.float32))
-    geo = cap.per_pixel_geometry(dtype=np.float64)
-    p = {n: jnp.asarray(v) for n, v in truth.items()}
-    f = np.asarray(scene.model.eval(p, jnp.asarray(geo["wi"]), jnp.asarray(geo["wo"])))
-    img = f * geo["irradiance"] * geo["cos_i"][..., None]
-    img = img + SIGMA * rng.standard_normal(img.shape)
-    return Capture(**{**cap.__dict__, "images": img.astype(np.float32)}), truth
+    return photograph_maps(scene, truth, SIGMA, rng), truth
 
 
 @pytest.fixture(scope="module")
