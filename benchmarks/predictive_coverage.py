@@ -12,9 +12,10 @@ inside them: with all three terms, without the discrepancy term, and over the pi
 flagged as misspecified (:class:`jaxrefl.svbrdf.ModelCheck`).
 
 Then a synthetic capture (the demo's flash rig, ``--synthetic-size`` pixels a side, GGX +
-Lambert, grey F0 drawn up to 0.5 while the ``ggx`` model allows 0.25, Gaussian noise of std
-0.004) is fitted with ``ggx`` with photo 8 held out: coverage of the true parameters by the
-Laplace 50% and 90% intervals (Gaussian in the unconstrained space, mapped to natural
+Lambert, grey F0 drawn up to 0.5, Gaussian noise of std 0.004) is fitted with photo 8 held
+out by ``ggx`` (grey F0 up to 0.25: half the pixels lie beyond its range) and by
+``ggx_rgb`` (coloured F0 up to 1, the real captures' material model): coverage of the true
+parameters by the Laplace 50% and 90% intervals (Gaussian in the unconstrained space, mapped to natural
 units), and of the held-out photo by the predictive intervals, split by the flag.
 
     python benchmarks/predictive_coverage.py [--size 256] [--captures bath_tile,yellow_box]
@@ -181,7 +182,12 @@ def _synthetic(size: int, seed: int = 0):
     return photograph_maps(scene, truth, SYN_SIGMA, rng), truth
 
 
-def synthetic(size: int) -> None:
+# The synthetic capture's models: the dielectric one whose grey F0 stops at 0.25, and the
+# coloured-specular one whose F0 reaches 1 (the material model of the real captures).
+SYN_MODELS = {"ggx": 0.25, "ggx_rgb": 1.0}
+
+
+def synthetic(size: int, model: str) -> None:
     import jax.numpy as jnp
     from scipy import stats
 
@@ -190,7 +196,7 @@ def synthetic(size: int) -> None:
 
     cap, truth = _synthetic(size)
     t0 = time.perf_counter()
-    cf = fit_capture(cap, FitJob(model="ggx", holdout=(SYN_HELD,)))
+    cf = fit_capture(cap, FitJob(model=model, holdout=(SYN_HELD,)))
     pred = predict(cap, cf, estimate_discrepancy(cap, cf))
     wall = time.perf_counter() - t0
     _model, space = cf.model()
@@ -201,23 +207,27 @@ def synthetic(size: int) -> None:
         "albedo.R": truth["albedo"][..., 0],
         "albedo.G": truth["albedo"][..., 1],
         "albedo.B": truth["albedo"][..., 2],
-        "specular": truth["specular"][..., 0],
         "alpha": truth["alpha"],
     }
+    for c, lab in enumerate("RGB"):
+        want["specular." + lab] = truth["specular"][..., c]
+    want["specular"] = truth["specular"][..., 0]
+    spec = "specular" if "specular" in space.labels else "specular.R"
     true = np.stack([want[lab].reshape(-1) for lab in space.labels], -1)
     flag = pred.misspecified
-    in_range = truth["specular"][..., 0].reshape(-1) <= 0.25
+    cap_f0 = SYN_MODELS[model]
+    in_range = truth["specular"][..., 0].reshape(-1) <= cap_f0
     groups = {
         "unflagged": ~flag,
         "flagged": flag,
         "all": np.ones(n, bool),
         "F0 in model range": in_range,
-        "F0 beyond 0.25": ~in_range,
+        "F0 beyond 0.25": truth["specular"][..., 0].reshape(-1) > 0.25,
     }
     rows = []
     for gname, sel in groups.items():
         cells = [gname, str(int(np.sum(sel)))]
-        for lab in ("albedo.R", "specular", "alpha"):
+        for lab in ("albedo.R", spec, "alpha"):
             j = space.labels.index(lab)
             for lv in LEVELS:
                 z = float(stats.norm.ppf(0.5 + 0.5 * lv))
@@ -234,12 +244,12 @@ def synthetic(size: int) -> None:
             cells.append(_pct(cov))
         rows.append(cells)
     print(
-        f"### Synthetic capture, {size} x {size}, grey F0 uniform in [0, 0.5], model `ggx` "
-        f"(F0 <= 0.25), noise std {SYN_SIGMA}, photo {SYN_HELD} held out"
+        f"### Synthetic capture, {size} x {size}, grey F0 uniform in [0, 0.5], model `{model}` "
+        f"(F0 <= {cap_f0:g}), noise std {SYN_SIGMA}, photo {SYN_HELD} held out"
     )
     print()
     heads = ["pixels", "count"]
-    for lab in ("albedo.R", "F0", "alpha"):
+    for lab in ("albedo.R", "F0" if spec == "specular" else "F0.R", "alpha"):
         heads += [f"{lab} 50%", f"{lab} 90%"]
     heads += ["photo 50%", "photo 90%"]
     print(table(heads, rows))
@@ -271,7 +281,8 @@ def main() -> int:
     for name in [c for c in args.captures.split(",") if c]:
         real_capture(name, args.size, args.model)
     if args.synthetic_size > 0:
-        synthetic(args.synthetic_size)
+        for model in SYN_MODELS:
+            synthetic(args.synthetic_size, model)
     return 0
 
 
