@@ -15,8 +15,8 @@ Then a synthetic capture (the demo's flash rig, ``--synthetic-size`` pixels a si
 Lambert, grey F0 drawn up to 0.5, Gaussian noise of std 0.004) is fitted with photo 8 held
 out by ``ggx`` (grey F0 up to 0.25: half the pixels lie beyond its range) and by
 ``ggx_rgb`` (coloured F0 up to 1, the real captures' material model): coverage of the true
-parameters by the Laplace 50% and 90% intervals (Gaussian in the unconstrained space, mapped to natural
-units), and of the held-out photo by the predictive intervals, split by the flag.
+parameters by the Laplace 50% and 90% intervals (Gaussian in the unconstrained space,
+mapped to natural units), and of the held-out photo by the predictive intervals, split by the flag.
 
     python benchmarks/predictive_coverage.py [--size 256] [--captures bath_tile,yellow_box]
         [--model pooled] [--synthetic-size 32] [--no-write]
