@@ -23,7 +23,7 @@ from pathlib import Path
 
 from jaxrefl._names import MEASURED_MODELS, canonical
 
-from ._main import check_out_dir, non_negative_int, positive_int
+from ._main import check_out_dir, finite_float, non_negative_int, positive_int
 from ._options import BACKENDS, DTYPES, fit_config
 
 HELP = "fit analytic models to a measured BRDF (Cornell, CURET, MERL)"
@@ -37,10 +37,8 @@ def _curet_sample(text: str) -> int:
 
 
 def _angle(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an angle in degrees, not {text!r}") from None
+    """An argparse type: an angle in degrees below 90 (finite)."""
+    value = finite_float(text)
     if not value < 90.0:
         raise argparse.ArgumentTypeError(f"must be below 90 degrees, got {value:g}")
     return value

@@ -46,6 +46,7 @@ __all__ = [
     "COMMANDS",
     "EXIT_PROCESS_STOPPED",
     "build_parser",
+    "finite_float",
     "fraction",
     "main",
     "non_negative_float",
@@ -66,29 +67,28 @@ COMMANDS: dict[str, str] = {
 }
 
 
-def positive_int(text: str) -> int:
-    """An argparse type: an integer >= 1 (a count, a size or a factor)."""
+def _int_at_least(text: str, lo: int) -> int:
     try:
         value = int(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number >= 1, not {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+        raise argparse.ArgumentTypeError(f"expected a whole number >= {lo}, not {text!r}") from None
+    if value < lo:
+        raise argparse.ArgumentTypeError(f"must be >= {lo}, got {value}")
     return value
+
+
+def positive_int(text: str) -> int:
+    """An argparse type: an integer >= 1 (a count, a size or a factor)."""
+    return _int_at_least(text, 1)
 
 
 def non_negative_int(text: str) -> int:
     """An argparse type: an integer >= 0."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number >= 0, not {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {value}")
-    return value
+    return _int_at_least(text, 0)
 
 
-def _float(text: str) -> float:
+def finite_float(text: str) -> float:
+    """An argparse type: a finite number."""
     try:
         value = float(text)
     except ValueError:
@@ -100,7 +100,7 @@ def _float(text: str) -> float:
 
 def positive_float(text: str) -> float:
     """An argparse type: a finite number > 0."""
-    value = _float(text)
+    value = finite_float(text)
     if value <= 0:
         raise argparse.ArgumentTypeError(f"must be > 0, got {value:g}")
     return value
@@ -108,7 +108,7 @@ def positive_float(text: str) -> float:
 
 def non_negative_float(text: str) -> float:
     """An argparse type: a finite number >= 0."""
-    value = _float(text)
+    value = finite_float(text)
     if value < 0:
         raise argparse.ArgumentTypeError(f"must be >= 0, got {value:g}")
     return value
@@ -116,7 +116,7 @@ def non_negative_float(text: str) -> float:
 
 def fraction(text: str) -> float:
     """An argparse type: a number in [0, 1]."""
-    value = _float(text)
+    value = finite_float(text)
     if not 0.0 <= value <= 1.0:
         raise argparse.ArgumentTypeError(f"must be in [0, 1], got {value:g}")
     return value
