@@ -150,7 +150,7 @@ def choose_model(
             skipped[m] = f"refines {base}, which is not the best so far"
             continue
         # One tile of rows: compaction stages would cost more to compile than they save.
-        fitter = _TileFitter(capture, replace(job, model=m), compact=False)
+        fitter = _TileFitter(capture, replace(job, model=m), compact=False, width_terms=False)
         pool = fitter.pooled if m == "pooled" else pool
         sse = cnt = 0.0
         for s in range(0, mask.shape[0], size):

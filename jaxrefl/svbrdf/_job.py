@@ -59,6 +59,8 @@ from ._check import ModelCheck, bound_check, check_counts, ppc_failed
 from ._data import pixel_block, resolvable_alpha
 from ._models import ALPHA_RANGE, TWO_STAGE, capture_model
 from ._pooled import PoolChoice, choose_pooled
+from ._shared import WidthUncertainty, widen
+from ._shared import width_terms as shared_width_terms
 
 __all__ = ["DEFAULT_LOSS", "CaptureFit", "FitJob", "fit_capture", "map_name"]
 
@@ -237,6 +239,8 @@ _TILE_KEYS = (
     "flag",
     "sse",
     "cnt",
+    "width_v",
+    "width_s",
 )
 
 
@@ -259,12 +263,21 @@ class _TileFitter:
     """Fit one tile: fit, Laplace, held-out error; pure function of the tile's data."""
 
     def __init__(
-        self, capture, job: FitJob, pooled: PoolChoice | None = None, *, compact: bool = True
+        self,
+        capture,
+        job: FitJob,
+        pooled: PoolChoice | None = None,
+        *,
+        compact: bool = True,
+        width_terms: bool = True,
     ):
         """``pooled``: ``pooled``'s choice when already made for these training photos.
         ``compact``: the lean LM gathers its slow pixels into compaction stages (a job of
-        fewer than :data:`COMPACT_MIN_PIXELS` pixels runs one plain loop instead)."""
+        fewer than :data:`COMPACT_MIN_PIXELS` pixels runs one plain loop instead).
+        ``width_terms``: for ``pooled``, each pixel's share of the shared width's Laplace
+        uncertainty (:mod:`jaxrefl.svbrdf._shared`; model selection needs no covariance)."""
         self.capture = capture
+        self.width_terms = width_terms
         self.job = job
         self.compact = compact
         k = capture.n_photos
@@ -394,6 +407,10 @@ class _TileFitter:
         lap = fit.laplace(r, fit_data, residual=res, noise=known)
         lap_noise = lap.noise_var if noise_var is None else jnp.full_like(lap.noise_var, noise_var)
         jax.block_until_ready((lap.std, lap_noise))
+        n_rows, p = r.theta.shape
+        width_v, width_s = np.zeros((n_rows, p)), np.zeros(n_rows)
+        if self.width_terms and self.pooled is not None and self.pooled.alpha is not None:
+            width_v, width_s = shared_width_terms(res, r.theta, fit_data, lap.flag)
         t2 = time.perf_counter()
         sse, cnt = _errors(res, r.theta, data)
         out = {
@@ -408,6 +425,8 @@ class _TileFitter:
             "flag": lap.flag,
             "sse": sse,
             "cnt": cnt,
+            "width_v": width_v,
+            "width_s": width_s,
         }
         out = {k: np.asarray(v)[:n] for k, v in out.items()}
         t3 = time.perf_counter()
@@ -659,8 +678,22 @@ def fit_capture(
 
     done = [r for r in results if r is not None]
     cat = {key: np.concatenate([r[key] for r in done]) for key in done[0]}
-    maps = _maps(fitter, cat, h, w)
+    width = None
+    if fitter.width_terms and fitter.pooled is not None and fitter.pooled.alpha is not None:
+        # The shared width's share of every pixel's Laplace covariance (_shared).
+        cat["std"], cat["corr"], width = widen(
+            fitter.space,
+            fitter.pooled.alpha,
+            cat["theta"],
+            cat["std"],
+            cat["corr"],
+            cat["width_v"],
+            cat["width_s"],
+        )
+    maps = _maps(fitter, cat, h, w, width)
     report = _report(fitter, cat, capture, job, maps, compile_s, times, len(tiles), loaded)
+    if width is not None:
+        report["pooled"]["width_laplace"] = width.as_dict()
     report["timings"]["stages_s"] = dict(fitter.stage_s)
     report["timings"]["choose_s"] = choose_s
     if per_process is not None:
@@ -718,7 +751,9 @@ def _distributed_timings(report: dict, per: np.ndarray, pixels: float) -> None:
     t["pixels_per_s"] = pixels / run_s if run_s > 0 else None
 
 
-def _maps(fitter: _TileFitter, cat, h: int, w: int) -> dict[str, np.ndarray]:
+def _maps(
+    fitter: _TileFitter, cat, h: int, w: int, width: WidthUncertainty | None = None
+) -> dict[str, np.ndarray]:
     space = fitter.space
     theta = cat["theta"]
     ok = np.all(np.isfinite(theta), axis=-1)
@@ -741,6 +776,12 @@ def _maps(fitter: _TileFitter, cat, h: int, w: int) -> dict[str, np.ndarray]:
         shared = np.where(ok, fitter.pooled.alpha, np.nan)
         maps["alpha"] = shared
         maps["roughness"] = np.sqrt(shared)
+        if width is not None:
+            # Its Laplace std (_shared), by the delta method for roughness = sqrt(alpha).
+            maps[map_name("alpha", "_std")] = np.where(ok, width.alpha_std, np.nan)
+            maps[map_name("roughness", "_std")] = np.where(
+                ok, width.alpha_std / (2.0 * np.sqrt(fitter.pooled.alpha)), np.nan
+            )
     spec = [j for j, lab in enumerate(labels) if lab.startswith("specular.")]
     alb = [j for j, lab in enumerate(labels) if lab.startswith("albedo.")]
     if len(spec) > 1 and len(spec) == len(alb):

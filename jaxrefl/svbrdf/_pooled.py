@@ -35,10 +35,10 @@ non-negative least-squares F0 over all pixels, in noise units sigma (the median 
 residual RMS of that fit). A pixel whose observations pin F0 down ignores the prior; one that
 never saw its lobe keeps the population's F0, so its prediction for an unseen direction is
 the pooled material's, never a lobe the data do not support. The per-pixel fit is then the
-ordinary MAP fit of :func:`jaxrefl.fit.fit_pixels` (Laplace uncertainty included: the prior
-is part of its curvature; the shared alpha, fixed at its selected value, contributes no
-variance, which understates the std by the alpha's own uncertainty, small when many pixels
-share it).
+ordinary MAP fit of :func:`jaxrefl.fit.fit_pixels` with alpha fixed at its selected value
+(Laplace uncertainty included: the prior is part of its curvature, and
+:mod:`jaxrefl.svbrdf._shared` adds each pixel's share of the shared alpha's own
+uncertainty).
 """
 
 from __future__ import annotations

@@ -268,7 +268,9 @@ def predictive(
             f"the fit has {cf.theta.shape[0]} pixels and the capture {h * w}: predict the "
             "capture the fit was made of"
         )
-    fitter = _TileFitter(capture, cf.job, pooled=cf.extra.get("pooled"), compact=False)
+    fitter = _TileFitter(
+        capture, cf.job, pooled=cf.extra.get("pooled"), compact=False, width_terms=False
+    )
     space = fitter.space
     theta, std, corr = _fit_arrays(cf, space)
     size = cf.job.tile_pixels
@@ -389,7 +391,9 @@ def estimate_discrepancy(
     train = [i for i in range(k) if i not in cf.job.holdout]
     if len(train) < 2:
         return Discrepancy.zero()
-    fitter = _TileFitter(capture, cf.job, pooled=cf.extra.get("pooled"), compact=False)
+    fitter = _TileFitter(
+        capture, cf.job, pooled=cf.extra.get("pooled"), compact=False, width_terms=False
+    )
     per = max(256, max_pixels // len(train))
     data = _subsample(capture, per, seed, cf.job.dtype)
     size = cf.job.tile_pixels
