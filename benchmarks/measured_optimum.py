@@ -12,7 +12,8 @@ models with the exact dielectric Fresnel term and a fitted eta), samples within 
   retry), its certificate;
 * ``best of 64``: 64 independent uniform starts in the same box of the unconstrained space
   (another seed, :func:`jaxrefl.measured.random_thetas` with ``sobol=False``), solved
-  together with a 200-iteration budget, the best kept.
+  together with a 200-iteration budget (continued, as every multi-start fit is, while its
+  best starts stop at the budget; no perturbed generations), the best kept.
 
 Both costs are 1/2 sum ((f_hat - f) cos theta_i)^2 over samples and channels, evaluated in
 float64 at each fit's parameters; ``gap`` = (default - best of 64) / best of 64 (negative:

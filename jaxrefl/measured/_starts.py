@@ -611,7 +611,7 @@ def _finite_costs(r: FitResult, n: int, s: int) -> np.ndarray:
     return np.where(np.isfinite(c), c, np.inf)
 
 
-# Perturbation scales (unconstrained units) of the second generation of starts.
+# Perturbation scales (unconstrained units) of the perturbed generations of starts.
 _PERTURB_SCALES = (0.25, 0.5, 1.0, 2.0)
 
 
@@ -621,7 +621,7 @@ def _perturbed(
     """(N * S, P) starts of a perturbed generation from the results so far (N, G * S, P)
     and their costs (N, G * S): the ``starts.polish`` lowest-cost results of each problem,
     each perturbed by Gaussian steps of every scale in ``_PERTURB_SCALES`` in turn
-    (module docstring); S = G * S / G of the first generation."""
+    (module docstring). ``generation`` = G, the generations so far; each has S starts."""
     n, _, p = theta.shape
     s = theta.shape[1] // generation
     rng = np.random.default_rng([starts.seed, generation])
