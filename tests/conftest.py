@@ -5,10 +5,8 @@
 * The JAX persistent compilation cache is on for the run (``.pytest_cache/jax-compilation``,
   or ``JAXREFL_TEST_JAX_CACHE``; ``off`` disables it). Many tests compile the same solver on
   the same shapes in different processes (xdist workers, notebook kernels, CLI subprocesses);
-  the cache compiles each once. Every program is kept, however quick its compilation: a
-  subprocess would otherwise compile again the many small ones. It is set through the
-  environment so subprocesses inherit it, and the command line (``jaxrefl/cli/_compile.py``)
-  uses it rather than the user's folder.
+  the cache compiles each once. It is set through the environment so subprocesses inherit it,
+  and the command line (``jaxrefl/cli/_compile.py``) uses it rather than the user's folder.
 * ``shared_data`` locates ``../shared/data`` through ``JAXREFL_SHARED_DATA``. In CI
   (``CI`` set, as ``.ci/run`` does) a missing data folder is a failure, never a skip.
 * Every ``report.json`` a test leaves under its ``tmp_path`` must parse as strict JSON (no
@@ -31,7 +29,7 @@ _cache = os.environ.get(
 )
 if _cache != "off":
     os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", _cache)
-    os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
+    os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.5")
     os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES", "0")
     jax.config.update("jax_compilation_cache_dir", os.environ["JAX_COMPILATION_CACHE_DIR"])
     jax.config.update(
