@@ -31,11 +31,18 @@ def _capture():
     return photograph_maps(scene, truth, 0.003, rng)
 
 
-def test_width_share_equals_the_joint_laplace():
+@pytest.fixture(scope="module")
+def pooled_fit():
+    """The capture and its float64 pooled fit with photo 8 held out."""
     cap = _capture()
     with jax.enable_x64(True):
         job = FitJob(model="pooled", holdout=(8,), config=fit.FitConfig(dtype=np.float64))
-        cf = fit_capture(cap, job)
+        return cap, fit_capture(cap, job)
+
+
+def test_width_share_equals_the_joint_laplace(pooled_fit):
+    cap, cf = pooled_fit
+    with jax.enable_x64(True):
         n = SIZE * SIZE
         fitter = _TileFitter(cap, cf.job, pooled=cf.extra["pooled"])
         res, space = fitter.residual, fitter.space
@@ -78,3 +85,27 @@ def test_width_share_equals_the_joint_laplace():
     spec = [j for j, lab in enumerate(space.labels) if lab.startswith("specular.")]
     assert np.max(want[:, spec] / alone[:, spec]) > 1.01
     assert np.all(want >= alone * (1 - 1e-9))
+
+
+def test_a_pixel_without_a_covariance_takes_no_part(pooled_fit):
+    """width_terms leaves out a pixel whose per-pixel std is not finite (its curvature was
+    not inverted): v NaN, s 0; the others are unchanged."""
+    from jaxrefl.svbrdf._shared import width_terms
+
+    cap, cf = pooled_fit
+    with jax.enable_x64(True):
+        fitter = _TileFitter(cap, cf.job, pooled=cf.extra["pooled"])
+        n = SIZE * SIZE
+        data = pixel_block(cap, 0, n, dtype=np.float64)
+        train = jnp.asarray(fitter.train, jnp.float64)[None, :, None]
+        data = eqx.tree_at(lambda d: d.weight, data, data.weight * train)
+        theta = np.asarray(cf.theta, np.float64)
+        std = np.ones_like(theta)
+        v, s = width_terms(fitter.residual, theta, data, std)
+        std[5, 2] = np.nan
+        v2, s2 = width_terms(fitter.residual, theta, data, std)
+    assert np.all(np.isfinite(v)) and np.all(s > 0)
+    assert np.all(np.isnan(v2[5])) and s2[5] == 0.0
+    keep = np.arange(n) != 5
+    np.testing.assert_array_equal(v2[keep], v[keep])
+    np.testing.assert_array_equal(s2[keep], s[keep])

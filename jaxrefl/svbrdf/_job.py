@@ -410,7 +410,7 @@ class _TileFitter:
         n_rows, p = r.theta.shape
         width_v, width_s = np.zeros((n_rows, p)), np.zeros(n_rows)
         if self.width_terms and self.pooled is not None and self.pooled.alpha is not None:
-            width_v, width_s = shared_width_terms(res, r.theta, fit_data, lap.flag)
+            width_v, width_s = shared_width_terms(res, r.theta, fit_data, lap.std)
         t2 = time.perf_counter()
         sse, cnt = _errors(res, r.theta, data)
         out = {

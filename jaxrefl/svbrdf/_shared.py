@@ -26,8 +26,8 @@ pixel, one tile at a time; :func:`widen` sums the s_i of the whole capture and a
 rank-one terms to the natural-unit std and correlation maps (delta method:
 x = g(theta), dx = g'(theta) dtheta entry by entry).
 
-Pixels whose own curvature is not inverted (the Laplace flags of :func:`jaxrefl.fit.laplace`:
-no estimate, not positive definite, or a condition number above its limit) take no part:
+Pixels whose own curvature is not inverted (a NaN std from :func:`jaxrefl.fit.laplace`: no
+estimate, not positive definite, or a condition number above its limit) take no part:
 their v_i is NaN and their s_i 0, so the width's variance is that of the other pixels'
 data, the same or larger than the joint problem's. The curvature is taken where the fit
 stopped, with the width at the value chosen by held-out photos: the Gaussian approximation
@@ -79,15 +79,14 @@ def _terms(residual: Residual, theta, data: PixelData, formed):
     return jax.vmap(one)(theta, data, formed)
 
 
-def width_terms(residual: Residual, theta, data: PixelData, flag) -> tuple[np.ndarray, np.ndarray]:
+def width_terms(residual: Residual, theta, data: PixelData, std) -> tuple[np.ndarray, np.ndarray]:
     """(v (N, P), s (N,)) of the module docstring for the pixels of one tile: ``residual``
     the pooled fit's (alpha in ``residual.space.fixed``), ``theta`` (N, P) where the fit
-    stopped, ``data`` the tile's fitted data, ``flag`` (N,) the per-pixel Laplace flags
-    (pixels whose covariance was not formed take no part)."""
-    flags = fit.LaplaceFlag
-    no_cov = flags.NO_ESTIMATE | flags.NOT_POSITIVE_DEFINITE | flags.NONFINITE
+    stopped, ``data`` the tile's fitted data, ``std`` (N, P) the per-pixel Laplace std.
+    A pixel whose std is not finite everywhere (no estimate, or a curvature that was not
+    inverted: not positive definite, or above the condition limit) takes no part."""
     theta = jnp.asarray(theta)
-    formed = (np.asarray(flag) & int(no_cov)) == 0
+    formed = np.all(np.isfinite(np.asarray(std)), axis=-1)
     formed &= np.all(np.isfinite(np.asarray(theta)), axis=-1)
     v, s = _terms(residual, theta, data, jnp.asarray(formed))
     return np.asarray(v, np.float64), np.asarray(s, np.float64)
