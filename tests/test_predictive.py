@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -91,3 +92,67 @@ def test_discrepancy_term_and_bad_arguments(fitted):
         pred.std(("noise", "bias"))
     with pytest.raises(ValueError, match="pixels"):
         predictive(cap.crop(0, 8, 0, SIZE), cf)
+
+
+def test_one_capture_noise_scale_is_replaced_by_a_variance_function(fitted):
+    """``pooled`` has one known noise scale for the capture: by default the discrepancy
+    estimate replaces it with a variance function of the radiance; the per-pixel ``ggx``
+    keeps its per-pixel noise (the module fixture's estimate)."""
+    cap, _cf, disc_ggx, _pred = fitted
+    assert not disc_ggx.replaces_noise
+    cf = fit_capture(cap, FitJob(model="pooled", holdout=(HELD,), tile_pixels=SIZE * SIZE))
+    disc = estimate_discrepancy(cap, cf)
+    assert disc.replaces_noise and np.all(disc.var > 0), disc.as_dict()
+    pred = predictive(cap, cf, disc)
+    np.testing.assert_allclose(pred.noise_var, disc(pred.mean), rtol=1e-12)
+    assert np.all(pred.disc_var == 0)
+    # its noise variance is known: normal Laplace marginals
+    from jaxrefl.svbrdf import laplace_dof
+
+    dof = laplace_dof(cf)
+    assert np.all(np.isinf(dof[~np.isnan(dof)])) and np.mean(~np.isnan(dof)) > 0.9
+    kept = estimate_discrepancy(cap, cf, replace_noise=False)
+    assert not kept.replaces_noise
+    known = float(cf.extra["pooled"].sigma) ** 2
+    np.testing.assert_allclose(predictive(cap, cf, kept).noise_var, known, rtol=1e-5)
+
+
+def test_laplace_intervals_are_student_t_where_the_noise_was_estimated(fitted):
+    """``ggx`` estimates each pixel's noise scale: its Laplace marginals are Student t with
+    n_used - P degrees of freedom (8 photos x 3 channels - 5 parameters = 19 here), in the
+    unconstrained space, mapped through the bijection; a known noise scale gives the normal
+    quantile."""
+    from scipy import stats
+
+    from jaxrefl.svbrdf import laplace_dof, laplace_interval, laplace_theta_std
+
+    _cap, cf, _disc, _pred = fitted
+    _model, space = cf.model()
+    dof = laplace_dof(cf)
+    p = len(space.labels)
+    ok = np.isfinite(dof)
+    assert ok.mean() > 0.9
+    np.testing.assert_array_equal(dof[ok], cf.maps["n_used"].reshape(-1)[ok] - p)
+    assert np.median(dof[ok]) == 8 * 3 - p
+    box = laplace_interval(cf, 0.9)
+    j = space.labels.index("alpha")
+    lo, hi = box["alpha"]
+    theta = np.asarray(cf.theta, np.float64)
+    s_t = laplace_theta_std(cf, space)[:, j]
+    use = ok & np.isfinite(s_t) & np.isfinite(lo)
+    assert use.mean() > 0.9
+    q = stats.t.ppf(0.95, dof[use])
+    t_lo, t_hi = theta.copy(), theta.copy()
+    t_lo[use, j] -= q * s_t[use]
+    t_hi[use, j] += q * s_t[use]
+    nat_lo = np.asarray(space.natural_vector(jnp.asarray(np.nan_to_num(t_lo))))[:, j]
+    nat_hi = np.asarray(space.natural_vector(jnp.asarray(np.nan_to_num(t_hi))))[:, j]
+    np.testing.assert_allclose(lo[use], nat_lo[use], rtol=1e-9)
+    np.testing.assert_allclose(hi[use], nat_hi[use], rtol=1e-9)
+    # 19 degrees of freedom: 4.6% wider than the normal interval in theta
+    z = stats.norm.ppf(0.95)
+    assert np.all(q / z > 1.04)
+    a = cf.maps["alpha"].reshape(-1)[use]
+    assert np.all((lo[use] <= a) & (a <= hi[use]))
+    with pytest.raises(ValueError, match="level"):
+        laplace_interval(cf, 1.0)

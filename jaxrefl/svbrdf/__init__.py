@@ -75,6 +75,8 @@ from ._predictive import estimate_discrepancy as estimate_discrepancy
 from ._predictive import model_check as model_check
 from ._predictive import predictive as predictive
 from ._uncertainty import CaptureUncertainty as CaptureUncertainty
+from ._uncertainty import laplace_dof as laplace_dof
+from ._uncertainty import laplace_interval as laplace_interval
 from ._uncertainty import laplace_theta_std as laplace_theta_std
 from ._uncertainty import uncertainty_maps as uncertainty_maps
 from ._uncertainty import write_uncertainty as write_uncertainty

@@ -340,6 +340,16 @@ class _TileFitter:
                 TWO_STAGE[job.model], channels=capture.shape[-1], alpha_min=self.alpha_min
             )
 
+    @property
+    def estimates_noise(self) -> bool:
+        """Whether the Laplace step estimates each pixel's noise scale from its residuals
+        (False where the variance is known: ``pooled``'s capture-wide scale, or the
+        two-stage model's first-stage median under Gaussian noise of unknown scale)."""
+        if self.known_noise is not None:
+            return False
+        two_stage_sigma = isinstance(self.noise, fit.GaussianNoise) and self.noise.sigma is None
+        return not (self.first is not None and two_stage_sigma)
+
     def data(self, start: int, stop: int):
         return pixel_block(self.capture, start, stop, self.job.tile_pixels, dtype=self.job.dtype)
 
@@ -712,6 +722,7 @@ def fit_capture(
             "sse": cat["sse"],
             "cnt": cat["cnt"],
             "alpha_min": fitter.alpha_min,
+            "noise_estimated": fitter.estimates_noise,
             "pooled": fitter.pooled,
             "auto": choice,
         },

@@ -32,8 +32,10 @@ with three variances, all in the capture's linear radiance units squared:
   photo of the job is never looked at.
 * With ``estimate_discrepancy(..., replace_noise=True)`` the same median-matched estimate is
   made against the parameter variance alone, and v(mu) *replaces* the fit's noise term: a
-  heteroscedastic noise model measured on held-out training photos (``pooled`` has one
-  noise scale for the capture, too wide for dark pixels and too narrow for bright ones).
+  heteroscedastic noise model measured on held-out training photos. It is the default for a
+  fit whose noise is one known scale for the whole capture (``pooled``'s: too wide for dark
+  pixels and too narrow for bright ones, where photon noise and misregistration grow with
+  the radiance); a per-pixel model keeps its own per-pixel noise estimate plus tau^2(mu).
 
 The central interval of level p is mu +- z_p sqrt(v), z_p the standard normal's
 (1 + p)/2 quantile. :meth:`Predictive.coverage` counts the share of a photo's uncensored,
@@ -366,7 +368,7 @@ def estimate_discrepancy(
     max_pixels: int = 4096,
     bins: int = 8,
     seed: int = 0,
-    replace_noise: bool = False,
+    replace_noise: bool | None = None,
 ) -> Discrepancy:
     """tau^2(mu) from the training photos of ``cf`` alone (module docstring).
 
@@ -381,7 +383,9 @@ def estimate_discrepancy(
     v(mu), the same way (median-matched per bin, against the parameter variance alone) and
     use it in place of the fit's noise term: a heteroscedastic noise model measured on
     held-out training photos, for a fit whose one noise scale (``pooled``'s) is too wide for
-    dark pixels and too narrow for bright ones."""
+    dark pixels and too narrow for bright ones. None (the default): True exactly when the
+    fit's noise is one known variance for the capture (``pooled``), False where each pixel
+    has its own estimate (the per-pixel models)."""
     from ._auto import _stack
     from ._pooled import _subsample
 
@@ -394,6 +398,8 @@ def estimate_discrepancy(
     fitter = _TileFitter(
         capture, cf.job, pooled=cf.extra.get("pooled"), compact=False, width_terms=False
     )
+    if replace_noise is None:
+        replace_noise = fitter.known_noise is not None
     per = max(256, max_pixels // len(train))
     data = _subsample(capture, per, seed, cf.job.dtype)
     size = cf.job.tile_pixels

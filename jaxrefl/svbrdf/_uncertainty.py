@@ -44,7 +44,14 @@ from ._data import pixel_block
 from ._job import CaptureFit, FitJob, fit_capture, map_name
 from ._uncertainty_plots import write_uncertainty_plots
 
-__all__ = ["CaptureUncertainty", "laplace_theta_std", "uncertainty_maps", "write_uncertainty"]
+__all__ = [
+    "CaptureUncertainty",
+    "laplace_dof",
+    "laplace_interval",
+    "laplace_theta_std",
+    "uncertainty_maps",
+    "write_uncertainty",
+]
 
 NOISE = "Gaussian, unknown scale per pixel (Jeffreys prior)"
 _NOISE_START = 1e-2  # the chains' starting noise scale where the fit gave none
@@ -157,6 +164,60 @@ def laplace_theta_std(cf: CaptureFit, space: fit.ParamSpace) -> np.ndarray:
     ok = np.all(np.isfinite(theta), -1)
     dn = np.asarray(space.dnatural(jnp.asarray(np.where(ok[:, None], theta, 0.0))))
     return std / np.abs(dn)
+
+
+def laplace_dof(cf: CaptureFit) -> np.ndarray:
+    """(N,) degrees of freedom of each pixel's Laplace marginals: n_used - P where the fit
+    estimated the pixel's noise scale from its residuals (the per-pixel models' default,
+    Gaussian noise of unknown scale), inf where the noise variance is known (``pooled``'s
+    capture-wide scale). NaN where n_used <= P (no estimate).
+
+    With the scale estimated as s^2 = 2 cost / (n - P) and a Jeffreys prior
+    p(sigma) ~ 1/sigma, the marginal posterior of each parameter of a linear(ised)
+    least-squares problem is a Student t with n - P degrees of freedom and scale s times the
+    sqrt of the diagonal of (J^T J)^-1 (Gelman et al., *Bayesian Data Analysis*, 3rd ed.,
+    sec. 14.2), not the Gaussian of a known variance: with 8 photos x 3 channels and 7
+    parameters its 90% interval is 6% wider."""
+    n = cf.maps["n_used"].reshape(-1).astype(np.float64)
+    if not cf.extra.get("noise_estimated", True):
+        return np.where(n > 0, np.inf, np.nan)
+    p = len(cf.labels)
+    return np.where(n > p, n - p, np.nan)
+
+
+def laplace_interval(
+    cf: CaptureFit, level: float, space: fit.ParamSpace | None = None
+) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Central Laplace interval of ``level`` of every parameter: {label: (lower, upper)},
+    each (N,) in natural units.
+
+    The interval is formed in the unconstrained coordinates, theta* +- q std_theta, with q
+    the Student t quantile of :func:`laplace_dof` (the normal one where the noise is known),
+    and mapped to natural units through the bijection (monotone, so the natural interval has
+    the same probability, and it stays inside the parameter's bounds). NaN where the fit has
+    no estimate."""
+    from scipy import stats
+
+    if not 0.0 < level < 1.0:
+        raise ValueError(f"level must be in (0, 1), got {level}")
+    space = cf.model()[1] if space is None else space
+    theta = np.asarray(cf.theta, np.float64)
+    s_t = laplace_theta_std(cf, space)
+    dof = laplace_dof(cf)
+    with np.errstate(invalid="ignore"):
+        q = np.where(
+            np.isinf(dof),
+            stats.norm.ppf(0.5 + 0.5 * level),
+            stats.t.ppf(0.5 + 0.5 * level, np.where(np.isfinite(dof), dof, 1.0)),
+        )
+    q = np.where(np.isnan(dof), np.nan, q)[:, None]
+    ok = np.all(np.isfinite(theta), -1)[:, None] & np.isfinite(s_t) & np.isfinite(q)
+    lo_t = np.where(ok, theta - q * s_t, 0.0)
+    hi_t = np.where(ok, theta + q * s_t, 0.0)
+    lo = np.asarray(space.natural_vector(jnp.asarray(lo_t)), np.float64)
+    hi = np.asarray(space.natural_vector(jnp.asarray(hi_t)), np.float64)
+    lo, hi = np.where(ok, np.minimum(lo, hi), np.nan), np.where(ok, np.maximum(lo, hi), np.nan)
+    return {lab: (lo[:, j], hi[:, j]) for j, lab in enumerate(space.labels)}
 
 
 def uncertainty_maps(
