@@ -194,14 +194,15 @@ def part_map(args):
     from jaxrefl.io import load_capture
 
     root = Path(os.environ.get("JAXREFL_SHARED_DATA", "../shared/data"))
-    src = root / "svbrdf_flash" / "bath_tile"
-    if "bath_tile" in args.map_captures:
+    for real in ("bath_tile", "yellow_box"):
+        if real not in args.map_captures:
+            continue
+        src = root / "svbrdf_flash" / real
         if not src.exists():
-            print(f"\n(no {src}: skipping the bath_tile uncertainty map timing)")
-        else:
-            cap = load_capture(src)
-            factor = max(1, cap.shape[1] // args.map_size)
-            map_run(args, cap.downsample(factor), f"bath_tile / {factor}")
+            print(f"\n(no {src}: skipping the {real} uncertainty map timing)")
+            continue
+        cap = load_capture(src, resolution=args.map_size)
+        map_run(args, cap, f"{real} at {cap.shape[1]} x {cap.shape[2]}")
     if "synthetic" in args.map_captures:
         import tempfile
 
@@ -217,14 +218,14 @@ def map_run(args, cap, name):
     """Adaptive uncertainty map (MAP_OPTIONS, fixed-size chunks) of a capture. With
     ``--map-rows R`` only the first R rows are cropped, fitted and mapped, and the fit and
     HMC times are extrapolated to the whole map by the ratio of rows (printed as such)."""
-    _k, h_full, w, c = cap.shape
+    _k, h_full, w, _c = cap.shape
     rows = h_full if args.map_rows <= 0 else min(h_full, args.map_rows)
     if rows < h_full:
         cap = cap.crop(0, rows, 0, w)
-    _k, h, w, c = cap.shape
+    _k, h, w, _c = cap.shape
     n = h * w
     t0 = time.perf_counter()
-    job = svbrdf.FitJob(model="ggx", config=F64, tile_pixels=min(4096, n))
+    job = svbrdf.FitJob(model=args.map_model, config=F64, tile_pixels=min(4096, n))
     cf = svbrdf.fit_capture(cap, job)
     t_fit = time.perf_counter() - t0
     t_fit_warm = t_fit
@@ -232,7 +233,7 @@ def map_run(args, cap, name):
         t0 = time.perf_counter()
         svbrdf.fit_capture(cap, job)
         t_fit_warm = time.perf_counter() - t0
-    model, space = svbrdf.capture_model("ggx", channels=c, alpha_min=cf.extra["alpha_min"])
+    model, space = cf.model()
     lp = jp.log_posterior(model, space, fit.GaussianNoise(None))
     theta = np.asarray(cf.theta, np.float64)
     noise0 = np.nan_to_num(cf.maps["noise_std"].reshape(-1), nan=1e-2)
@@ -399,8 +400,7 @@ def part_mixing(args) -> None:
         cli(["demo", "--out", str(d), "--size", str(args.mixing_size), "--no-fit"])
         cap = load_capture(d)
     cf = svbrdf.fit_capture(cap, svbrdf.FitJob(model="ggx", config=F64, tile_pixels=4096))
-    c = cap.shape[-1]
-    model, space = svbrdf.capture_model("ggx", channels=c, alpha_min=cf.extra["alpha_min"])
+    model, space = cf.model()
     lp = jp.log_posterior(model, space, fit.GaussianNoise(None))
     theta = np.asarray(cf.theta, np.float64)
     n = theta.shape[0]
@@ -523,7 +523,8 @@ def main() -> None:
     p.add_argument("--map-size", type=int, default=256)
     p.add_argument("--map-rows", type=int, default=0, help="rows with a posterior (0: all)")
     p.add_argument("--map-chunk", type=int, default=2048, help="MCMC pixels per call")
-    p.add_argument("--map-captures", default="bath_tile,synthetic")
+    p.add_argument("--map-captures", default="bath_tile,yellow_box,synthetic")
+    p.add_argument("--map-model", default="auto", help="the fit's model (auto: the default)")
     p.add_argument("--only-map", action="store_true", help="skip parts 1 and 2")
     p.add_argument("--emcee-sbc", type=int, default=200, help="emcee SBC simulations (0: skip)")
     p.add_argument("--only-emcee-sbc", action="store_true")
