@@ -42,6 +42,11 @@ initial metric), in the non-centred coordinates of :mod:`jaxrefl.posterior._repa
 whose posterior is a long curved ridge that chains in the fit's coordinates do not cross
 (``benchmarks/posterior_speed.py --only-mixing`` compares the settings).
 ``keep_samples=False`` keeps only the summaries (a 256 x 256 map's draws are ~1 GB).
+Where a chunk's posterior is linear-Gaussian in every BRDF parameter (``pooled`` under a
+co-located flash, no censored observation: :mod:`jaxrefl.posterior._gibbs`),
+:data:`MAP_OPTIONS` (``gibbs_sweeps=2``) draws it exactly by Gibbs sampling instead of HMC,
+two scans between kept draws; a map can then hold chunks of both (its samples' ``method``
+is ``"gibbs+hmc"``).
 
 Chunks on disk and across processes: with ``chunk_dir`` each chunk's draws are written
 there as it finishes (a file named by the pass, a fingerprint of the pixels, sampler
@@ -100,7 +105,12 @@ __all__ = [
 METHODS = {int(m): m.name.lower() for m in Method}
 _Z95 = 1.6448536269514722  # standard normal 95% quantile
 MAP_OPTIONS = HMCOptions(
-    num_warmup=100, num_samples=100, num_chains=2, num_integration_steps=32, batch_size=128
+    num_warmup=100,
+    num_samples=100,
+    num_chains=2,
+    num_integration_steps=32,
+    batch_size=128,
+    gibbs_sweeps=2,
 )
 
 _RERUN_SEED = 100_003  # offsets the second pass's seeds from the first's chunk seeds
@@ -659,7 +669,8 @@ def _concat(parts: list[Samples]) -> Samples:
         natural=cat([p.natural for p in parts]),
         labels=p0.labels,
         stats={k: cat([p.stats[k] for p in parts]) for k in p0.stats},
-        method=p0.method,
+        # chunks of exact Gibbs draws and of HMC can meet in one map (module docstring)
+        method="+".join(dict.fromkeys(p.method for p in parts)),
         tuning={k: cat([p.tuning[k] for p in parts]) for k in p0.tuning},
         compile_s=p0.compile_s,
         run_s=float(sum(p.run_s for p in parts)),

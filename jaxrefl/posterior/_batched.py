@@ -52,6 +52,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from jaxrefl.fit import PixelData, device_count, map_sharded
 
+from ._gibbs import qualifies, sample_gibbs
 from ._logpost import LogPosterior
 from ._reparam import ConditionalAlbedo, conditional_albedo
 
@@ -85,6 +86,12 @@ class HMCOptions:
     # (acceptance averaged over, and divergences counted in, the steps between). Used by
     # the longer second pass of adaptive_uncertainty, whose draws keep the first's shape.
     thin: int = 1
+    # Where > 0 and the posterior is linear-Gaussian in every BRDF parameter
+    # (:func:`jaxrefl.posterior._gibbs.qualifies`: e.g. ``pooled`` under a co-located
+    # flash, no censored observation), draw it exactly by Gibbs sampling instead, this many
+    # sweeps between kept draws (times ``thin``; ``num_warmup`` kept-draw intervals of
+    # warm-up). 0: always HMC.
+    gibbs_sweeps: int = 0
 
     def __post_init__(self):
         if self.reparam not in ("auto", "albedo", "none"):
@@ -104,6 +111,8 @@ class HMCOptions:
         ):
             if getattr(self, k) < 1:
                 raise ValueError(f"{k} must be >= 1, got {getattr(self, k)}")
+        if self.gibbs_sweeps < 0:
+            raise ValueError(f"gibbs_sweeps must be >= 0, got {self.gibbs_sweeps}")
 
 
 @dataclass
@@ -344,6 +353,19 @@ def sample_pixels(
     t0_arr = jnp.asarray(theta0, dtype)
     if t0_arr.shape[-1] != lp.size:
         raise ValueError(f"theta0 must end in D = {lp.size} {lp.labels}; got {t0_arr.shape}")
+    if opts.gibbs_sweeps > 0 and qualifies(lp, data)[0]:
+        s = sample_gibbs(
+            lp,
+            data,
+            jnp.broadcast_to(t0_arr, (n, lp.size)) if t0_arr.ndim < 3 else t0_arr,
+            num_chains=opts.num_chains,
+            num_warmup=opts.num_warmup,
+            num_samples=opts.num_samples,
+            sweeps=opts.gibbs_sweeps * opts.thin,
+            seed=seed,
+        )
+        s.extra["options"] = opts
+        return s
     per_chain = t0_arr.ndim == 3
     if per_chain:
         x = jnp.broadcast_to(t0_arr, (n, opts.num_chains, lp.size))
