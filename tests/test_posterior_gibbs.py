@@ -117,12 +117,14 @@ def test_gibbs_agrees_with_hmc_on_the_pooled_posterior(pooled_posterior):
 def test_only_linear_gaussian_posteriors_take_the_gibbs_path(pooled_posterior):
     lp, sub, theta0 = pooled_posterior
     opts = jp.HMCOptions(num_warmup=20, num_samples=20, num_chains=2, gibbs_sweeps=1)
-    # a saturated observation: the censored likelihood is not Gaussian
+    # a censored observation with a fractional weight: not a Tobit likelihood
     cens = np.asarray(sub.censored).copy()
     cens[0, 0, 0] = 1
-    clipped = sub.__class__(**{**sub.__dict__, "censored": jnp.asarray(cens)})
-    assert qualifies(lp, clipped) == (False, "some observations are censored")
-    assert jp.sample_pixels(lp, clipped, theta0, options=opts).method == "hmc"
+    wts = np.asarray(sub.weight).copy()
+    wts[0, 0, 0] = 0.5
+    half = sub.__class__(**{**sub.__dict__, "censored": jnp.asarray(cens), "weight": wts})
+    assert not qualifies(lp, half)[0]
+    assert jp.sample_pixels(lp, half, theta0, options=opts).method == "hmc"
     # a per-pixel lobe width: not linear, and alpha's prior is not uniform
     model, space = svbrdf.capture_model("ggx", channels=3)
     ggx = jp.log_posterior(model, space, fit.GaussianNoise(None))
@@ -137,3 +139,38 @@ def test_only_linear_gaussian_posteriors_take_the_gibbs_path(pooled_posterior):
     assert jp.sample_pixels(lp, sub, theta0, options=plain).method == "hmc"
     with pytest.raises(ValueError, match="gibbs_sweeps"):
         jp.HMCOptions(gibbs_sweeps=-1)
+
+
+def test_censored_observations_by_data_augmentation_agree_with_hmc(pooled_posterior):
+    """The brightest observation of each pixel recorded as clipped (only a lower bound is
+    known): Gibbs with latent values and HMC on the Tobit likelihood give the same
+    posterior."""
+    lp, sub, theta0 = pooled_posterior
+    obs = np.asarray(sub.obs)
+    cens = np.zeros(obs.shape, np.int8)
+    flat = obs.reshape(obs.shape[0], -1)
+    top = np.argmax(flat, axis=1)
+    cens.reshape(obs.shape[0], -1)[np.arange(obs.shape[0]), top] = 1
+    clipped = sub.__class__(**{**sub.__dict__, "censored": jnp.asarray(cens)})
+    assert qualifies(lp, clipped) == (True, "")
+    g = jp.sample_pixels(
+        lp,
+        clipped,
+        theta0,
+        options=jp.HMCOptions(num_warmup=100, num_samples=1000, num_chains=4, gibbs_sweeps=2),
+        seed=3,
+    )
+    h = jp.sample_pixels(
+        lp, clipped, theta0, options=jp.HMCOptions(num_warmup=500, num_samples=1000), seed=4
+    )
+    assert g.method == "gibbs" and h.method == "hmc"
+    dg, dh = jp.diagnostics(g), jp.diagnostics(h)
+    assert np.all(dg["max_rhat"] < 1.02), dg["max_rhat"]
+    good = dh["max_rhat"] < 1.05
+    assert good.sum() >= 4, dh["max_rhat"]
+    ess = np.minimum(dg["ess_bulk"], dh["ess_bulk"])[good]
+    mg, mh = g.natural.mean(axis=(1, 2))[good], h.natural.mean(axis=(1, 2))[good]
+    sg, sh = g.natural.std(axis=(1, 2))[good], h.natural.std(axis=(1, 2))[good]
+    mcse = np.sqrt(sg**2 + sh**2) / np.sqrt(ess)
+    assert np.all(np.abs(mg - mh) < 5 * mcse), np.max(np.abs(mg - mh) / mcse)
+    np.testing.assert_allclose(sg, sh, rtol=0.1)

@@ -43,7 +43,7 @@ whose posterior is a long curved ridge that chains in the fit's coordinates do n
 (``benchmarks/posterior_speed.py --only-mixing`` compares the settings).
 ``keep_samples=False`` keeps only the summaries (a 256 x 256 map's draws are ~1 GB).
 Where a chunk's posterior is linear-Gaussian in every BRDF parameter (``pooled`` under a
-co-located flash, no censored observation: :mod:`jaxrefl.posterior._gibbs`),
+co-located flash, censored observations included: :mod:`jaxrefl.posterior._gibbs`),
 :data:`MAP_OPTIONS` (``gibbs_sweeps=2``) draws it exactly by Gibbs sampling instead of HMC,
 two scans between kept draws; a map can then hold chunks of both (its samples' ``method``
 is ``"gibbs+hmc"``).

@@ -88,7 +88,8 @@ class HMCOptions:
     thin: int = 1
     # Where > 0 and the posterior is linear-Gaussian in every BRDF parameter
     # (:func:`jaxrefl.posterior._gibbs.qualifies`: e.g. ``pooled`` under a co-located
-    # flash, no censored observation), draw it exactly by Gibbs sampling instead, this many
+    # flash; censored observations by data augmentation), draw it exactly by Gibbs
+    # sampling instead, this many
     # sweeps between kept draws (times ``thin``; ``num_warmup`` kept-draw intervals of
     # warm-up). 0: always HMC.
     gibbs_sweeps: int = 0

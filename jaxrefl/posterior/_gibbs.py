@@ -8,8 +8,8 @@ lobe width fixed, under a co-located flash, predicts
 (Lambert's albedo / pi and the lobe's F0 D G / (4 cos_i cos_o) times the irradiance; the
 Schlick term (1 - cos theta_d)^5 vanishes at theta_d = 0). With the L2 loss, Gaussian noise
 sd_kc = s u_kc (u_kc = ``noise.std(obs)``, s the unknown scale with the Jeffreys prior
-p(s) ~ 1/s, or s = 1 for a known noise model), uniform priors on the parameters' boxes and no
-censored observation, the posterior is
+p(s) ~ 1/s, or s = 1 for a known noise model), uniform priors on the parameters' boxes, the
+posterior given the uncensored observations is
 
     p(x, s | y) ~ s^-(n + 1) exp(-|W^1/2 (y - b - A x) / u|^2 / (2 s^2)) 1[lo <= x <= hi]
 
@@ -21,21 +21,25 @@ censored observation, the posterior is
   -d.(Q x - r) / d^T Q d, variance s^2 / d^T Q d) truncated to the segment of the line
   inside the box (Geman & Geman 1984; Gelfand & Smith 1990).
 
-A scan draws s^2, then moves x along each eigenvector of Q in turn. Where no bound is
-active the eigenvectors decouple the Gaussian, so one scan is an independent draw. A lobe
-no photo saw trades against the albedo along a ridge, and that ridge is one of the
-eigenvectors, not a diagonal that coordinate-wise Gibbs would cross in tiny steps. The
-sampler is exact, with no step size, no gradient and no model evaluation once Q and r are
-formed. Kept draws are ``sweeps`` scans apart, and the usual diagnostics (split R-hat, bulk
-ESS) judge the result as they judge HMC's. Truncated normals: ``jax.random.truncated_normal``
-(inverse CDF; a segment far in a tail returns a point at its near end, where nearly all of
-the mass lies).
+Censored observations (clipped highlights, dark pixels: the Tobit likelihood
+Phi(+-z) of :mod:`jaxrefl.posterior._logpost`) are handled by data augmentation (Tanner &
+Wong 1987; Chib 1992): each scan first draws the latent value of each one, N(pred, s^2 u^2)
+truncated to beyond its bound, and the rest of the scan treats those values as
+observations. A scan then draws s^2, then moves x along each eigenvector of Q in turn.
+Where no bound is active the eigenvectors decouple the Gaussian, so one scan is an
+independent draw. A lobe no photo saw trades against the albedo along a ridge, and that
+ridge is one of the eigenvectors, not a diagonal that coordinate-wise Gibbs would cross in
+tiny steps. The sampler is exact, with no step size, no gradient and no model evaluation
+once Q and r are formed. Kept draws are ``sweeps`` scans apart, and the usual diagnostics
+(split R-hat, bulk ESS) judge the result as they judge HMC's. Truncated normals:
+``jax.random.truncated_normal`` (inverse CDF; a segment far in a tail returns a point at its
+near end, where nearly all of the mass lies).
 
 :func:`linear_terms` forms A and b from the model (one forward-mode Jacobian at the box
 centre) and checks linearity at a second point; :func:`qualifies` says whether a posterior
 and a batch of pixels meet every condition above; :func:`sample_gibbs` returns
 :class:`~jaxrefl.posterior.Samples` like :func:`~jaxrefl.posterior.sample_pixels`, which
-calls it for such pixels when ``HMCOptions.linear_gibbs`` is on.
+calls it for such pixels when ``HMCOptions.gibbs_sweeps`` is above 0.
 """
 
 from __future__ import annotations
@@ -133,8 +137,10 @@ def qualifies(lp: LogPosterior, data: PixelData) -> tuple[bool, str]:
         return False, "the noise scale's prior is not Jeffreys'"
     if _box(lp) is None:
         return False, "a parameter is not a finite box with a uniform prior"
-    if bool(np.any(np.asarray(data.censored) != 0)):
-        return False, "some observations are censored"
+    cens = np.asarray(data.censored) != 0
+    w = np.asarray(data.weight)
+    if np.any(cens & (w != 0) & (w != 1)):
+        return False, "a censored observation has a weight other than 0 or 1"
     _a, _b, ok = linear_terms(lp, data)
     if not bool(np.all(np.asarray(ok))):
         return False, "the model is not linear in its parameters on these pixels"
@@ -220,6 +226,8 @@ def sample_gibbs(
     nw = jnp.sum(w, axis=-1)
     evals, evec = jnp.linalg.eigh(q)
     jeffreys = lp.noise_scale is not None
+    cens = jnp.where(use, data.censored, 0).reshape(n, -1).astype(jnp.int8)
+    censored = bool(np.any(np.asarray(cens) != 0))
 
     t0 = jnp.asarray(theta0, dtype)
     if t0.ndim == 2:  # one start for every chain of a pixel
@@ -244,12 +252,17 @@ def sample_gibbs(
         nw,
         evec,
         evals,
+        aw,
+        yw,
+        w,
+        cens,
         lo,
         hi,
         num_warmup=num_warmup,
         num_samples=num_samples,
         sweeps=sweeps,
         jeffreys=jeffreys,
+        censored=censored,
     )
     xs, s2s = jax.block_until_ready((xs, s2s))
     run_s = time.perf_counter() - t_start
@@ -290,18 +303,56 @@ def _density(lp, theta, data):
     return jax.vmap(per_pixel)(theta, data)
 
 
-@functools.partial(jax.jit, static_argnames=("num_warmup", "num_samples", "sweeps", "jeffreys"))
+@functools.partial(
+    jax.jit, static_argnames=("num_warmup", "num_samples", "sweeps", "jeffreys", "censored")
+)
 def _chains(
-    keys, x0, s0, q, r, yy, nw, evec, evals, lo, hi, *, num_warmup, num_samples, sweeps, jeffreys
+    keys,
+    x0,
+    s0,
+    q,
+    r,
+    yy,
+    nw,
+    evec,
+    evals,
+    aw,
+    yw,
+    w,
+    cens,
+    lo,
+    hi,
+    *,
+    num_warmup,
+    num_samples,
+    sweeps,
+    jeffreys,
+    censored,
 ):
-    """(x draws (N, chains, num_samples, P), s^2 draws (N, chains, num_samples))."""
+    """(x draws (N, chains, num_samples, P), s^2 draws (N, chains, num_samples)).
 
-    def chain(key, x, s2, q, r, yy, nw, evec, evals):
+    With ``censored``, each scan first draws the latent value of every censored
+    observation given x and s (module docstring) and forms r and y'^T W y' from them."""
+
+    def latent(key, x, s2, aw, yw, w, cens):
+        # whitened units: y* ~ N(A' x, s^2) truncated to [bound, inf) where saturated and
+        # (-inf, bound] where dark; the other observations keep their values
+        mean = aw @ x
+        sd = jnp.sqrt(s2)
+        z0 = (yw - mean) / sd
+        lo_z = jnp.where(cens > 0, z0, -jnp.inf)
+        hi_z = jnp.where(cens < 0, z0, jnp.inf)
+        z = jax.random.truncated_normal(key, lo_z, hi_z, dtype=x.dtype)
+        y = jnp.where(cens != 0, mean + sd * z, yw)
+        return jnp.einsum("mp,m,m->p", aw, w, y), jnp.sum(w * y * y)
+
+    def chain(key, x, s2, q, r, yy, nw, evec, evals, aw, yw, w, cens):
         def interval(carry, _):
             def one(c, _):
                 key, x, s2 = c
-                key, sub = jax.random.split(key)
-                x, s2 = _sweep(sub, x, s2, q, r, yy, nw, evec, evals, lo, hi, jeffreys)
+                key, sub, k_y = jax.random.split(key, 3)
+                r_, yy_ = latent(k_y, x, s2, aw, yw, w, cens) if censored else (r, yy)
+                x, s2 = _sweep(sub, x, s2, q, r_, yy_, nw, evec, evals, lo, hi, jeffreys)
                 return (key, x, s2), None
 
             carry, _ = jax.lax.scan(one, carry, None, length=sweeps)
@@ -311,10 +362,11 @@ def _chains(
         _, (xs, s2s) = jax.lax.scan(interval, carry, None, length=num_samples)
         return xs, s2s
 
-    def pixel(key, x, s, q, r, yy, nw, evec, evals):
+    def pixel(key, x, s, q, r, yy, nw, evec, evals, aw, yw, w, cens):
         ks = jax.random.split(key, x.shape[0])
-        return jax.vmap(chain, in_axes=(0, 0, 0, None, None, None, None, None, None))(
-            ks, x, s * s, q, r, yy, nw, evec, evals
+        shared = (None,) * 10
+        return jax.vmap(chain, in_axes=(0, 0, 0, *shared))(
+            ks, x, s * s, q, r, yy, nw, evec, evals, aw, yw, w, cens
         )
 
-    return jax.vmap(pixel)(keys, x0, s0, q, r, yy, nw, evec, evals)
+    return jax.vmap(pixel)(keys, x0, s0, q, r, yy, nw, evec, evals, aw, yw, w, cens)
