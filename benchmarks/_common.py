@@ -47,6 +47,18 @@ def table(headers: list[str], rows: list[list[object]]) -> str:
     return "\n".join(out)
 
 
+def demo_capture(out: Path, size: int) -> Path:
+    """Write a ``jaxrefl demo`` capture (photos only, no fit) of ``size`` x ``size`` to
+    ``out`` without its printed table, which is not the calling report's."""
+    from jaxrefl.cli import main as cli
+
+    with contextlib.redirect_stdout(io.StringIO()):
+        rc = cli(["demo", "--out", str(out), "--size", str(size), "--no-fit"])
+    if rc != 0:
+        raise SystemExit("jaxrefl demo failed")
+    return out
+
+
 def write_section(section: str, body: str) -> Path:
     """Replace (or append) one script's section of ``docs/benchmarks.md``.
 

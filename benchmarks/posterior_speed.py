@@ -38,7 +38,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import machine, run_and_record, table  # noqa: E402
+from _common import demo_capture, machine, run_and_record, table  # noqa: E402
 
 from jaxrefl import fit, svbrdf  # noqa: E402
 from jaxrefl import posterior as jp  # noqa: E402
@@ -206,11 +206,8 @@ def part_map(args):
     if "synthetic" in args.map_captures:
         import tempfile
 
-        from jaxrefl.cli import main as cli
-
         with tempfile.TemporaryDirectory() as tmp:
-            d = Path(tmp) / "demo"
-            cli(["demo", "--out", str(d), "--size", str(args.map_size), "--no-fit"])
+            d = demo_capture(Path(tmp) / "demo", args.map_size)
             map_run(args, load_capture(d), "synthetic (jaxrefl demo)")
 
 
@@ -392,13 +389,10 @@ def part_mixing(args) -> None:
     import dataclasses
     import tempfile
 
-    from jaxrefl.cli import main as cli
     from jaxrefl.io import load_capture
 
     with tempfile.TemporaryDirectory() as tmp:
-        d = Path(tmp) / "demo"
-        cli(["demo", "--out", str(d), "--size", str(args.mixing_size), "--no-fit"])
-        cap = load_capture(d)
+        cap = load_capture(demo_capture(Path(tmp) / "demo", args.mixing_size))
     cf = svbrdf.fit_capture(cap, svbrdf.FitJob(model="ggx", config=F64, tile_pixels=4096))
     model, space = cf.model()
     lp = jp.log_posterior(model, space, fit.GaussianNoise(None))
@@ -536,7 +530,7 @@ def main() -> None:
     p.add_argument("--mixing-size", type=int, default=64)
     p.add_argument("--mixing-pixels", type=int, default=512)
     args = p.parse_args()
-    print(machine())
+
     if args.only_window:
         part_window(args)
         return

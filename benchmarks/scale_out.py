@@ -32,8 +32,6 @@ figure slower and the speed-ups smaller.
 from __future__ import annotations
 
 import argparse
-import contextlib
-import io
 import json
 import os
 import shutil
@@ -46,7 +44,7 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
-from _common import run_and_record, table  # noqa: E402
+from _common import demo_capture, run_and_record, table  # noqa: E402
 
 ROOT = HERE.parent
 
@@ -153,14 +151,7 @@ def _run_group(code: str, args: list[str], n: int, timeout: float) -> dict:
 
 
 def _demo(folder: Path, size: int) -> Path:
-    from jaxrefl.cli import main as cli
-
-    out = folder / f"demo{size}"
-    with contextlib.redirect_stdout(io.StringIO()):  # its table is not this report's
-        rc = cli(["demo", "--out", str(out), "--size", str(size), "--no-fit"])
-    if rc != 0:
-        raise SystemExit("jaxrefl demo failed")
-    return out
+    return demo_capture(folder / f"demo{size}", size)
 
 
 def _rows(name: str, runs: dict[int, dict]) -> list[list[object]]:
