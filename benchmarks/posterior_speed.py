@@ -38,7 +38,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import demo_capture, machine, run_and_record, table  # noqa: E402
+from _common import demo_capture, run_and_record, table  # noqa: E402
 
 from jaxrefl import fit, svbrdf  # noqa: E402
 from jaxrefl import posterior as jp  # noqa: E402
