@@ -26,24 +26,22 @@ albedo + specular <= 1 for a physical surface; each lobe alone integrates to <= 
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from ._base import BRDF, Param
 from ._cook_torrance import _DISTRIBUTIONS, _pick, align_ranks, microfacet_specular
-from ._fresnel import NoFresnel
+from ._fresnel import SPECULAR_SCALE, NoFresnel
 from ._lambert import ALBEDO
 from ._microfacet import Distribution, SmithHeightCorrelated
 
 __all__ = ["Dichromatic"]
 
-INTERFACE = Param(
-    name="specular",
-    kind="color",
-    default=0.04,
-    lower=0.0,
-    upper=1.0,
-    units="1",
+# The constant Fresnel factor of NoFresnel (which Dichromatic uses), in the model's own words.
+INTERFACE = replace(
+    SPECULAR_SCALE,
     doc="interface (specular) reflection colour: illuminant colour x interface strength",
 )
 
