@@ -46,6 +46,7 @@ from __future__ import annotations
 
 import functools
 import time
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -147,6 +148,24 @@ def qualifies(lp: LogPosterior, data: PixelData) -> tuple[bool, str]:
     return True, ""
 
 
+class _Terms(NamedTuple):
+    """The whitened linear-Gaussian terms of the pixels (module docstring), a leading (N,)
+    axis on each: Q = A'^T W A' (P, P), r = A'^T W y' (P,), y'^T W y' (), n = sum of the
+    weights (), Q's eigenvectors (P, P, as columns) and eigenvalues (P,), A' (M, P), y' (M,),
+    the weights W (M,) and the censoring flags (M,) (+1 saturated, -1 dark, 0 observed)."""
+
+    q: Array
+    r: Array
+    yy: Array
+    nw: Array
+    evec: Array
+    evals: Array
+    aw: Array
+    yw: Array
+    w: Array
+    cens: Array
+
+
 def _sweep(key, x, s2, q, r, yy, nw, evec, evals, lo, hi, jeffreys):
     """One scan: s^2 | x (when sampled), then x along each eigenvector of Q in turn. One
     chain."""
@@ -242,20 +261,12 @@ def sample_gibbs(
 
     keys = jax.random.split(jax.random.PRNGKey(seed), n)
     t_start = time.perf_counter()
+    terms = _Terms(q, r, yy, nw, evec, evals, aw, yw, w, cens)
     xs, s2s = _chains(
         keys,
         x0,
         s0,
-        q,
-        r,
-        yy,
-        nw,
-        evec,
-        evals,
-        aw,
-        yw,
-        w,
-        cens,
+        terms,
         lo,
         hi,
         num_warmup=num_warmup,
@@ -310,16 +321,7 @@ def _chains(
     keys,
     x0,
     s0,
-    q,
-    r,
-    yy,
-    nw,
-    evec,
-    evals,
-    aw,
-    yw,
-    w,
-    cens,
+    terms: _Terms,
     lo,
     hi,
     *,
@@ -334,25 +336,25 @@ def _chains(
     With ``censored``, each scan first draws the latent value of every censored
     observation given x and s (module docstring) and forms r and y'^T W y' from them."""
 
-    def latent(key, x, s2, aw, yw, w, cens):
+    def latent(key, x, s2, t):
         # whitened units: y* ~ N(A' x, s^2) truncated to [bound, inf) where saturated and
         # (-inf, bound] where dark; the other observations keep their values
-        mean = aw @ x
+        mean = t.aw @ x
         sd = jnp.sqrt(s2)
-        z0 = (yw - mean) / sd
-        lo_z = jnp.where(cens > 0, z0, -jnp.inf)
-        hi_z = jnp.where(cens < 0, z0, jnp.inf)
+        z0 = (t.yw - mean) / sd
+        lo_z = jnp.where(t.cens > 0, z0, -jnp.inf)
+        hi_z = jnp.where(t.cens < 0, z0, jnp.inf)
         z = jax.random.truncated_normal(key, lo_z, hi_z, dtype=x.dtype)
-        y = jnp.where(cens != 0, mean + sd * z, yw)
-        return jnp.einsum("mp,m,m->p", aw, w, y), jnp.sum(w * y * y)
+        y = jnp.where(t.cens != 0, mean + sd * z, t.yw)
+        return jnp.einsum("mp,m,m->p", t.aw, t.w, y), jnp.sum(t.w * y * y)
 
-    def chain(key, x, s2, q, r, yy, nw, evec, evals, aw, yw, w, cens):
+    def chain(key, x, s2, t):
         def interval(carry, _):
             def one(c, _):
                 key, x, s2 = c
                 key, sub, k_y = jax.random.split(key, 3)
-                r_, yy_ = latent(k_y, x, s2, aw, yw, w, cens) if censored else (r, yy)
-                x, s2 = _sweep(sub, x, s2, q, r_, yy_, nw, evec, evals, lo, hi, jeffreys)
+                r, yy = latent(k_y, x, s2, t) if censored else (t.r, t.yy)
+                x, s2 = _sweep(sub, x, s2, t.q, r, yy, t.nw, t.evec, t.evals, lo, hi, jeffreys)
                 return (key, x, s2), None
 
             carry, _ = jax.lax.scan(one, carry, None, length=sweeps)
@@ -362,11 +364,8 @@ def _chains(
         _, (xs, s2s) = jax.lax.scan(interval, carry, None, length=num_samples)
         return xs, s2s
 
-    def pixel(key, x, s, q, r, yy, nw, evec, evals, aw, yw, w, cens):
+    def pixel(key, x, s, t):
         ks = jax.random.split(key, x.shape[0])
-        shared = (None,) * 10
-        return jax.vmap(chain, in_axes=(0, 0, 0, *shared))(
-            ks, x, s * s, q, r, yy, nw, evec, evals, aw, yw, w, cens
-        )
+        return jax.vmap(chain, in_axes=(0, 0, 0, None))(ks, x, s * s, t)
 
-    return jax.vmap(pixel)(keys, x0, s0, q, r, yy, nw, evec, evals, aw, yw, w, cens)
+    return jax.vmap(pixel)(keys, x0, s0, terms)
