@@ -1,4 +1,5 @@
-"""Shared helpers for benchmark scripts: the machine line and a plain-text table printer."""
+"""Shared helpers for benchmark scripts: the machine line, a plain-text table printer and
+the captures they read."""
 
 from __future__ import annotations
 
@@ -10,8 +11,12 @@ import platform
 import sys
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import jax
+
+if TYPE_CHECKING:
+    from jaxrefl.io import Capture
 
 
 def machine() -> str:
@@ -57,6 +62,21 @@ def demo_capture(out: Path, size: int) -> Path:
     if rc != 0:
         raise SystemExit("jaxrefl demo failed")
     return out
+
+
+def shared_data() -> Path:
+    """The shared data folder: ``$JAXREFL_SHARED_DATA``, else ``shared/data`` beside the
+    checkout."""
+    env = os.environ.get("JAXREFL_SHARED_DATA")
+    return Path(env) if env else Path(__file__).resolve().parent.parent.parent / "shared" / "data"
+
+
+def flash_capture(name: str, size: int) -> Capture:
+    """The real flash capture ``name`` (``bath_tile``, ``yellow_box``: ``svbrdf_flash`` in
+    :func:`shared_data`), read at ``size`` x ``size``."""
+    from jaxrefl.io import load_capture
+
+    return load_capture(shared_data() / "svbrdf_flash" / name, resolution=size)
 
 
 def write_section(section: str, body: str) -> Path:

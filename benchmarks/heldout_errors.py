@@ -33,7 +33,6 @@ It prints the tables and writes them, dated and with the machine, to the section
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import time
 import warnings
@@ -44,12 +43,7 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
-from _common import run_and_record, table  # noqa: E402
-
-
-def _shared() -> Path:
-    env = os.environ.get("JAXREFL_SHARED_DATA")
-    return Path(env) if env else HERE.parent.parent / "shared" / "data"
+from _common import flash_capture, run_and_record, table  # noqa: E402
 
 
 def anatomy(cap, model: str, novel_factor: float) -> dict[str, float]:
@@ -92,9 +86,7 @@ def anatomy(cap, model: str, novel_factor: float) -> dict[str, float]:
 
 
 def run_capture(name: str, size: int, models: list[str], novel: float) -> None:
-    from jaxrefl.io import load_capture
-
-    cap = load_capture(_shared() / "svbrdf_flash" / name, resolution=size)
+    cap = flash_capture(name, size)
     res = {m: anatomy(cap, m, novel) for m in models}
     lam = res.get("lambert")
 
