@@ -31,7 +31,6 @@ It prints the tables and writes them, dated and with the machine, to the section
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import time
 from pathlib import Path
@@ -41,16 +40,11 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
-from _common import run_and_record, table  # noqa: E402
+from _common import flash_capture, run_and_record, table  # noqa: E402
 
 LEVELS = (0.5, 0.9)
 SYN_SIGMA = 0.004
 SYN_HELD = 8
-
-
-def _shared() -> Path:
-    env = os.environ.get("JAXREFL_SHARED_DATA")
-    return Path(env) if env else HERE.parent.parent / "shared" / "data"
 
 
 def _pct(x: float) -> str:
@@ -58,10 +52,9 @@ def _pct(x: float) -> str:
 
 
 def real_capture(name: str, size: int, model: str) -> None:
-    from jaxrefl.io import load_capture
     from jaxrefl.svbrdf import FitJob, estimate_discrepancy, fit_capture, predictive
 
-    cap = load_capture(_shared() / "svbrdf_flash" / name, resolution=size)
+    cap = flash_capture(name, size)
     k = cap.n_photos
     rows = []
     tot = {key: [0.0, 0] for key in ("all50", "all90", "ok50", "ok90", "fn50", "fn90")}

@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import os
 import sys
 import time
 from pathlib import Path
@@ -40,12 +39,7 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
-from _common import machine, table, write_section  # noqa: E402
-
-
-def _shared() -> Path:
-    env = os.environ.get("JAXREFL_SHARED_DATA")
-    return Path(env) if env else HERE.parent.parent / "shared" / "data"
+from _common import flash_capture, machine, table, write_section  # noqa: E402
 
 
 def _jaxrefl_model(cap, model: str) -> dict:
@@ -121,9 +115,7 @@ def _fmt(x, nd=4):
 
 
 def run_capture(name: str, size: int, models: list[str], adam_steps: int) -> tuple[str, dict]:
-    from jaxrefl.io import load_capture
-
-    cap = load_capture(_shared() / "svbrdf_flash" / name, resolution=size)
+    cap = flash_capture(name, size)
     results: dict[str, dict] = {}
     for m in models:
         if m == "lambert":

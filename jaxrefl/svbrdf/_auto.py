@@ -120,13 +120,16 @@ def choose_model(
     *,
     max_pixels: int = SELECTION_PIXELS,
     seed: int = 0,
+    compact: bool = False,
 ) -> ModelChoice:
     """Score every candidate by leave-one-photo-out over the photos ``job`` trains on
     (module docstring) and choose one. ``job`` gives everything but the model (noise, loss
     -- None: each model's default --, dtype, alpha_min, tiling). ``max_pixels``: selection
     rows in all (pixels x folds; at least 256 pixels a fold). With fewer than two training
     photos there is nothing to score and the choice is the first candidate that is not
-    Lambert."""
+    Lambert. ``compact``: the per-pixel fits gather their slow pixels into the lean LM's
+    compaction stages (:func:`jaxrefl.svbrdf.fit_capture` passes its own choice: the
+    selection's tiles have the fit's shape, so they share its compiled programs)."""
     from ._job import _TileFitter
     from ._pooled import _subsample
 
@@ -149,8 +152,7 @@ def choose_model(
         if base in cv and cv[base] > min(cv.values()) * (1.0 + TOLERANCE):
             skipped[m] = f"refines {base}, which is not the best so far"
             continue
-        # One tile of rows: compaction stages would cost more to compile than they save.
-        fitter = _TileFitter(capture, replace(job, model=m), compact=False, width_terms=False)
+        fitter = _TileFitter(capture, replace(job, model=m), compact=compact, width_terms=False)
         pool = fitter.pooled if m == "pooled" else pool
         sse = cnt = 0.0
         for s in range(0, mask.shape[0], size):

@@ -25,12 +25,14 @@ back MASKED and are dropped by the caller).
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from jaxrefl.fit import PixelData, pixel_data
 from jaxrefl.io import ObsStatus
 
-__all__ = ["is_colocated", "pixel_block", "resolvable_alpha"]
+__all__ = ["is_colocated", "pixel_block", "pixel_take", "resolvable_alpha"]
 
 
 def is_colocated(capture, tol: float = 1e-9) -> bool:
@@ -147,3 +149,22 @@ def pixel_block(
         censored=censored,
         dtype=dtype,
     )
+
+
+def pixel_take(capture, pixels: np.ndarray, *, dtype=np.float32) -> PixelData:
+    """:class:`PixelData` of the pixels at the row-major indices ``pixels`` (n,), in that
+    order: the same arrays :func:`pixel_block` gives for them, with the geometry computed
+    for those pixels alone (a random sample costs its own size, not the capture's)."""
+    _k, h, w, _ = capture.shape
+    idx = np.asarray(pixels, np.int64).ravel()
+    if idx.size == 0 or idx.min() < 0 or idx.max() >= h * w:
+        raise ValueError(f"pixel indices must be in [0, {h * w}) and not empty")
+    rows, cols = np.divmod(idx, w)
+    # The picked pixels as a capture one row high: every per-pixel array gathered alike.
+    line = replace(
+        capture,
+        images=capture.images[:, rows, cols][:, None],
+        status=capture.status[:, rows, cols][:, None],
+        points=capture.points[rows, cols][None],
+    )
+    return pixel_block(line, 0, idx.size, dtype=dtype)

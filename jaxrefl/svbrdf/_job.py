@@ -93,9 +93,9 @@ class FitJob:
                 * ``solver``: :class:`~jaxrefl.fit.LMOptions` (default), or a library solver
                   (:class:`~jaxrefl.fit.OptimistixLM`, :class:`~jaxrefl.fit.JaxoptLM`),
                   with its iteration budget; captures of fewer than
-                  :data:`COMPACT_MIN_PIXELS` pixels, and the model selection, run the lean
-                  LM as one plain loop (its ``compact_stages`` dropped; per-pixel results
-                  are the same)
+                  :data:`COMPACT_MIN_PIXELS` pixels run the lean LM as one plain loop
+                  (its ``compact_stages`` dropped; per-pixel results are the same), unless
+                  :func:`fit_capture` is told otherwise (its ``compact``)
                 * ``noise``: :class:`~jaxrefl.fit.GaussianNoise` (default: sigma unknown, the
                   Laplace step estimates its scale per pixel) or
                   :class:`~jaxrefl.fit.ShotNoise` (variance read^2 + gain * obs), in linear
@@ -588,6 +588,7 @@ def fit_capture(
     progress: bool = False,
     on_tile: Callable[[int, int], None] | None = None,
     distributed: Distributed | None = None,
+    compact: bool | None = None,
 ) -> CaptureFit:
     """Fit every pixel of ``capture`` (module docstring); returns the maps and a report.
 
@@ -605,6 +606,12 @@ def fit_capture(
               finished tiles, which a rerun loads. Call ``distributed.initialize()``
               before loading the capture (:func:`jaxrefl.io.load_capture` computes with
               JAX, which fixes the process's devices); here it is a no-op then.
+    compact:  whether the lean LM gathers its slow pixels into compaction stages, in the
+              fit and in the model selection (per-pixel results do not depend on it; it
+              trades compiled copies of the step for the steps it saves). None: where the
+              capture has :data:`COMPACT_MIN_PIXELS` pixels or more. A caller that fits the
+              same capture many times (:func:`jaxrefl.svbrdf.leave_one_out`) passes its
+              own count of the work.
     """
     job = FitJob() if job is None else job
     if distributed is not None:
@@ -620,18 +627,16 @@ def fit_capture(
             "can read and write (the processes exchange their tiles there)"
         )
     _k, h, w, c = capture.shape
+    if compact is None:
+        compact = h * w >= COMPACT_MIN_PIXELS
     choice: ModelChoice | None = None
     t_choose = time.perf_counter()
     if job.model == "auto":
-        choice = choose_model(capture, job)
+        choice = choose_model(capture, job, compact=compact)
         job = replace(job, model=choice.model)
     choose_s = time.perf_counter() - t_choose
-    h, w = capture.shape[1:3]
     fitter = _TileFitter(
-        capture,
-        job,
-        pooled=None if choice is None else choice.pooled,
-        compact=h * w >= COMPACT_MIN_PIXELS,
+        capture, job, pooled=None if choice is None else choice.pooled, compact=compact
     )
     tiles = _tiles(h, w, job.tile_pixels)
     tdir = None

@@ -52,7 +52,7 @@ import numpy as np
 
 from jaxrefl import brdf
 
-from ._data import pixel_block
+from ._data import pixel_take
 
 __all__ = ["PoolChoice", "choose_pooled"]
 
@@ -111,16 +111,24 @@ def _lobe_basis(alpha, data):
     return _LOBE.eval({"specular": one, "alpha": a}, data.wi, wo) * data.scale
 
 
+def _obs_major(x):
+    """(N, K, C) -> (K, C * N): the photos first, so that the sums over photos below run
+    across contiguous vectors of pixels (on a CPU about 2.5 times faster than summing the
+    middle axis of (N, K, C))."""
+    n, k, c = x.shape
+    return jnp.moveaxis(x, 0, -1).reshape(k, c * n)
+
+
 def _nnls2(b0, b1, y, w):
-    """Per (pixel, channel): min_{a, u >= 0} sum_k w (y - a b0 - u b1)^2, exactly.
+    """Per (channel, pixel) column: min_{a, u >= 0} sum_k w (y - a b0 - u b1)^2, exactly.
 
     The optimum is the best of the feasible supports {both, a only, u only, none}. Inputs
-    (N, K, C); returns a, u (N, C)."""
-    s00 = jnp.sum(w * b0 * b0, 1)
-    s01 = jnp.sum(w * b0 * b1, 1)
-    s11 = jnp.sum(w * b1 * b1, 1)
-    t0 = jnp.sum(w * b0 * y, 1)
-    t1 = jnp.sum(w * b1 * y, 1)
+    (K, M) (:func:`_obs_major`); returns a, u (M,)."""
+    s00 = jnp.sum(w * b0 * b0, 0)
+    s01 = jnp.sum(w * b0 * b1, 0)
+    s11 = jnp.sum(w * b1 * b1, 0)
+    t0 = jnp.sum(w * b0 * y, 0)
+    t1 = jnp.sum(w * b1 * y, 0)
     tiny = jnp.finfo(y.dtype).tiny
     det = s00 * s11 - s01 * s01
     # A singular 2x2 system (the lobe indistinguishable from the diffuse term, or no
@@ -143,36 +151,41 @@ def _nnls2(b0, b1, y, w):
     return a, u
 
 
-def _censored_nnls(b0, b1, data, w):
-    """:func:`_nnls2` with censored observations as one-sided rows: a saturated row
-    (true >= obs) counts where the prediction falls below it, a dark one where it rises
-    above; two passes from the uncensored solution."""
-    y, cens = data.obs, data.censored
+def _censored_nnls(b0, b1, y, cens, w):
+    """:func:`_nnls2` with censored observations (``cens`` +1 saturated, -1 dark, 0 not) as
+    one-sided rows: a saturated row (true >= obs) counts where the prediction falls below
+    it, a dark one where it rises above; two passes from the uncensored solution."""
     unc = (cens == 0).astype(y.dtype)
     a, u = _nnls2(b0, b1, y, w * unc)
     for _ in range(2):
-        pred = a[:, None] * b0 + u[:, None] * b1
+        pred = a[None] * b0 + u[None] * b1
         viol = ((cens == 1) & (pred < y)) | ((cens == -1) & (pred > y))
         a, u = _nnls2(b0, b1, y, w * (unc + viol.astype(y.dtype)))
     return a, u
+
+
+def _columns(data):
+    """(obs, censored, usable, diffuse basis) of ``data`` as (K, C * N) columns."""
+    y, cens = _obs_major(data.obs), _obs_major(data.censored)
+    base = _obs_major(data.weight) > 0
+    return y, cens, base, _obs_major(data.scale) / jnp.pi
 
 
 @jax.jit
 def _cv_sse(alpha, lobe_on, data, train):
     """Leave-one-photo-out squared error and count over the training photos ``train`` (K,)
     for the lobe at ``alpha`` (``lobe_on`` 0: Lambert)."""
-    b0 = data.scale / jnp.pi
-    b1 = _lobe_basis(alpha, data) * lobe_on
+    y, cens, base, b0 = _columns(data)
+    b1 = _obs_major(_lobe_basis(alpha, data)) * lobe_on
     k = train.shape[0]
-    base = data.weight > 0
 
     def fold(j):
         tr = train & (jnp.arange(k) != j)
-        w = (base & tr[None, :, None]).astype(data.obs.dtype)
-        a, u = _censored_nnls(b0, b1, data, w)
-        pred = a[:, None] * b0 + u[:, None] * b1
-        held = base & (data.censored == 0) & (jnp.arange(k) == j)[None, :, None] & train[j]
-        e = jnp.where(held, pred - data.obs, 0.0)
+        w = (base & tr[:, None]).astype(y.dtype)
+        a, u = _censored_nnls(b0, b1, y, cens, w)
+        pred = a[None] * b0 + u[None] * b1
+        held = base & (cens == 0) & (jnp.arange(k) == j)[:, None] & train[j]
+        e = jnp.where(held, pred - y, 0.0)
         return jnp.sum(e * e), jnp.sum(held)
 
     s, n = jax.lax.map(fold, jnp.arange(k))
@@ -182,34 +195,27 @@ def _cv_sse(alpha, lobe_on, data, train):
 @jax.jit
 def _population(alpha, data, train):
     """Per-pixel F0 (N, C) and residual mean square (N,) of the non-negative fit at alpha."""
-    b0 = data.scale / jnp.pi
-    b1 = _lobe_basis(alpha, data)
-    w = ((data.weight > 0) & train[None, :, None]).astype(data.obs.dtype)
-    a, u = _censored_nnls(b0, b1, data, w)
-    pred = a[:, None] * b0 + u[:, None] * b1
-    use = w * (data.censored == 0)
-    e = (pred - data.obs) * use
-    n = jnp.sum(use, (1, 2))
-    return u, jnp.sum(e * e, (1, 2)) / jnp.maximum(n, 1.0), n
+    n_px, k, c = data.obs.shape
+    y, cens, base, b0 = _columns(data)
+    b1 = _obs_major(_lobe_basis(alpha, data))
+    w = (base & train[:, None]).astype(y.dtype)
+    a, u = _censored_nnls(b0, b1, y, cens, w)
+    pred = a[None] * b0 + u[None] * b1
+    use = w * (cens == 0)
+    e = ((pred - y) * use).reshape(k, c, n_px)
+    n = jnp.sum(use.reshape(k, c, n_px), (0, 1))
+    return u.reshape(c, n_px).T, jnp.sum(e * e, (0, 1)) / jnp.maximum(n, 1.0), n
 
 
 def _subsample(capture, n_pixels: int, seed: int, dtype):
-    """PixelData of ``n_pixels`` random pixels (all where the capture has fewer), read in
-    row blocks so memory stays that of one block."""
+    """PixelData of ``n_pixels`` random pixels (all where the capture has fewer), in
+    row-major order."""
     _k, h, w, _c = capture.shape
     total = h * w
     pick = np.arange(total)
     if total > n_pixels:
         pick = np.sort(np.random.default_rng(seed).choice(total, n_pixels, replace=False))
-    parts = []
-    block = max(w, 65536 // max(w, 1) * w)
-    for s in range(0, total, block):
-        e = min(s + block, total)
-        sel = pick[(pick >= s) & (pick < e)] - s
-        if sel.size:
-            d = pixel_block(capture, s, e, dtype=dtype)
-            parts.append(jax.tree.map(lambda a, sel=sel: a[sel], d))
-    return jax.tree.map(lambda *xs: jnp.concatenate(xs), *parts)
+    return pixel_take(capture, pick, dtype=dtype)
 
 
 def choose_pooled(
