@@ -115,18 +115,19 @@ class LMOptions(Option):
     unroll_max: largest P for the unrolled Cholesky (else jnp.linalg.cholesky); default 8.
     max_step:   cap on |delta|_inf per step (4: alpha x e^4 = 55, a logit 0.5 -> 0.98).
     compact_after, compact_stages, chunk: how :func:`batched_lm` organises the work
-                (results per pixel do not depend on them). The default stages follow how
-                GGX + Lambert pixels converge from the automatic start with lam0 = 0.01
-                (about a quarter of a block still iterating after 3 steps, a few percent
-                after 8, almost none after 15; ``benchmarks/fit_throughput.py`` fits such
-                pixels), with caps well above those shares: a stage whose unconverged
-                pixels overflow its cap by one runs a second, almost empty round that
-                costs as much as the first. The default takes about 5 slot-steps per
-                pixel, against 13.75 for one stage of 10 steps for all and then 1/8 of
-                a block (that benchmark times both). Stages narrower than 64 slots merge
-                into the one before, and blocks under 512 pixels take one plain loop of
-                steps that stops once all have converged (fewer compiled copies of the
-                step).
+                (results per pixel do not depend on them). The default stages halve the
+                slots every few steps (1/2 of a block to step 6, 1/4 to 12, 1/8 to 20,
+                1/32 to the end). They follow how pixels of real flash captures converge
+                from the automatic start with lam0 = 0.01: half of them take 8-9 steps
+                and a tenth 17-20, against a few percent after 8 steps on the synthetic
+                demo; a stage whose unconverged pixels overflow its cap runs another
+                round that costs as much as the first, so the caps shrink gradually
+                rather than in one jump to a small tail. Synthetic pixels cost about the
+                same as with two stages; ``benchmarks/fit_throughput.py`` times the
+                stages against one stage of 10 steps for all and then 1/8 of a block.
+                Stages narrower than 64 slots merge into the one before, and blocks under
+                512 pixels take one plain loop of steps that stops once all have
+                converged (fewer compiled copies of the step).
     """
 
     kind: ClassVar[str] = "lean"
@@ -142,7 +143,7 @@ class LMOptions(Option):
     max_step: float = eqx.field(default=4.0, static=True)
     compact_after: int = eqx.field(default=3, static=True)
     compact_stages: tuple[tuple[int, float], ...] = eqx.field(
-        default=((8, 5 / 16), (40, 1 / 32)), static=True
+        default=((6, 1 / 2), (12, 1 / 4), (20, 1 / 8), (40, 1 / 32)), static=True
     )
     chunk: int = eqx.field(default=2048, static=True)
 
