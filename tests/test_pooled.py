@@ -8,12 +8,15 @@ the lobe is not identified, while the capture as a whole sees every part of it.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from jaxrefl import brdf, fit
 from jaxrefl.demo import demo_capture, demo_scene
+from jaxrefl.io import ObsStatus
 from jaxrefl.io._capture import Capture
 from jaxrefl.svbrdf import FitJob, fit_capture, leave_one_out
 from jaxrefl.svbrdf._pooled import choose_pooled
@@ -327,3 +330,67 @@ def test_held_out_photo_is_re_rendered_with_coloured_highlights(auto_fit, tmp_pa
     assert abs(chroma(g[0]) - chroma(shot)) > 2 * abs(chroma(pred) - chroma(shot))
     files = write_outputs(res, cap, tmp_path / "out")
     assert any(p.endswith("compare.png") for p in files["previews"])
+
+
+def test_leave_one_out_compacts_by_the_work_of_all_folds(shared_lobe_capture, monkeypatch):
+    """fit_capture compacts the LM's slow pixels by the capture's size unless told; the K
+    fits of leave_one_out share their programs, so they compact by K x H x W, and the
+    model selection's per-pixel fits follow the fit's choice (the same tile shape)."""
+    from jaxrefl.svbrdf import _holdout, _job
+
+    cap, _ = shared_lobe_capture
+    cap = cap.select(SIX).crop(0, 8, 0, 8)
+    seen: list[tuple[str, bool]] = []
+
+    class Recording(_job._TileFitter):
+        def __init__(self, capture, job, pooled=None, *, compact=True, width_terms=True):
+            seen.append((job.model, compact))
+            super().__init__(capture, job, pooled, compact=compact, width_terms=width_terms)
+
+    monkeypatch.setattr(_job, "_TileFitter", Recording)
+    job = FitJob(model="lambert", tile_pixels=64)
+    fit_capture(cap, job)
+    assert seen == [("lambert", False)]  # 64 pixels: far below COMPACT_MIN_PIXELS
+    seen.clear()
+    monkeypatch.setattr(_holdout, "COMPACT_MIN_PIXELS", 6 * 64)  # K x H x W reaches it
+    leave_one_out(cap, job)
+    assert seen == [("lambert", True)] * 12
+    seen.clear()
+    monkeypatch.setattr(_holdout, "COMPACT_MIN_PIXELS", 6 * 64 + 1)
+    leave_one_out(cap, job)
+    assert seen == [("lambert", False)] * 12
+    seen.clear()
+    # The default model: fit_capture hands its choice to the selection (here of one
+    # candidate, which keeps the test to one compiled model) and to the chosen model's fit.
+    choose = _job.choose_model
+    monkeypatch.setattr(
+        _job, "choose_model", lambda c, j, **kw: choose(c, j, candidates=("lambert",), **kw)
+    )
+    res = fit_capture(cap, FitJob(tile_pixels=64, holdout=(5,)), compact=True)
+    assert res.job.model == "lambert"
+    assert seen == [("lambert", True), ("lambert", True)]
+
+
+def test_pixel_take_reads_the_pixels_pixel_block_reads(shared_lobe_capture):
+    """The model selection's random pixels, read alone (geometry for them only), equal the
+    same rows of the capture read in one block, censoring and weights included."""
+    import jax
+
+    from jaxrefl.svbrdf import pixel_block, pixel_take
+
+    cap, _ = shared_lobe_capture
+    st = cap.status.copy()
+    st[0, 3, 4, 1] = ObsStatus.SATURATED
+    st[2, 5, 6, 0] = ObsStatus.DARK
+    st[1, 7, 7, :] = ObsStatus.MASKED
+    cap = replace(cap, status=st)
+    n = SIZE * SIZE
+    pick = np.sort(np.random.default_rng(3).choice(n, 40, replace=False))
+    pick = np.union1d(pick, [3 * SIZE + 4, 5 * SIZE + 6, 7 * SIZE + 7])
+    whole = pixel_block(cap, 0, n, dtype=np.float64)
+    took = pixel_take(cap, pick, dtype=np.float64)
+    for a, b in zip(jax.tree.leaves(whole), jax.tree.leaves(took), strict=True):
+        np.testing.assert_array_equal(np.asarray(a)[pick], np.asarray(b))
+    assert took.colocated == whole.colocated
+    with pytest.raises(ValueError, match="pixel indices"):
+        pixel_take(cap, np.array([n]))

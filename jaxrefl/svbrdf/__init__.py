@@ -39,6 +39,7 @@ from ._check import ModelCheck as ModelCheck
 from ._check import check_counts as check_counts
 from ._data import is_colocated as is_colocated
 from ._data import pixel_block as pixel_block
+from ._data import pixel_take as pixel_take
 from ._data import resolvable_alpha as resolvable_alpha
 from ._export import F0_DIELECTRIC as F0_DIELECTRIC
 from ._export import FlashView as FlashView
