@@ -118,13 +118,13 @@ class LMOptions(Option):
                 (results per pixel do not depend on them). The default stages halve the
                 slots every few steps (1/2 of a block to step 6, 1/4 to 12, 1/8 to 20,
                 1/32 to the end). They follow how pixels of real flash captures converge
-                from the automatic start with lam0 = 0.01: half of them take 8-9 steps
-                and a tenth 17-20, against a few percent after 8 steps on the synthetic
-                demo; a stage whose unconverged pixels overflow its cap runs another
-                round that costs as much as the first, so the caps shrink gradually
-                rather than in one jump to a small tail. Synthetic pixels cost about the
-                same as with two stages; ``benchmarks/fit_throughput.py`` times the
-                stages against one stage of 10 steps for all and then 1/8 of a block.
+                from the automatic start with lam0 = 0.01, which is slower and more
+                spread out than on synthetic captures: many pixels still iterate after
+                8 steps and some after 16. A stage whose unconverged pixels overflow its
+                cap runs another round that costs as much as the first, so the caps
+                shrink gradually rather than in one jump to a small tail.
+                ``benchmarks/fit_throughput.py`` times the stages against one stage of
+                10 steps for all and then 1/8 of a block.
                 Stages narrower than 64 slots merge into the one before, and blocks under
                 512 pixels take one plain loop of steps that stops once all have
                 converged (fewer compiled copies of the step).

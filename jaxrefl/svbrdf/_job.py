@@ -272,8 +272,8 @@ class _TileFitter:
         width_terms: bool = True,
     ):
         """``pooled``: ``pooled``'s choice when already made for these training photos.
-        ``compact``: the lean LM gathers its slow pixels into compaction stages (a job of
-        fewer than :data:`COMPACT_MIN_PIXELS` pixels runs one plain loop instead).
+        ``compact``: the lean LM gathers its slow pixels into compaction stages (else one
+        plain loop of steps; :func:`fit_capture` decides, see its ``compact``).
         ``width_terms``: for ``pooled``, each pixel's share of the shared width's Laplace
         uncertainty (:mod:`jaxrefl.svbrdf._shared`; model selection needs no covariance)."""
         self.capture = capture
