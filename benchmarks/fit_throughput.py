@@ -18,7 +18,8 @@ Measured, in one run and on the same data:
 * ``initial_theta`` (closed-form colours on a roughness grid): the start shared by every
   solver below, timed on its own;
 * the lean batched LM (``fit_pixels(init=theta0)``, solver ``fit.LMOptions()``) on all N
-  pixels;
+  pixels, its steps driven from Python; and the same as one compiled program
+  (``LMOptions(host_loop=False)``, what runs under a trace), its baseline;
 * ``fit_pixels`` end to end (default ``init="auto"``: start + lean LM), all N pixels;
 * optimistix LM and jaxopt LM under vmap (``fit.OptimistixLM()``, ``fit.JaxoptLM()``, same
   start) on the
@@ -576,17 +577,18 @@ def main() -> int:
     thetas["lean LM (batched)"] = np.asarray(r_lean.theta)[:n_sp]
     lean_s = best
 
-    # 2b. The same LM with one compaction stage (10 steps for all, then 1/8 of a block):
-    # the organisation before the staged default, as a baseline for it.
-    one_stage = fit.LMOptions(compact_after=10, compact_stages=((40, 0.125),))
+    # 2b. The same LM as one compiled program (its steps in loops, compaction stages in
+    # blocks): the organisation under a trace, as a baseline for the host-driven steps.
+    one_program = fit.LMOptions(host_loop=False)
     r_one, first, best, cores = timed(
         lambda: fit.fit_pixels(
-            model, data, config=fit.FitConfig(solver=one_stage), space=space, init=theta0
+            model, data, config=fit.FitConfig(solver=one_program), space=space, init=theta0
         ),
         args.repeats,
     )
-    row("lean LM, one stage (10 + 1/8)", n, first - best, best, cores, "baseline of row 2")
-    thetas["lean LM, one stage (10 + 1/8)"] = np.asarray(r_one.theta)[:n_sp]
+    label = "lean LM, one program (host_loop=False)"
+    row(label, n, first - best, best, cores, "baseline of row 2")
+    thetas[label] = np.asarray(r_one.theta)[:n_sp]
 
     # 3. fit_pixels end to end (the same jitted pieces, already compiled above).
     r_auto, _, best, cores = timed(

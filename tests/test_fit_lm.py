@@ -175,7 +175,11 @@ def test_compaction_stages_give_each_pixel_its_own_lm_solve(monkeypatch):
     res = fit.make_residual(pr.model, space)
     theta0 = jnp.broadcast_to(space.from_natural({}, dtype=jnp.float64), (256, space.size))
     staged = fit.LMOptions(
-        max_iters=25, compact_after=6, compact_stages=((9, 0.5), (13, 0.25)), chunk=256
+        max_iters=25,
+        compact_after=6,
+        compact_stages=((9, 0.5), (13, 0.25)),
+        chunk=256,
+        host_loop=False,
     )
     theta, r = fit.batched_lm(res, theta0, pr.data, staged, space=space)
     plain = jax.vmap(lambda t, d: fit.lm_solve(res, t, d, staged, space=space))
@@ -189,3 +193,40 @@ def test_compaction_stages_give_each_pixel_its_own_lm_solve(monkeypatch):
     # (remainder loops, fused multiply-adds), measured up to 1.2e-9 relative in theta.
     np.testing.assert_allclose(np.asarray(theta), np.asarray(theta_ref), rtol=1e-7, atol=1e-10)
     np.testing.assert_allclose(np.asarray(r.cost), np.asarray(r_ref.cost), rtol=1e-9)
+
+
+def test_host_driven_steps_give_each_pixel_its_own_lm_solve(monkeypatch):
+    """batched_lm called outside a trace drives its steps from Python and gathers the
+    unconverged pixels into ever fewer slots every host_round steps: every pixel takes the
+    steps lm_solve takes on it alone (float64), and the result equals the one-program
+    path's; under jit the one-program path runs."""
+    monkeypatch.setattr(fit._lm, "_MIN_BLOCK", 0)  # gather in a block of 256 as well
+    pr = make_problem("ggx_noisy_256", _GGX, n=256, noise=0.02, seed=7)
+    space = fit.ParamSpace(pr.model, channels=3, grey=("albedo", "specular"))
+    res = fit.make_residual(pr.model, space)
+    theta0 = jnp.broadcast_to(space.from_natural({}, dtype=jnp.float64), (256, space.size))
+    host = fit.LMOptions(max_iters=25, compact_after=2, host_round=3)
+    gathered: list[int] = []
+    real_gather = fit._lm._gather
+
+    def recording(states, data, idx, live):
+        gathered.append(int(np.sum(np.asarray(live))))
+        return real_gather(states, data, idx, live)
+
+    monkeypatch.setattr(fit._lm, "_gather", recording)
+    theta, r = fit.batched_lm(res, theta0, pr.data, host, space=space)
+    plain = jax.vmap(lambda t, d: fit.lm_solve(res, t, d, host, space=space))
+    theta_ref, r_ref = plain(theta0, pr.data)
+    it = np.asarray(r.iterations)
+    # Pixels stopped early and late, and the late ones were gathered in fewer slots.
+    assert gathered and min(gathered) < 64 and np.any(it <= 5) and np.any(it > 12), gathered
+    np.testing.assert_array_equal(it, np.asarray(r_ref.iterations))
+    np.testing.assert_array_equal(np.asarray(r.status), np.asarray(r_ref.status))
+    np.testing.assert_allclose(np.asarray(theta), np.asarray(theta_ref), rtol=1e-7, atol=1e-10)
+    np.testing.assert_allclose(np.asarray(r.cost), np.asarray(r_ref.cost), rtol=1e-9)
+    # Under a trace the same call runs as one program, with the same results.
+    gathered.clear()
+    theta_j, r_j = jax.jit(lambda t: fit.batched_lm(res, t, pr.data, host, space=space))(theta0)
+    assert not gathered
+    np.testing.assert_array_equal(np.asarray(r_j.iterations), it)
+    np.testing.assert_allclose(np.asarray(theta_j), np.asarray(theta), rtol=1e-7, atol=1e-10)

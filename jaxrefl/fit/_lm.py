@@ -69,6 +69,7 @@ from typing import Any, ClassVar
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import lax
 from jaxtyping import Array, Bool, Float, Int
 
@@ -114,7 +115,9 @@ class LMOptions(Option):
     bound_rtol: tolerance of :meth:`ParamSpace.at_bound`; default 1e-3.
     unroll_max: largest P for the unrolled Cholesky (else jnp.linalg.cholesky); default 8.
     max_step:   cap on |delta|_inf per step (4: alpha x e^4 = 55, a logit 0.5 -> 0.98).
-    compact_after, compact_stages, chunk: how :func:`batched_lm` organises the work
+    compact_after: steps every pixel takes before the unconverged ones are gathered
+                (either organisation below; results per pixel do not depend on it).
+    compact_stages, chunk: how :func:`batched_lm` organises the work inside a trace
                 (results per pixel do not depend on them). The default stages halve the
                 slots every few steps (1/2 of a block to step 6, 1/4 to 12, 1/8 to 20,
                 1/32 to the end). They follow how pixels of real flash captures converge
@@ -123,11 +126,17 @@ class LMOptions(Option):
                 8 steps and some after 16. A stage whose unconverged pixels overflow its
                 cap runs another round that costs as much as the first, so the caps
                 shrink gradually rather than in one jump to a small tail.
-                ``benchmarks/fit_throughput.py`` times the stages against one stage of
-                10 steps for all and then 1/8 of a block.
                 Stages narrower than 64 slots merge into the one before, and blocks under
                 512 pixels take one plain loop of steps that stops once all have
                 converged (fewer compiled copies of the step).
+    host_loop, host_round: called outside a trace, :func:`batched_lm` runs its steps from
+                Python, each one compiled program, and every ``host_round`` steps (default
+                4) gathers the unconverged pixels into the fewest slots that hold them
+                (:func:`_solve_host`; ``compact_stages`` and ``chunk`` organise the other
+                way); inside a trace (``jit``, ``shard_map``) the steps are loops of one
+                program. The same steps for every pixel either way; on CPU a step inside a
+                compiled loop costs more than the same step as a program of its own
+                (``benchmarks/fit_throughput.py`` times both). Default True.
     """
 
     kind: ClassVar[str] = "lean"
@@ -146,6 +155,8 @@ class LMOptions(Option):
         default=((6, 1 / 2), (12, 1 / 4), (20, 1 / 8), (40, 1 / 32)), static=True
     )
     chunk: int = eqx.field(default=2048, static=True)
+    host_loop: bool = eqx.field(default=True, static=True)
+    host_round: int = eqx.field(default=4, static=True)
 
     def tolerances(self, dtype) -> tuple[float, float, float]:
         """(xtol, ftol, cond_max) for ``dtype``."""
@@ -451,6 +462,90 @@ def _steps_until_converged(residual_fn, states, data, options, n):
     return lax.while_loop(cond, lambda c: (c[0] + 1, step(c[1], data)), (0, states))[1]
 
 
+def _stages(b: int, options: LMOptions) -> tuple[int, list[tuple[int, int]]]:
+    """(steps every pixel takes, [(until, slots)] of the compaction stages) for a block of
+    b pixels; no stages means one plain loop of up to ``max_iters`` steps (see
+    :func:`_solve_block`)."""
+    done = min(options.compact_after, options.max_iters)
+    stages = [
+        (min(u, options.max_iters), max(1, math.ceil(b * f))) for u, f in options.compact_stages
+    ]
+    # Stages narrower than _MIN_COMPACT slots are not worth a compiled copy of the step:
+    # the stage before them runs on to their end instead.
+    stages = [(u, c) for u, c in stages if u > done and c >= _MIN_COMPACT]
+    if stages:
+        stages[-1] = (options.max_iters, stages[-1][1])
+    if b < _MIN_BLOCK or not stages:
+        # A small block is not worth more compiled copies of the step (compile time).
+        return 0, []
+    return done, stages
+
+
+@eqx.filter_jit
+def _init_all(residual_fn, theta0, data, options):
+    return jax.vmap(lambda t, d: lm_init(residual_fn, t, d, options))(theta0, data)
+
+
+@eqx.filter_jit
+def _step_all(residual_fn, states, data, options):
+    return jax.vmap(lambda s, d: lm_step(residual_fn, s, d, options)[0])(states, data)
+
+
+@eqx.filter_jit
+def _gather(states, data, idx, live):
+    """The pixels ``idx`` of states and data; slots that are not ``live`` are frozen."""
+    sub = jax.tree.map(lambda x: x[idx], states)
+    sub = eqx.tree_at(lambda s: s.converged, sub, sub.converged | ~live)
+    return sub, jax.tree.map(lambda x: x[idx], data)
+
+
+@eqx.filter_jit
+def _scatter(states, sub, idx):
+    """states with pixels ``idx`` replaced by ``sub`` (an index of N or more is dropped)."""
+    return jax.tree.map(lambda x, y: x.at[idx].set(y, mode="drop"), states, sub)
+
+
+@eqx.filter_jit
+def _finish_all(states, theta0, n_usable, options, space):
+    return jax.vmap(lambda s, t, n: _finish(s, t, options, space, n))(states, theta0, n_usable)
+
+
+def _solve_host(residual_fn, theta0, data, n_usable, options, space):
+    """:func:`batched_lm` for all N pixels, driven from Python, each step one compiled
+    program. All pixels take the first ``compact_after`` steps; then, in rounds of
+    ``host_round`` steps, the unconverged pixels are gathered into the smallest power of two
+    of slots (at least ``_MIN_COMPACT``) that holds them all, step, and are scattered back.
+    Every unconverged pixel is in every round, so each takes the same steps in the same order
+    as ``lm_solve`` alone, and at most ``log2(N / 64) + 1`` shapes of the step compile. Fewer
+    than ``_MIN_BLOCK`` pixels take plain steps (no gathering), until all have converged."""
+    b = theta0.shape[0]
+    states = _init_all(residual_fn, theta0, data, options)
+    it = min(options.compact_after, options.max_iters) if b >= _MIN_BLOCK else 0
+    for _ in range(it):  # every pixel, converged or not (frozen ones are unchanged)
+        states = _step_all(residual_fn, states, data, options)
+    while it < options.max_iters:
+        todo = np.flatnonzero(~np.asarray(states.converged))
+        if todo.size == 0:
+            break
+        n = min(options.host_round, options.max_iters - it)
+        cap = max(_MIN_COMPACT, 1 << (int(todo.size) - 1).bit_length())
+        if b < _MIN_BLOCK or cap >= b:
+            for _ in range(n):
+                states = _step_all(residual_fn, states, data, options)
+        else:
+            # Padding slots repeat the last pixel, frozen, and are dropped on the way back.
+            idx = np.full(cap, b, np.int32)
+            idx[: todo.size] = todo
+            sub, sub_data = _gather(
+                states, data, jnp.asarray(np.minimum(idx, b - 1)), jnp.asarray(idx < b)
+            )
+            for _ in range(n):
+                sub = _step_all(residual_fn, sub, sub_data, options)
+            states = _scatter(states, sub, jnp.asarray(idx))
+        it += n
+    return _finish_all(states, theta0, n_usable, options, space)
+
+
 def _solve_block(residual_fn, theta0, data, n_usable, options, space):
     """lm_solve for a block of B pixels, organised to skip the work of converged pixels.
 
@@ -463,20 +558,10 @@ def _solve_block(residual_fn, theta0, data, n_usable, options, space):
     each pixel's result equals ``lm_solve``'s: the same steps, in the same order."""
     b = theta0.shape[0]
     states = jax.vmap(lambda t, d: lm_init(residual_fn, t, d, options))(theta0, data)
-    done = min(options.compact_after, options.max_iters)
-    stages = [
-        (min(u, options.max_iters), max(1, math.ceil(b * f))) for u, f in options.compact_stages
-    ]
-    # Stages narrower than _MIN_COMPACT slots are not worth a compiled copy of the step:
-    # the stage before them runs on to their end instead.
-    stages = [(u, c) for u, c in stages if u > done and c >= _MIN_COMPACT]
-    if stages:
-        stages[-1] = (options.max_iters, stages[-1][1])
-    if done < options.max_iters and (b < _MIN_BLOCK or not stages):
-        # A small block is not worth more compiled copies of the step (compile time):
-        # one loop of up to max_iters steps for all pixels, stopping when all converged.
+    done, stages = _stages(b, options)
+    if not stages:
+        # One loop of up to max_iters steps for all pixels, stopping when all converged.
         states = _steps_until_converged(residual_fn, states, data, options, options.max_iters)
-        stages = []
     else:
         states = _steps(residual_fn, states, data, options, done)
     for until, cap in stages:
@@ -508,7 +593,6 @@ def _solve_block(residual_fn, theta0, data, n_usable, options, space):
     return jax.vmap(lambda s, t, n: _finish(s, t, options, space, n))(states, theta0, n_usable)
 
 
-@eqx.filter_jit
 def batched_lm(
     residual_fn: ResidualFn,
     theta0: Float[Array, "N P"],
@@ -522,11 +606,35 @@ def batched_lm(
     ``n_usable`` is (N,) or None.
 
     Equivalent to ``jit(vmap(lm_solve))`` up to float rounding (which can move poorly
-    determined parameters along flat valleys in float32), organised for speed: pixels go in
-    blocks of ``options.chunk`` (``lax.map``; a block's working set stays in cache), and after
-    ``options.compact_after`` steps the still-unconverged pixels of a block are gathered
-    (``compact_fraction`` of a block at a time) and only they take the remaining steps.
+    determined parameters along flat valleys in float32), organised for speed: all pixels
+    take the first ``options.compact_after`` steps; then the still-unconverged pixels are
+    gathered into the slots of each of ``options.compact_stages`` in turn and only they take
+    the remaining steps (:func:`_solve_block`). Outside a trace, with ``options.host_loop``,
+    each step is its own compiled program driven from Python (:func:`_solve_host`); inside
+    one, the steps are loops of one program, in blocks of ``options.chunk`` pixels.
     """
+    options = LMOptions() if options is None else options
+    n = theta0.shape[0]
+    nu = jnp.full((n,), jnp.iinfo(jnp.int32).max, jnp.int32) if n_usable is None else n_usable
+    leaves = jax.tree.leaves((residual_fn, theta0, data, nu))
+    if options.host_loop and not any(isinstance(x, jax.core.Tracer) for x in leaves):
+        return _solve_host(residual_fn, theta0, data, nu, options, space)
+    return _batched_lm_graph(residual_fn, theta0, data, options, space=space, n_usable=nu)
+
+
+@eqx.filter_jit
+def _batched_lm_graph(
+    residual_fn: ResidualFn,
+    theta0: Float[Array, "N P"],
+    data: Any,
+    options: LMOptions | None = None,
+    *,
+    space: ParamSpace | None = None,
+    n_usable: Int[Array, " N"] | None = None,
+) -> tuple[Float[Array, "N P"], LMResult]:
+    """:func:`batched_lm` as one compiled program: pixels go in blocks of
+    ``options.chunk`` (``lax.map``; a block's working set stays in cache), each solved by
+    :func:`_solve_block`."""
     options = LMOptions() if options is None else options
     n = theta0.shape[0]
     nu = jnp.full((n,), jnp.iinfo(jnp.int32).max, jnp.int32) if n_usable is None else n_usable
