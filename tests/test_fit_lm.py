@@ -224,6 +224,11 @@ def test_host_driven_steps_give_each_pixel_its_own_lm_solve(monkeypatch):
     np.testing.assert_array_equal(np.asarray(r.status), np.asarray(r_ref.status))
     np.testing.assert_allclose(np.asarray(theta), np.asarray(theta_ref), rtol=1e-7, atol=1e-10)
     np.testing.assert_allclose(np.asarray(r.cost), np.asarray(r_ref.cost), rtol=1e-9)
+    # In blocks of 100 pixels (the last one padded): the same steps for every pixel.
+    blocks = fit.LMOptions(max_iters=25, compact_after=2, host_round=3, chunk=100)
+    theta_b, r_b = fit.batched_lm(res, theta0, pr.data, blocks, space=space)
+    np.testing.assert_array_equal(np.asarray(r_b.iterations), it)
+    np.testing.assert_allclose(np.asarray(theta_b), np.asarray(theta), rtol=1e-7, atol=1e-10)
     # Under a trace the same call runs as one program, with the same results.
     gathered.clear()
     theta_j, r_j = jax.jit(lambda t: fit.batched_lm(res, t, pr.data, host, space=space))(theta0)

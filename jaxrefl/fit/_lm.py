@@ -611,14 +611,34 @@ def batched_lm(
     gathered into the slots of each of ``options.compact_stages`` in turn and only they take
     the remaining steps (:func:`_solve_block`). Outside a trace, with ``options.host_loop``,
     each step is its own compiled program driven from Python (:func:`_solve_host`); inside
-    one, the steps are loops of one program, in blocks of ``options.chunk`` pixels.
+    one, the steps are loops of one program. Either way pixels go in blocks of
+    ``options.chunk``.
     """
     options = LMOptions() if options is None else options
     n = theta0.shape[0]
     nu = jnp.full((n,), jnp.iinfo(jnp.int32).max, jnp.int32) if n_usable is None else n_usable
     leaves = jax.tree.leaves((residual_fn, theta0, data, nu))
     if options.host_loop and not any(isinstance(x, jax.core.Tracer) for x in leaves):
-        return _solve_host(residual_fn, theta0, data, nu, options, space)
+        chunk = max(1, min(options.chunk, n))
+        if n <= chunk:
+            return _solve_host(residual_fn, theta0, data, nu, options, space)
+        # Blocks of ``chunk`` pixels, one after the other (a block's working set stays in
+        # cache); the last is padded with copies of pixel 0, cut off after, so that every
+        # block runs the same compiled programs.
+        pad = -n % chunk
+        args = (theta0, data, nu)
+        if pad:
+            args = jax.tree.map(
+                lambda x: jnp.concatenate([x, jnp.broadcast_to(x[:1], (pad, *x.shape[1:]))]),
+                args,
+            )
+        parts = [
+            _solve_host(
+                residual_fn, *jax.tree.map(lambda x, s=s: x[s : s + chunk], args), options, space
+            )
+            for s in range(0, n + pad, chunk)
+        ]
+        return jax.tree.map(lambda *xs: jnp.concatenate(xs)[:n], *parts)
     return _batched_lm_graph(residual_fn, theta0, data, options, space=space, n_usable=nu)
 
 
