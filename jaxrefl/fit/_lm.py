@@ -632,12 +632,10 @@ def batched_lm(
                 lambda x: jnp.concatenate([x, jnp.broadcast_to(x[:1], (pad, *x.shape[1:]))]),
                 args,
             )
-        parts = [
-            _solve_host(
-                residual_fn, *jax.tree.map(lambda x, s=s: x[s : s + chunk], args), options, space
-            )
-            for s in range(0, n + pad, chunk)
-        ]
+        parts = []
+        for s in range(0, n + pad, chunk):
+            t, d, u = jax.tree.map(lambda x, s=s: x[s : s + chunk], args)
+            parts.append(_solve_host(residual_fn, t, d, u, options, space))
         return jax.tree.map(lambda *xs: jnp.concatenate(xs)[:n], *parts)
     return _batched_lm_graph(residual_fn, theta0, data, options, space=space, n_usable=nu)
 
