@@ -134,9 +134,12 @@ class LMOptions(Option):
                 4) gathers the unconverged pixels into the fewest slots that hold them
                 (:func:`_solve_host`; ``compact_stages`` and ``chunk`` organise the other
                 way); inside a trace (``jit``, ``shard_map``) the steps are loops of one
-                program. The same steps for every pixel either way; on CPU a step inside a
-                compiled loop costs more than the same step as a program of its own
-                (``benchmarks/fit_throughput.py`` times both). Default True.
+                program. The same steps for every pixel either way. On CPU a step inside a
+                compiled loop costs more than the same step as a program of its own, while
+                each program called from Python costs its dispatch: the host loop pays
+                where pixels take many steps (captures' tiles) and not where nearly all
+                converge in two or three (``benchmarks/fit_throughput.py`` times both).
+                Default True.
     """
 
     kind: ClassVar[str] = "lean"
@@ -607,11 +610,11 @@ def batched_lm(
 
     Equivalent to ``jit(vmap(lm_solve))`` up to float rounding (which can move poorly
     determined parameters along flat valleys in float32), organised for speed: all pixels
-    take the first ``options.compact_after`` steps; then the still-unconverged pixels are
-    gathered into the slots of each of ``options.compact_stages`` in turn and only they take
-    the remaining steps (:func:`_solve_block`). Outside a trace, with ``options.host_loop``,
-    each step is its own compiled program driven from Python (:func:`_solve_host`); inside
-    one, the steps are loops of one program. Either way pixels go in blocks of
+    take the first ``options.compact_after`` steps, then only the still-unconverged pixels,
+    gathered into fewer slots, take the remaining ones. Outside a trace, with
+    ``options.host_loop``, each step is its own compiled program driven from Python
+    (:func:`_solve_host`); inside one, the steps are loops of one program with the slots of
+    ``options.compact_stages`` (:func:`_solve_block`). Either way pixels go in blocks of
     ``options.chunk``.
     """
     options = LMOptions() if options is None else options
@@ -619,57 +622,44 @@ def batched_lm(
     nu = jnp.full((n,), jnp.iinfo(jnp.int32).max, jnp.int32) if n_usable is None else n_usable
     leaves = jax.tree.leaves((residual_fn, theta0, data, nu))
     if options.host_loop and not any(isinstance(x, jax.core.Tracer) for x in leaves):
-        chunk = max(1, min(options.chunk, n))
-        if n <= chunk:
+        if n <= options.chunk:
             return _solve_host(residual_fn, theta0, data, nu, options, space)
-        # Blocks of ``chunk`` pixels, one after the other (a block's working set stays in
-        # cache); the last is padded with copies of pixel 0, cut off after, so that every
-        # block runs the same compiled programs.
-        pad = -n % chunk
-        args = (theta0, data, nu)
-        if pad:
-            args = jax.tree.map(
-                lambda x: jnp.concatenate([x, jnp.broadcast_to(x[:1], (pad, *x.shape[1:]))]),
-                args,
-            )
+        # One block after the other, each driven from Python.
+        args = _blocks((theta0, data, nu), options.chunk)
         parts = []
-        for s in range(0, n + pad, chunk):
-            t, d, u = jax.tree.map(lambda x, s=s: x[s : s + chunk], args)
+        for i in range(args[0].shape[0]):
+            t, d, u = jax.tree.map(lambda x, i=i: x[i], args)
             parts.append(_solve_host(residual_fn, t, d, u, options, space))
-        return jax.tree.map(lambda *xs: jnp.concatenate(xs)[:n], *parts)
-    return _batched_lm_graph(residual_fn, theta0, data, options, space=space, n_usable=nu)
+        out = jax.tree.map(lambda *xs: jnp.stack(xs), *parts)
+    else:
+        out = _batched_lm_graph(residual_fn, theta0, data, nu, options, space)
+    return jax.tree.map(lambda x: x.reshape((-1, *x.shape[2:]))[:n], out)
 
 
-@eqx.filter_jit
-def _batched_lm_graph(
-    residual_fn: ResidualFn,
-    theta0: Float[Array, "N P"],
-    data: Any,
-    options: LMOptions | None = None,
-    *,
-    space: ParamSpace | None = None,
-    n_usable: Int[Array, " N"] | None = None,
-) -> tuple[Float[Array, "N P"], LMResult]:
-    """:func:`batched_lm` as one compiled program: pixels go in blocks of
-    ``options.chunk`` (``lax.map``; a block's working set stays in cache), each solved by
-    :func:`_solve_block`."""
-    options = LMOptions() if options is None else options
-    n = theta0.shape[0]
-    nu = jnp.full((n,), jnp.iinfo(jnp.int32).max, jnp.int32) if n_usable is None else n_usable
-    chunk = max(1, min(options.chunk, n))
+def _blocks(args, chunk: int):
+    """Every leaf of ``args`` (leading axis N) as (blocks, chunk', ...), chunk' = min(chunk,
+    N): blocks of pixels whose working set stays in cache. The last block is padded with
+    copies of pixel 0 (their results are cut off after), so every block runs the same
+    compiled programs."""
+    n = jax.tree.leaves(args)[0].shape[0]
+    chunk = max(1, min(chunk, n))
     blocks = -(-n // chunk)
     pad = blocks * chunk - n
 
     def padded(x):
-        # Padding pixels repeat pixel 0; their results are cut off below.
         x = jnp.concatenate([x, jnp.broadcast_to(x[:1], (pad, *x.shape[1:]))]) if pad else x
         return x.reshape((blocks, chunk, *x.shape[1:]))
 
-    args = jax.tree.map(padded, (theta0, data, nu))
+    return jax.tree.map(padded, args)
+
+
+@eqx.filter_jit
+def _batched_lm_graph(residual_fn, theta0, data, n_usable, options, space):
+    """:func:`batched_lm` as one compiled program, block by block (``lax.map``), each
+    solved by :func:`_solve_block`; results (blocks, chunk, ...)."""
 
     def block(a):
         theta_b, data_b, nu_b = a
         return _solve_block(residual_fn, theta_b, data_b, nu_b, options, space)
 
-    theta, result = lax.map(block, args)
-    return jax.tree.map(lambda x: x.reshape((blocks * chunk, *x.shape[2:]))[:n], (theta, result))
+    return lax.map(block, _blocks((theta0, data, n_usable), options.chunk))
