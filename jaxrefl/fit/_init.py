@@ -59,7 +59,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from jaxrefl.brdf import BRDF
 
-from ._residual import PixelData, Residual
+from ._residual import L2, PixelData, Residual
 from ._transform import ParamSpace, ScaledSigmoid
 
 __all__ = ["diffuse_albedo", "grid_values", "initial_theta", "linear_params"]
@@ -67,8 +67,18 @@ __all__ = ["diffuse_albedo", "grid_values", "initial_theta", "linear_params"]
 ALPHA_FAMILY = ("alpha", "alpha_u", "alpha_v")
 # Start this fraction of a bounded range inside its edges (the sigmoid's slope is 0.01 there).
 _EDGE_MARGIN = 1e-2
-# Pixels per block of the variable projection (its working set: G x K x C values a pixel).
+# A model without a nonlinear parameter is solved exactly (module docstring): its robust
+# loss and censored rows by this many reweighted passes, and a value on a bound of its range
+# starts this fraction inside (within the LM's default bound test, 1e-3 of the range, so a
+# pixel whose optimum is on the bound is found there; the start is the optimum, so the
+# sigmoid's small slope there costs nothing).
+_EXACT_PASSES = 2
+_EXACT_MARGIN = 1e-4
+# Pixels per block of the variable projection (its working set: G x K x C values a pixel);
+# without a grid the working set is G = 1 value a pixel, and larger blocks spend less on
+# the per-operation overhead of the reweighted passes.
 _VARPRO_CHUNK = 256
+_EXACT_CHUNK = 4096
 # At most this many (pixel, grid value, observation, channel) entries in a block.
 _VARPRO_ELEMS = 1 << 21
 # Pixels per chunk in the multi-start initialisation (bounds memory: G x (1 + m) x K x C each).
@@ -290,14 +300,45 @@ def _natural_base(space: ParamSpace, dtype) -> dict[str, Array]:
     return out
 
 
-def _inset(space: ParamSpace, name: str, x: Array) -> Array:
-    """Move a value 1% of its range inside a bounded range (see the module docstring)."""
+def _inset(space: ParamSpace, name: str, x: Array, margin: float = _EDGE_MARGIN) -> Array:
+    """Move a value ``margin`` (1%) of its range inside a bounded range (module docstring)."""
     blk = space.blocks[space.free_names.index(name)]
     bij = blk.runs[0].bijection
     if isinstance(bij, ScaledSigmoid):
         w = bij.upper - bij.lower
-        return jnp.clip(x, bij.lower + _EDGE_MARGIN * w, bij.upper - _EDGE_MARGIN * w)
+        return jnp.clip(x, bij.lower + margin * w, bij.upper - margin * w)
     return x
+
+
+def _prior_moments(res: Residual, lin: tuple[str, ...], c: int, dtype):
+    """Per linear parameter j and channel, the precision 1/std^2 and precision-weighted mean
+    mean/std^2 of ``res.prior`` on that entry (zeros where it has none): the prior's
+    quadratic (x - mean)^2 / std^2 adds them to A_jj and b_j."""
+    prec = [jnp.zeros((c,), dtype) for _ in lin]
+    pb = [jnp.zeros((c,), dtype) for _ in lin]
+    prior = res.prior
+    if prior is None:
+        return [v.reshape(1, 1, c) for v in prec], [v.reshape(1, 1, c) for v in pb]
+    for i, idx in enumerate(prior.index):
+        for j, name in enumerate(lin):
+            s = res.space.index(name)
+            if s.start <= idx < s.stop:
+                inv = 1.0 / jnp.square(prior.std[i].astype(dtype))
+                prec[j] = prec[j].at[idx - s.start].add(inv)
+                pb[j] = pb[j].at[idx - s.start].add(prior.mean[i].astype(dtype) * inv)
+    # (1, 1, C): aligned with the (pixel, grid value, channel) moments.
+    return [v.reshape(1, 1, c) for v in prec], [v.reshape(1, 1, c) for v in pb]
+
+
+def _irls_weight(loss, z):
+    """psi(z) / z of the robust loss (1 for L2): the weight of iteratively reweighted least
+    squares, whose fixed point is the loss's minimiser. rho''(0) = 1 for every loss here, so
+    the weight is 1 at z = 0 (the division is guarded there)."""
+    if isinstance(loss, L2):
+        return jnp.ones_like(z)
+    psi = jax.grad(lambda v: jnp.sum(loss.rho(v)))(z)
+    small = jnp.abs(z) < 1e-6
+    return jnp.where(small, 1.0, psi / jnp.where(small, 1.0, z))
 
 
 def _varpro_block(res, lin, grid_names, grid, refine, d):
@@ -316,9 +357,17 @@ def _varpro_block(res, lin, grid_names, grid, refine, d):
     wi = d.wi.astype(dtype)[:, None]  # (n, 1, K, 3)
     wo = wi if d.colocated else d.wo.astype(dtype)[:, None]
     w, obs = jax.vmap(lambda dd: _fit_weights(res, dd))(d)  # (n, K, C)
-    scale = jnp.where(w > 0, d.scale, 0.0)
+    # Every usable observation (censored ones too) with its whitening weight w / std^2,
+    # for the exact solve of a model without a nonlinear parameter (module docstring).
+    usable = jax.vmap(res.usable)(d)
+    obs_all = jnp.where(usable, d.obs, 0.0)
+    std_all = jax.vmap(res.noise.std)(obs_all)
+    w_all = jnp.where(usable, d.weight, 0.0) / (std_all * std_all)
+    scale = jnp.where(usable, d.scale, 0.0)
     lo = np.array([space.lower[space.index(n).start] for n in lin])
     hi = np.array([space.upper[space.index(n).start] for n in lin])
+    prec, pbias = _prior_moments(res, lin, c, dtype)
+    exact = not grid_names
     kinds = {q.name: q.kind for q in model.params}
     p = {}
     for q in model.params:
@@ -331,8 +380,13 @@ def _varpro_block(res, lin, grid_names, grid, refine, d):
 
         With the basis f0 (the model at zero colour scales) and f_j (its derivative along
         colour scale j), y = obs - f0 and the moments A_ij = sum_k w f_i f_j,
-        b_i = sum_k w f_i y (per channel), the cost at the box-constrained solution x is
-        sum_k w y^2 + x^T A x - 2 b^T x: one pass over the observations."""
+        b_i = sum_k w f_i y (per channel, plus the prior's terms), the box-constrained
+        solution x minimises x^T A x - 2 b^T x. Without a nonlinear parameter (``exact``)
+        the solve is repeated ``_EXACT_PASSES`` times as iteratively reweighted least
+        squares: each pass weighs the observations by the robust loss at the current
+        residuals and adds the censored ones that the current prediction violates (the
+        one-sided rows of :class:`~jaxrefl.fit.Residual`), so the result is the fit's own
+        optimum."""
         pg = dict(p)
         for name in grid_names:
             pg[name] = gvals[:, :, None]
@@ -346,48 +400,54 @@ def _varpro_block(res, lin, grid_names, grid, refine, d):
         f0, tangent = jax.linearize(pred_at, zero)
         ones = jnp.ones((1, 1, 1, c), dtype)
         fs = [tangent(tuple(ones if i == j else z for i, z in enumerate(zero))) for j in range(m)]
-        y = obs[:, None] - f0  # (n, G, K, C)
-        # All moments at once, M = sum_k w [f, y] [f, y]^T per pixel, grid value and
-        # channel: one contraction over K (XLA's dot), which outruns separate sums.
-        # The moments M = sum_k w [f, y] [f, y]^T per pixel, grid value and channel, entry
-        # by entry, with K as the minor axis (batched small matmuls are slow on CPU).
-        vs = [jnp.swapaxes(v, -1, -2) for v in (*fs, y)]  # (n, G, C, K)
-        wt = jnp.swapaxes(w, -1, -2)[:, None]
-        wv = [wt * v for v in vs]
-        ent = {}
-        for i in range(m + 1):
-            for j in range(i, m + 1):
-                ent[i, j] = ent[j, i] = jnp.sum(wv[i] * vs[j], axis=-1)
-        mom = jnp.stack(
-            [jnp.stack([ent[i, j] for j in range(m + 1)], -1) for i in range(m + 1)], -2
-        )
-        yy = mom[..., m, m]  # (n, G, C)
-        bb = [mom[..., i, m] for i in range(m)]
-        if m == 1:
-            a11 = mom[..., 0, 0]
-            x1 = _box_ls(a11[..., None, None], bb[0][..., None], lo, hi)[..., 0]
-            xs = [x1]
-            q = a11 * x1 * x1 - 2.0 * bb[0] * x1
-        elif m == 2:
-            x1, x2, q = _box_ls2(
-                mom[..., 0, 0], mom[..., 0, 1], mom[..., 1, 1], bb[0], bb[1], lo, hi
-            )
-            xs = [x1, x2]
-        elif m:
-            a = mom[..., :m, :m]  # (n, G, C, m, m)
-            x = _box_ls(a, mom[..., :m, m], lo, hi)  # (n, G, C, m)
-            xs = [x[..., i] for i in range(m)]
-            q = _quad(a, mom[..., :m, m], x)
-        else:
-            xs, q = [], jnp.zeros_like(yy)
+        # The moments per pixel, grid value and channel, entry by entry, with K as the
+        # minor axis (batched small matmuls are slow on CPU).
+        vs = [jnp.swapaxes(v, -1, -2) for v in fs]  # (n, G, C, K)
+        y = jnp.swapaxes((obs_all if exact else obs)[:, None] - f0, -1, -2)
+
+        def solve(wt):
+            wv = [wt * v for v in vs]
+            a = {(i, j): jnp.sum(wv[i] * vs[j], axis=-1) for i in range(m) for j in range(i, m)}
+            b = [jnp.sum(wv[i] * y, axis=-1) + pbias[i] for i in range(m)]
+            for i in range(m):
+                a[i, i] = a[i, i] + prec[i]
+            if m == 1:
+                return [_box_ls(a[0, 0][..., None, None], b[0][..., None], lo, hi)[..., 0]]
+            if m == 2:
+                x1, x2, _ = _box_ls2(a[0, 0], a[0, 1], a[1, 1], b[0], b[1], lo, hi)
+                return [x1, x2]
+            if m:
+                full = jnp.stack(
+                    [jnp.stack([a[min(i, j), max(i, j)] for j in range(m)], -1) for i in range(m)],
+                    -2,
+                )
+                x = _box_ls(full, jnp.stack(b, -1), lo, hi)  # (n, G, C, m)
+                return [x[..., i] for i in range(m)]
+            return []
+
+        def residual(xs):
+            r = y
+            for j in range(m):
+                r = r - xs[j][..., None] * vs[j]
+            return r  # obs - pred, (n, G, C, K)
+
+        w_unc = jnp.swapaxes(w, -1, -2)[:, None]
+        xs = solve(w_unc)
+        if exact:
+            wa = jnp.swapaxes(w_all, -1, -2)[:, None]
+            cens = jnp.swapaxes(d.censored, -1, -2)[:, None]
+            std = jnp.swapaxes(std_all, -1, -2)[:, None]
+            for _ in range(_EXACT_PASSES):
+                r = residual(xs)
+                # A censored row counts where the prediction breaks its bound: below a
+                # saturated value (r > 0) or above a dark one (r < 0).
+                on = (cens == 0) | ((cens > 0) & (r > 0)) | ((cens < 0) & (r < 0))
+                xs = solve(wa * on * _irls_weight(res.loss, -r / std))
         # The cost from the residual itself: the expanded form s + x^T A x - 2 b^T x loses
         # the digits of a good fit in float32 (it is a small difference of large sums), and
         # near-equal grid values would then be ranked by rounding.
-        r = y
-        for j in range(m):
-            r = r - xs[j][:, :, None] * fs[j]
-        cost = jnp.sum(w[:, None] * r * r, axis=(-2, -1))
-        del q
+        r = residual(xs)
+        cost = jnp.sum(w_unc * r * r, axis=(-2, -1))
         return xs, jnp.where(jnp.isfinite(cost), cost, jnp.inf)
 
     # No nonlinear parameter: one "grid value" (unused) and a single linear solve.
@@ -415,7 +475,7 @@ def _varpro_block(res, lin, grid_names, grid, refine, d):
     nat = {}
     for j, name in enumerate(lin):
         xb = jnp.take_along_axis(xs[j], best[:, None, None], axis=1)[:, 0]  # (n, C)
-        nat[name] = _inset(space, name, xb)
+        nat[name] = _inset(space, name, xb, _EXACT_MARGIN if exact else _EDGE_MARGIN)
     for name in grid_names:
         nat[name] = jnp.take_along_axis(vals, best[:, None], axis=1)[:, 0]
     return space.from_natural(nat, dtype=dtype)
@@ -443,7 +503,8 @@ def _multistart_pixel(res, scalar_name, grid, exclude_brightest, d):
 def _varpro_chunk(shape: tuple[int, ...], n_grid: int) -> int:
     """Pixels per block of the variable projection for data of shape (N, K, C)."""
     k, c = shape[-2:]
-    return max(1, min(_VARPRO_CHUNK, _VARPRO_ELEMS // (max(1, n_grid) * k * c)))
+    cap = _VARPRO_CHUNK if n_grid > 1 else _EXACT_CHUNK
+    return max(1, min(cap, _VARPRO_ELEMS // (max(1, n_grid) * k * c)))
 
 
 def _bucket(n: int, chunk: int) -> int:

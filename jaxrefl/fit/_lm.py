@@ -131,9 +131,9 @@ class LMOptions(Option):
                 converged (fewer compiled copies of the step).
     host_loop, host_round: called outside a trace, :func:`batched_lm` runs its steps from
                 Python, each one compiled program, and every ``host_round`` steps (default
-                4) gathers the unconverged pixels into the fewest slots that hold them
-                (:func:`_solve_host`; ``compact_stages`` and ``chunk`` organise the other
-                way); inside a trace (``jit``, ``shard_map``) the steps are loops of one
+                4) gathers the unconverged pixels into rounds of 1/16 or 1/4 of a block
+                (:func:`_solve_host`; ``compact_stages`` organises the other way;
+                ``chunk`` both); inside a trace (``jit``, ``shard_map``) the steps are loops of one
                 program. The same steps for every pixel either way. On CPU a step inside a
                 compiled loop costs more than the same step as a program of its own, while
                 each program called from Python costs its dispatch: the host loop pays
@@ -513,38 +513,93 @@ def _finish_all(states, theta0, n_usable, options, space):
     return jax.vmap(lambda s, t, n: _finish(s, t, options, space, n))(states, theta0, n_usable)
 
 
+def _slot_sizes(b: int) -> tuple[int, int]:
+    """The two slot counts of a gathered round for a block of b pixels: b/16 and b/4 (at
+    least ``_MIN_COMPACT``). Two fixed sizes, not the tightest power of two, so the programs a
+    block can use do not depend on how its pixels converge: they compile once, before they
+    are needed (:func:`_warm`), and a later batch of the same shape compiles nothing."""
+    return max(_MIN_COMPACT, b // 16), max(_MIN_COMPACT, b // 4)
+
+
+def _rounds(todo: np.ndarray, b: int) -> list[np.ndarray] | None:
+    """The unconverged pixels ``todo`` split into gathered rounds (slot indices, padded with
+    b), or None where stepping the whole block costs no more."""
+    small, big = _slot_sizes(b)
+    cap = small if todo.size <= small else big
+    if -(-todo.size // cap) * cap >= b:
+        return None
+    out = []
+    for i in range(0, todo.size, cap):
+        idx = np.full(cap, b, np.int32)
+        part = todo[i : i + cap]
+        idx[: part.size] = part
+        out.append(idx)
+    return out
+
+
+# Blocks whose gathered-round programs have compiled (see _warm).
+_WARMED: set = set()
+
+
+def _warm(residual_fn, states, data, options) -> None:
+    """Compile the gathered-round programs of both slot sizes the first time a block of
+    this shape and residual is solved in the process: one step on slots that are all
+    padding (frozen, and dropped on the way back), which changes nothing."""
+    leaves = jax.tree.leaves((residual_fn, data))
+    key = (
+        jax.tree.structure((residual_fn, data)),
+        tuple((x.shape, str(x.dtype)) for x in leaves if hasattr(x, "shape")),
+        states.theta.shape,
+        str(states.theta.dtype),
+        options,
+    )
+    if key in _WARMED:
+        return
+    b = states.theta.shape[0]
+    for cap in _slot_sizes(b):
+        idx = np.full(cap, b, np.int32)
+        sub, sub_data = _gather(
+            states, data, jnp.asarray(np.minimum(idx, b - 1)), jnp.asarray(idx < b)
+        )
+        sub = _step_all(residual_fn, sub, sub_data, options)
+        states = _scatter(states, sub, jnp.asarray(idx))
+    jax.block_until_ready(states)
+    _WARMED.add(key)
+
+
 def _solve_host(residual_fn, theta0, data, n_usable, options, space):
     """:func:`batched_lm` for all N pixels, driven from Python, each step one compiled
     program. All pixels take the first ``compact_after`` steps; then, in rounds of
-    ``host_round`` steps, the unconverged pixels are gathered into the smallest power of two
-    of slots (at least ``_MIN_COMPACT``) that holds them all, step, and are scattered back.
-    Every unconverged pixel is in every round, so each takes the same steps in the same order
-    as ``lm_solve`` alone, and at most ``log2(N / 64) + 1`` shapes of the step compile. Fewer
-    than ``_MIN_BLOCK`` pixels take plain steps (no gathering), until all have converged."""
+    ``host_round`` steps, the unconverged pixels are gathered into slots of one of two fixed
+    sizes (:func:`_slot_sizes`), step, and are scattered back, or the whole block steps
+    where that costs no more. Every unconverged pixel is in every round, so each takes the
+    same steps in the same order as ``lm_solve`` alone. Fewer than ``_MIN_BLOCK`` pixels
+    take plain steps (no gathering), until all have converged."""
     b = theta0.shape[0]
     states = _init_all(residual_fn, theta0, data, options)
     it = min(options.compact_after, options.max_iters) if b >= _MIN_BLOCK else 0
     for _ in range(it):  # every pixel, converged or not (frozen ones are unchanged)
         states = _step_all(residual_fn, states, data, options)
+    if b >= _MIN_BLOCK and it < options.max_iters:
+        _warm(residual_fn, states, data, options)
     while it < options.max_iters:
         todo = np.flatnonzero(~np.asarray(states.converged))
         if todo.size == 0:
             break
         n = min(options.host_round, options.max_iters - it)
-        cap = max(_MIN_COMPACT, 1 << (int(todo.size) - 1).bit_length())
-        if b < _MIN_BLOCK or cap >= b:
+        rounds = None if b < _MIN_BLOCK else _rounds(todo, b)
+        if rounds is None:
             for _ in range(n):
                 states = _step_all(residual_fn, states, data, options)
         else:
-            # Padding slots repeat the last pixel, frozen, and are dropped on the way back.
-            idx = np.full(cap, b, np.int32)
-            idx[: todo.size] = todo
-            sub, sub_data = _gather(
-                states, data, jnp.asarray(np.minimum(idx, b - 1)), jnp.asarray(idx < b)
-            )
-            for _ in range(n):
-                sub = _step_all(residual_fn, sub, sub_data, options)
-            states = _scatter(states, sub, jnp.asarray(idx))
+            for idx in rounds:
+                # Padding slots repeat the last pixel, frozen, and are dropped on the way back.
+                sub, sub_data = _gather(
+                    states, data, jnp.asarray(np.minimum(idx, b - 1)), jnp.asarray(idx < b)
+                )
+                for _ in range(n):
+                    sub = _step_all(residual_fn, sub, sub_data, options)
+                states = _scatter(states, sub, jnp.asarray(idx))
         it += n
     return _finish_all(states, theta0, n_usable, options, space)
 
