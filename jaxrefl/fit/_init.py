@@ -34,6 +34,15 @@ variable projection (Golub & Pereyra 1973) turns a P-dimensional search into a 1
    solution x, and the cost is that of the residual y - sum_j x_j F_j (not the expanded
    form, a small difference of large sums in float32). Pixels are solved in blocks of
    ``_VARPRO_CHUNK`` as one array problem (pixel x grid value x observation x channel).
+   Without a nonlinear parameter (every free parameter affine: Lambert, or a lobe whose
+   width is fixed, as the pooled capture model's) there is no grid, and the one solve is
+   made the fit's own problem: the prior's quadratic terms join the moments (a Gaussian
+   prior N(m, s^2) on x_j adds 1/s^2 to A_jj and m/s^2 to b_j), and ``_EXACT_PASSES``
+   reweighted passes (iteratively reweighted least squares: weights psi(z)/z of the robust
+   loss at the current residuals; saturated or dark observations join where the current
+   prediction violates their bound) move it towards the robust, censored optimum. A value
+   on a bound starts 1e-4 of the range inside it, within the LM's bound test, so the LM
+   confirms it there instead of crawling towards it where the sigmoid has little slope.
 3. Otherwise (a parameter that is neither affine nor a gridable scalar, e.g. ``eta``,
    Lafortune lobes, a non-affine model) falls back to multi-start: the model defaults, with
    the closed-form diffuse albedo where there is one, and a few grid values of the first free
