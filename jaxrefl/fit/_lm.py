@@ -153,13 +153,13 @@ class LMOptions(Option):
     bound_rtol: float = eqx.field(default=1e-3, static=True)
     unroll_max: int = eqx.field(default=8, static=True)
     max_step: float = eqx.field(default=4.0, static=True)
-    compact_after: int = eqx.field(default=3, static=True)
+    compact_after: int = eqx.field(default=1, static=True)
     compact_stages: tuple[tuple[int, float], ...] = eqx.field(
         default=((6, 1 / 2), (12, 1 / 4), (20, 1 / 8), (40, 1 / 32)), static=True
     )
     chunk: int = eqx.field(default=2048, static=True)
     host_loop: bool = eqx.field(default=True, static=True)
-    host_round: int = eqx.field(default=4, static=True)
+    host_round: int = eqx.field(default=2, static=True)
 
     def tolerances(self, dtype) -> tuple[float, float, float]:
         """(xtol, ftol, cond_max) for ``dtype``."""

@@ -324,8 +324,10 @@ class Capture:
 
     def summary(self) -> dict[str, int]:
         """Number of observations per status name (every name, zeros included)."""
-        counts = np.bincount(self.status.ravel(), minlength=len(OBS_STATUS))
-        return {name: int(counts[code]) for code, name in OBS_STATUS.items()}
+        # One comparison per code on the int8 array (bincount would first copy it to intp).
+        return {
+            name: int(np.count_nonzero(self.status == code)) for code, name in OBS_STATUS.items()
+        }
 
     def __repr__(self) -> str:
         k, h, w, c = self.shape

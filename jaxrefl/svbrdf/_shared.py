@@ -127,20 +127,28 @@ def widen(
     """The natural-unit ``std`` (N, P) and ``corr`` (N, P, P) of the per-pixel Laplace with
     each pixel's share of the width's uncertainty added (module docstring), from the
     per-pixel ``v`` (N, P) and ``s`` (N,) of every tile; and the width's own uncertainty."""
-    s_tot = float(np.sum(s[np.isfinite(s)]))
+    s_tot = float(np.sum(s[np.isfinite(s)], dtype=np.float64))
     var_t = 1.0 / s_tot if s_tot > 0 else np.inf
     used = int(np.sum(np.isfinite(s) & (s > 0)))
     ok = np.all(np.isfinite(theta), axis=-1)
-    dn = np.asarray(space.dnatural(jnp.asarray(np.where(ok[:, None], theta, 0.0))), np.float64)
-    w = dn * v  # the rank-one direction in natural units (NaN where the pixel took no part)
-    cov = corr * std[:, :, None] * std[:, None, :]
+    dn = np.asarray(space.dnatural(jnp.asarray(np.where(ok[:, None], theta, 0.0))))
+    # In the maps' own dtype, in place: the (N, P, P) arrays are the large ones.
+    dtype = np.result_type(std.dtype, corr.dtype, np.float32)
+    w = (dn * v).astype(dtype)  # the rank-one direction in natural units (NaN: no part)
     extra = np.where(np.isfinite(w), w, 0.0)
-    cov = cov + var_t * extra[:, :, None] * extra[:, None, :] if np.isfinite(var_t) else cov
+    cov = corr.astype(dtype) * std[:, :, None]
+    cov *= std[:, None, :]
+    if np.isfinite(var_t):
+        rank1 = extra[:, :, None] * extra[:, None, :]
+        rank1 *= dtype.type(var_t)
+        cov += rank1
     new_std = np.sqrt(np.maximum(np.diagonal(cov, axis1=1, axis2=2), 0.0))
     denom = new_std[:, :, None] * new_std[:, None, :]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        new_corr = np.where(denom > 0, cov / np.where(denom > 0, denom, 1.0), 0.0)
-    new_corr = np.where(np.isfinite(corr), new_corr, np.nan)
+    pos = denom > 0
+    np.divide(cov, denom, out=cov, where=pos)
+    cov[~pos] = 0.0
+    cov[~np.isfinite(corr)] = np.nan
+    new_corr = cov
     new_std = np.where(np.isfinite(std), new_std, np.nan)
     log_std = float(np.sqrt(var_t))
     return new_std, new_corr, WidthUncertainty(float(alpha), log_std, alpha * log_std, used)
