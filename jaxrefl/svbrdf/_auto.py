@@ -157,11 +157,11 @@ def choose_model(
         sse = cnt = 0.0
         for s in range(0, mask.shape[0], size):
             part = slice(s, s + size)
-            out = fitter(jax.tree.map(lambda a, p=part: a[p], stacked), size, mask[part])
+            e, c = fitter.score(jax.tree.map(lambda a, p=part: a[p], stacked), mask[part])
             h = held[part]
             rows = np.flatnonzero(h >= 0)
-            sse += float(np.sum(out["sse"][rows, h[rows]]))
-            cnt += float(np.sum(out["cnt"][rows, h[rows]]))
+            sse += float(np.sum(e[rows, h[rows]]))
+            cnt += float(np.sum(c[rows, h[rows]]))
         cv[m] = float(np.sqrt(sse / cnt)) if cnt > 0 else float("inf")
     best = min(cv.values())
     chosen = next(m for m in candidates if cv[m] <= best * (1.0 + TOLERANCE))

@@ -394,22 +394,39 @@ class _TileFitter:
         res = fit.make_residual(self.model, self.space, noise, self.loss, prior)
         return best, res, None if sigma is None else sigma * sigma
 
-    def __call__(self, data, n: int, train=None) -> dict[str, np.ndarray]:
-        """Fit the first ``n`` pixels of ``data`` on the job's training photos, or per pixel
-        on ``train`` ((N, K) bool: several held-out folds stacked in one tile)."""
+    def _fit(self, data, train=None):
+        """(fit result, residual, known noise variance or None, fitted data) of the pixels of
+        ``data`` on the job's training photos, or per pixel on ``train`` ((N, K) bool)."""
         if train is None:
             train_w = jnp.asarray(self.train, data.weight.dtype)[None, :, None]
         else:
             train_w = jnp.asarray(train, data.weight.dtype)[:, :, None]
         fit_data = eqx.tree_at(lambda d: d.weight, data, data.weight * train_w)
         res, noise_var = self.residual, self.known_noise
-        t0 = time.perf_counter()
         if self.first is None:
             r = fit.fit_pixels(
                 self.model, fit_data, config=self.config, space=self.space, prior=self.prior
             )
         else:
             r, res, noise_var = self._two_stage(fit_data)
+        return r, res, noise_var, fit_data
+
+    def score(self, data, train) -> tuple[np.ndarray, np.ndarray]:
+        """Squared errors and counts (N, K) of the fit of ``data`` per pixel on ``train``
+        ((N, K) bool), for every photo: the held-out scores of a selection, without the
+        Laplace step the maps need."""
+        t0 = time.perf_counter()
+        r, res, _, _ = self._fit(data, train)
+        sse, cnt = _errors(res, r.theta, data)
+        out = np.asarray(sse), np.asarray(cnt)
+        self.stage_s["fit"] += time.perf_counter() - t0
+        return out
+
+    def __call__(self, data, n: int, train=None) -> dict[str, np.ndarray]:
+        """Fit the first ``n`` pixels of ``data`` on the job's training photos, or per pixel
+        on ``train`` ((N, K) bool: several held-out folds stacked in one tile)."""
+        t0 = time.perf_counter()
+        r, res, noise_var, fit_data = self._fit(data, train)
         jax.block_until_ready((r.theta, r.status))
         t1 = time.perf_counter()
         # A prior's scale is tied to the noise scale: that one is then known, not re-estimated.
