@@ -116,7 +116,8 @@ class LMOptions(Option):
     unroll_max: largest P for the unrolled Cholesky (else jnp.linalg.cholesky); default 8.
     max_step:   cap on |delta|_inf per step (4: alpha x e^4 = 55, a logit 0.5 -> 0.98).
     compact_after: steps every pixel takes before the unconverged ones are gathered
-                (either organisation below; results per pixel do not depend on it).
+                (either organisation below; results per pixel do not depend on it);
+                default 1.
     compact_stages, chunk: how :func:`batched_lm` organises the work inside a trace
                 (results per pixel do not depend on them). The default stages halve the
                 slots every few steps (1/2 of a block to step 6, 1/4 to 12, 1/8 to 20,
@@ -131,7 +132,7 @@ class LMOptions(Option):
                 converged (fewer compiled copies of the step).
     host_loop, host_round: called outside a trace, :func:`batched_lm` runs its steps from
                 Python, each one compiled program, and every ``host_round`` steps (default
-                4) gathers the unconverged pixels into rounds of 1/16 or 1/4 of a block
+                2) gathers the unconverged pixels into rounds of 1/16 or 1/4 of a block
                 (:func:`_solve_host`; ``compact_stages`` organises the other way;
                 ``chunk`` both); inside a trace (``jit``, ``shard_map``) the steps are loops of one
                 program. The same steps for every pixel either way. On CPU a step inside a
