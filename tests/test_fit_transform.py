@@ -164,6 +164,23 @@ def test_at_bound():
     np.testing.assert_array_equal(flags, expected)
 
 
+def test_off_bounds_clips_only_sigmoid_entries():
+    s = fit.ParamSpace(_ggx())
+    nat = {
+        "albedo": jnp.asarray([[0.5, 1e-6, 0.999999]]),
+        "specular": jnp.full((1, 3), 0.2),
+        "alpha": jnp.asarray([2e-4]),  # near its floor, but Exp-mapped: not clipped
+    }
+    theta = s.from_natural(nat)
+    out = np.asarray(s.off_bounds(theta))
+    assert np.isfinite([s.lower[6], s.upper[6]]).all()  # alpha's range is finite too
+    np.testing.assert_allclose(out[0, :6], np.clip(np.asarray(theta)[0, :6], -3.0, 3.0))
+    assert out[0, 6] == np.asarray(theta)[0, 6]
+    assert abs(out[0, 1]) == 3.0 and abs(out[0, 2]) == 3.0 and out[0, 0] == 0.0
+    # The clipped albedo lies 4.7% of the range from its edge.
+    np.testing.assert_allclose(s.to_natural(jnp.asarray(out))["albedo"][0, 1], 0.0474, atol=1e-4)
+
+
 def test_lafortune_lobes_and_log_scale_defaults():
     lf = jaxrefl.brdf.get("lafortune")
     s = fit.ParamSpace(lf, channels=1)

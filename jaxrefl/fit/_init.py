@@ -76,11 +76,11 @@ __all__ = ["diffuse_albedo", "grid_values", "initial_theta", "linear_params"]
 ALPHA_FAMILY = ("alpha", "alpha_u", "alpha_v")
 # Start this fraction of a bounded range inside its edges (the sigmoid's slope is 0.01 there).
 _EDGE_MARGIN = 1e-2
-# A model without a nonlinear parameter is solved exactly (module docstring): its robust
-# loss and censored rows by this many reweighted passes, and a value on a bound of its range
-# starts this fraction inside (within the LM's default bound test, 1e-3 of the range, so a
-# pixel whose optimum is on the bound is found there; the start is the optimum, so the
-# sigmoid's small slope there costs nothing).
+# A model without a nonlinear parameter starts at its own problem's solution (module
+# docstring): its robust loss and censored rows by this many reweighted passes, and a value
+# on a bound of its range starts this fraction inside (within the LM's default bound test,
+# 1e-3 of the range, so a pixel whose optimum is on the bound is found there, not crawled
+# towards where the sigmoid has little slope).
 _EXACT_PASSES = 2
 _EXACT_MARGIN = 1e-4
 # Pixels per block of the variable projection (its working set: G x K x C values a pixel);
@@ -394,8 +394,8 @@ def _varpro_block(res, lin, grid_names, grid, refine, d):
         the solve is repeated ``_EXACT_PASSES`` times as iteratively reweighted least
         squares: each pass weighs the observations by the robust loss at the current
         residuals and adds the censored ones that the current prediction violates (the
-        one-sided rows of :class:`~jaxrefl.fit.Residual`), so the result is the fit's own
-        optimum."""
+        one-sided rows of :class:`~jaxrefl.fit.Residual`): towards the fit's own optimum,
+        which the LM then reaches in a few steps."""
         pg = dict(p)
         for name in grid_names:
             pg[name] = gvals[:, :, None]

@@ -137,9 +137,8 @@ class LMOptions(Option):
                 ``chunk`` both); inside a trace (``jit``, ``shard_map``) the steps are loops of one
                 program. The same steps for every pixel either way. On CPU a step inside a
                 compiled loop costs more than the same step as a program of its own, while
-                each program called from Python costs its dispatch: the host loop pays
-                where pixels take many steps (captures' tiles) and not where nearly all
-                converge in two or three (``benchmarks/fit_throughput.py`` times both).
+                each program called from Python costs its dispatch
+                (``benchmarks/fit_throughput.py`` times both).
                 Default True.
     """
 

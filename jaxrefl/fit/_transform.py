@@ -475,6 +475,25 @@ class ParamSpace(eqx.Module):
         """theta at the model's default parameter values."""
         return self.from_natural({}, dtype=dtype)
 
+    def off_bounds(self, theta: Float[Array, "*b P"], max_u: float = 3.0) -> Float[Array, "*b P"]:
+        """theta with every sigmoid-mapped entry (:class:`ScaledSigmoid`: a range bounded on
+        both sides) clipped to [-max_u, max_u] in the unconstrained space: a start moved off
+        the bounds. A fit that ends on a bound leaves the logit far out, where the sigmoid is
+        flat and a solver or sampler started there has no usable gradient; the default 3 is
+        4.7% of the range from either edge, where the sigmoid's slope is still 0.045 of its
+        peak. Other maps (``Exp`` for alpha, whose bounds are a check, not the map) keep
+        their values."""
+        theta = jnp.asarray(theta)
+        bounded = np.zeros(self.size, bool)
+        for b in self.blocks:
+            for r in b.runs:
+                if isinstance(r.bijection, ScaledSigmoid):
+                    bounded[r.start : r.stop] = True
+        if not bounded.any():
+            return theta
+        lim = np.where(bounded, max_u, np.inf).reshape((1,) * (theta.ndim - 1) + (-1,))
+        return jnp.clip(theta, jnp.asarray(-lim, theta.dtype), jnp.asarray(lim, theta.dtype))
+
     def at_bound(self, theta: Float[Array, "*b P"], rtol: float = 1e-3) -> Bool[Array, "*b P"]:
         """Entries within ``rtol`` of a bound, or beyond it.
 

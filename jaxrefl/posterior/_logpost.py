@@ -77,11 +77,6 @@ from ._sphere import SphereDirection
 
 __all__ = ["LogPosterior", "SharedLight", "log_posterior"]
 
-# Unconstrained start values of bounded parameters for sampling lie within +-this: 4.7% of
-# the range from either edge, where the sigmoid's slope is still 0.045 of its peak (the
-# capture fit's two-stage starts use the same margin).
-_START_MAX_U = 3.0
-
 
 class LogPosterior(eqx.Module):
     """log p(theta | data) of one pixel (module docstring); build with :func:`log_posterior`.
@@ -245,15 +240,9 @@ class LogPosterior(eqx.Module):
     ) -> Float[Array, "*b D"]:
         """theta from a fit's theta (e.g. the LM optimum), a light direction and a scale.
 
-        Bounded parameters start at most ``_START_MAX_U`` from 0 in the unconstrained space:
-        a fit that ends on a bound leaves the logit far out, where the sigmoid is flat and a
-        sampler's warm-up starts without a usable gradient scale."""
-        tb = jnp.asarray(theta_brdf)
-        space = self.space
-        bounded = np.isfinite(np.asarray(space.lower)) & np.isfinite(np.asarray(space.upper))
-        if bounded.any():
-            lim = np.where(bounded, _START_MAX_U, np.inf).reshape((1,) * (tb.ndim - 1) + (-1,))
-            tb = jnp.clip(tb, jnp.asarray(-lim, tb.dtype), jnp.asarray(lim, tb.dtype))
+        Bounded parameters start off their bounds (:meth:`ParamSpace.off_bounds`): a
+        sampler's warm-up needs a usable gradient scale where it starts."""
+        tb = self.space.off_bounds(theta_brdf)
         batch = tb.shape[:-1]
         parts = [tb]
         if self.light is not None:

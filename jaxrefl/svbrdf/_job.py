@@ -465,7 +465,7 @@ class _TileFitter:
 
 def _extend_start(r1, space, dtype, tilt) -> np.ndarray:
     """Theta (N, P) of ``space`` from a first-stage fit ``r1``: its natural values, with the
-    slopes at ``tilt`` ((2,)), bounded entries moved off their bounds (``_START_MAX_U``);
+    slopes at ``tilt`` ((2,)), bounded entries moved off their bounds (``off_bounds``);
     pixels without a first-stage estimate start at the defaults throughout."""
     nat = dict(r1.params)
     nat["tilt_x"] = np.full(r1.cost.shape, tilt[0])
@@ -473,8 +473,7 @@ def _extend_start(r1, space, dtype, tilt) -> np.ndarray:
     theta = np.array(space.from_natural(nat, dtype=dtype))
     bad = ~np.all(np.isfinite(theta), axis=-1)
     theta[bad] = np.asarray(space.default_theta(dtype))
-    bounded = np.isfinite(space.lower) & np.isfinite(space.upper)
-    theta[:, bounded] = np.clip(theta[:, bounded], -_START_MAX_U, _START_MAX_U)
+    theta = np.array(space.off_bounds(theta))
     return theta
 
 
@@ -511,9 +510,6 @@ _TILT_STARTS = (
 # cap, alpha at its floor), where the sigmoid has no slope, and moves slowly at first: its LM
 # gets this many iterations at least.
 _STAGE2_ITERS = 150
-# Unconstrained start values of bounded parameters are kept within +-this: 4.7% of the range
-# from either edge, where the sigmoid's slope is still 0.045 of its peak.
-_START_MAX_U = 3.0
 
 
 @eqx.filter_jit
