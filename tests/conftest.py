@@ -12,6 +12,9 @@
 * Every ``report.json`` a test leaves under its ``tmp_path`` must parse as strict JSON (no
   ``NaN`` or ``Infinity`` tokens; ``jaxrefl._jsonsafe``): checked after the test, an error of
   that test otherwise. ``strict_json`` is the parser.
+* ``--compile-report N`` lists the N tests that spent the most seconds in XLA's compiler,
+  with the run's totals (most of the suite's time is compiling: the place to look first
+  when the suite grows slow).
 """
 
 from __future__ import annotations
@@ -108,3 +111,80 @@ def _reports_are_strict_json(request):
             strict_json_loads(path.read_text())
         except ValueError as e:
             pytest.fail(f"{path} is not strict JSON ({e})", pytrace=False)
+
+
+# ---------------------------------------------------------------------------- compile report
+# ``--compile-report N``: after the run, the N tests (setup, call and teardown together) that
+# spent the most seconds in XLA's compiler, from JAX's monitoring events, and the run's total
+# beside the tests' own time: where the suite's time goes, since most of it is compiling.
+# Each phase's seconds travel in its report's ``user_properties``, so xdist workers' figures
+# reach the controller, which sums and prints them.
+_COMPILE_EVENTS = {
+    "/jax/core/compile/backend_compile_duration": "compile",
+    "/jax/core/compile/jaxpr_to_mlir_module_duration": "lower",
+}
+_compile_s = {"compile": 0.0, "lower": 0.0, "programs": 0}
+_compile_rows: dict[str, list[float]] = {}
+
+
+def pytest_addoption(parser):
+    parser.addoption(
+        "--compile-report",
+        type=int,
+        default=0,
+        metavar="N",
+        help="list the N tests that spent the most seconds compiling (XLA), with totals",
+    )
+
+
+def _on_compile_event(event: str, duration: float, **_kw) -> None:
+    kind = _COMPILE_EVENTS.get(event)
+    if kind is not None:
+        _compile_s[kind] += duration
+        _compile_s["programs"] += kind == "compile"
+
+
+def pytest_configure(config):
+    if config.getoption("--compile-report", 0):
+        jax.monitoring.register_event_duration_secs_listener(_on_compile_event)
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item, call):
+    outcome = yield
+    if item.config.getoption("--compile-report", 0):
+        taken = (_compile_s["compile"], _compile_s["lower"], _compile_s["programs"])
+        outcome.get_result().user_properties.append(("jax_compile", taken))
+        _compile_s.update(compile=0.0, lower=0.0, programs=0)
+
+
+def pytest_runtest_logreport(report):
+    for key, value in report.user_properties:
+        if key != "jax_compile":
+            continue
+        comp, lower, programs = value
+        row = _compile_rows.setdefault(report.nodeid, [0.0, 0.0, 0.0, 0])
+        row[0] += report.duration
+        row[1] += comp
+        row[2] += lower
+        row[3] += programs
+
+
+def pytest_terminal_summary(terminalreporter, config):
+    n = config.getoption("--compile-report", 0)
+    if not n or not _compile_rows:
+        return
+    rows = sorted(_compile_rows.items(), key=lambda kv: -kv[1][1])
+    total = [sum(r[i] for _, r in rows) for i in range(4)]
+    tr = terminalreporter
+    tr.section("XLA compile time per test")
+    tr.write_line(
+        f"all tests: {total[0]:.0f} s, of which XLA compile {total[1]:.0f} s and lowering "
+        f"{total[2]:.0f} s ({int(total[3])} programs compiled; the persistent cache's hits "
+        "are not compiles)"
+    )
+    for nodeid, (dur, comp, lower, programs) in rows[:n]:
+        tr.write_line(
+            f"{comp:7.1f} s compile {lower:6.1f} s lower {dur:7.1f} s test "
+            f"{int(programs):5d} programs  {nodeid}"
+        )
