@@ -180,8 +180,8 @@ def pytest_terminal_summary(terminalreporter, config):
     tr.section("XLA compile time per test")
     tr.write_line(
         f"all tests: {total[0]:.0f} s, of which XLA compile {total[1]:.0f} s and lowering "
-        f"{total[2]:.0f} s ({int(total[3])} programs compiled; the persistent cache's hits "
-        "are not compiles)"
+        f"{total[2]:.0f} s ({int(total[3])} programs compiled or loaded from the persistent "
+        "cache: a load counts with its own, shorter time)"
     )
     for nodeid, (dur, comp, lower, programs) in rows[:n]:
         tr.write_line(
