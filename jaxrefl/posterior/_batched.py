@@ -39,6 +39,7 @@ Pixels with no estimate (NaN theta) are run from theta = 0 and come back NaN. Wi
 
 from __future__ import annotations
 
+import contextlib
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -157,6 +158,15 @@ def _welford(mean, m2, count, x, on):
     mean1 = mean + jnp.where(on, delta / jnp.maximum(c1, 1), 0.0)
     m2_1 = m2 + jnp.where(on, jnp.outer(delta, x - mean1), 0.0)
     return mean1, m2_1, c1
+
+
+def _dtype_scope(dtype):
+    """Where float32 chains are traced: with 64-bit types off, so that constants made
+    without a dtype (BlackJAX's dense metric builds its identity matrix that way) are
+    float32 too, instead of promoting the chain's state to float64 under ``jax_enable_x64``."""
+    if jnp.dtype(dtype) == jnp.float32:
+        return jax.enable_x64(False)
+    return contextlib.nullcontext()
 
 
 def _one_chain(
@@ -412,7 +422,8 @@ def sample_pixels(
 
     def call():
         run = _sampler(target, opts)
-        out = jax.block_until_ready(map_sharded(run, args, ndev))
+        with _dtype_scope(dtype):
+            out = jax.block_until_ready(map_sharded(run, args, ndev))
         return jax.tree.map(lambda a: a[:n], out)
 
     t0 = time.perf_counter()
