@@ -141,6 +141,25 @@ def test_only_linear_gaussian_posteriors_take_the_gibbs_path(pooled_posterior):
         jp.HMCOptions(gibbs_sweeps=-1)
 
 
+def test_gibbs_path_discards_its_fraction_of_the_warm_up(pooled_posterior):
+    """sample_pixels' Gibbs path runs sample_gibbs with num_warmup * gibbs_warmup_fraction
+    intervals of warm-up (at least 1): the same draws as a direct call with that count."""
+    lp, sub, theta0 = pooled_posterior
+    opts = jp.HMCOptions(num_warmup=50, num_samples=20, num_chains=2, gibbs_sweeps=1)
+    assert opts.gibbs_warmup == 10
+    assert jp.HMCOptions(num_warmup=2, gibbs_warmup_fraction=0.1).gibbs_warmup == 1
+    s = jp.sample_pixels(lp, sub, theta0, options=opts, seed=7)
+    kw = dict(num_chains=2, num_samples=20, sweeps=1, seed=7)
+    direct = sample_gibbs(lp, sub, theta0, num_warmup=10, **kw)
+    longer = sample_gibbs(lp, sub, theta0, num_warmup=50, **kw)
+    assert s.method == "gibbs"
+    np.testing.assert_array_equal(s.theta, direct.theta)
+    assert not np.array_equal(s.theta, longer.theta)
+    for bad in (0.0, 1.5):
+        with pytest.raises(ValueError, match="gibbs_warmup_fraction"):
+            jp.HMCOptions(gibbs_warmup_fraction=bad)
+
+
 def test_censored_observations_by_data_augmentation_agree_with_hmc(pooled_posterior):
     """The brightest observation of each pixel recorded as clipped (only a lower bound is
     known): Gibbs with latent values and HMC on the Tobit likelihood give the same
