@@ -83,20 +83,28 @@ def test_log_density_matches_exact_gaussian(linear):
         assert lhs == pytest.approx(rhs, rel=1e-8, abs=1e-9)
 
 
+def _noisy_pixels(lin, truths, rng):
+    """(observations (N, M), PixelData) of N pixels of the linear model at ``truths`` (N, 4)
+    with noise SIGMA, all seen from the fixture's 16 directions."""
+    n = len(truths)
+    ys = truths @ lin["a"].T + lin["b"] + SIGMA * rng.normal(size=(n, lin["b"].size))
+    data = fit.pixel_data(
+        ys.reshape(n, -1, 3),
+        np.broadcast_to(lin["wi"], (n, 16, 3)),
+        np.broadcast_to(lin["wo"], (n, 16, 3)),
+        scale=np.broadcast_to(lin["scale"], (n, 16, 3)),
+    )
+    return ys, data
+
+
 def test_known_answer_mean_and_covariance(linear):
     """Batched HMC on 4 pixels of the linear-Gaussian model: mean within 4 MC standard
     errors, covariance within 25% per pixel and 12% averaged over the 3 pixels (entrywise,
     relative to the diagonal scale; the MC error of a variance is ~ sqrt(2 / ESS) ~ 5%)."""
     rng = np.random.default_rng(2)
     truths = np.array([[0.4, 0.6, 0.3, 0.15], [0.2, 0.2, 0.9, 0.05], [0.7, 0.5, 0.5, 0.2]])
-    ys = truths @ linear["a"].T + linear["b"] + SIGMA * rng.normal(size=(3, linear["b"].size))
+    ys, data = _noisy_pixels(linear, truths, rng)
     n = len(ys)
-    data = fit.pixel_data(
-        ys.reshape(n, -1, 3),
-        np.broadcast_to(linear["wi"], (n, 16, 3)),
-        np.broadcast_to(linear["wo"], (n, 16, 3)),
-        scale=np.broadcast_to(linear["scale"], (n, 16, 3)),
-    )
     opts = jp.HMCOptions(num_warmup=200, num_samples=1000, num_chains=2)
     s = jp.sample_pixels(linear["lp"], data, jnp.asarray(truths), options=opts, seed=3)
     cov = linear["cov"]
@@ -122,14 +130,8 @@ def test_float32_chains_agree_with_float64_and_the_exact_answer(linear):
     their Monte Carlo error."""
     rng = np.random.default_rng(4)
     truths = np.array([[0.4, 0.6, 0.3, 0.15], [0.2, 0.2, 0.9, 0.05]])
-    ys = truths @ linear["a"].T + linear["b"] + SIGMA * rng.normal(size=(2, linear["b"].size))
+    ys, data = _noisy_pixels(linear, truths, rng)
     n = len(ys)
-    data = fit.pixel_data(
-        ys.reshape(n, -1, 3),
-        np.broadcast_to(linear["wi"], (n, 16, 3)),
-        np.broadcast_to(linear["wo"], (n, 16, 3)),
-        scale=np.broadcast_to(linear["scale"], (n, 16, 3)),
-    )
     opts = jp.HMCOptions(num_warmup=200, num_samples=1000, num_chains=2, dense_mass=True)
     runs = {
         dt: jp.sample_pixels(linear["lp"], data.astype(dt), jnp.asarray(truths, dt), options=opts)

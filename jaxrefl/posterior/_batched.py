@@ -95,9 +95,8 @@ class HMCOptions:
     gibbs_sweeps: int = 0
     # Kept-draw intervals the Gibbs path discards, as a fraction of ``num_warmup`` (at
     # least 1): it has no step size or metric to tune, and its chains start at the fit's
-    # optimum, inside the bulk. On ``bath_tile`` (``pooled``, 16 rows of the 256 x 256 map)
-    # 20 intervals instead of 100 gave the same max R-hat quantiles (median 1.019, q95 1.048
-    # against 1.050) for 27% less sampling time.
+    # optimum, inside the bulk (``benchmarks/posterior_speed.py`` reports the R-hat of
+    # the maps it samples).
     gibbs_warmup_fraction: float = 0.2
 
     def __post_init__(self):
