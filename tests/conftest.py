@@ -7,6 +7,8 @@
   the same shapes in different processes (xdist workers, notebook kernels, CLI subprocesses);
   the cache compiles each once. It is set through the environment so subprocesses inherit it,
   and the command line (``jaxrefl/cli/_compile.py``) uses it rather than the user's folder.
+* XLA compiles the tests' programs with its CPU loop emitters
+  (``--xla_cpu_use_fusion_emitters=false`` in ``XLA_FLAGS``, unless set): see below.
 * ``shared_data`` locates ``../shared/data`` through ``JAXREFL_SHARED_DATA``. In CI
   (``CI`` set, as ``.ci/run`` does) a missing data folder is a failure, never a skip.
 * Every ``report.json`` a test leaves under its ``tmp_path`` must parse as strict JSON (no
@@ -43,6 +45,18 @@ if _cache != "off":
 else:
     # The command line would otherwise keep its programs in the user's cache folder.
     os.environ.setdefault("JAXREFL_NO_COMPILE_CACHE", "1")
+
+# XLA's CPU backend generates the tests' programs with its loop emitters rather than its
+# newer fusion emitters (``--xla_cpu_use_fusion_emitters=false``): most of the suite's time
+# is compiling programs that then run once on a few pixels, and the loop emitters compile
+# them in about half the time while they run about as fast. Both generate the same IEEE
+# arithmetic (a GGX model's values and gradients agree bit for bit, float32 and float64),
+# so the tests check the same numbers. Set before the backend starts, in the
+# environment so that subprocesses (the command line, notebook kernels) inherit it; a value
+# the user set is kept.
+_xla = os.environ.get("XLA_FLAGS", "")
+if "xla_cpu_use_fusion_emitters" not in _xla:
+    os.environ["XLA_FLAGS"] = f"{_xla} --xla_cpu_use_fusion_emitters=false".strip()
 
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
