@@ -112,8 +112,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--rerun-rhat",
         type=_rhat,
-        default=1.1,
-        help="rerun pixels above this max R-hat, longer (0: no second pass)",
+        default=None,
+        help="rerun pixels above this max R-hat, longer (0: no second pass; default "
+        "jaxrefl.posterior.RERUN_RHAT, 1.05)",
     )
     p.add_argument(
         "--chunk", type=positive_int, default=2048, help="MCMC pixels per compiled sampler call"
@@ -223,7 +224,11 @@ def _run_capture(args, path: Path, opts, dist) -> dict:
         mcmc=args.mcmc,
         audit=args.audit,
         hmc=opts,
-        rerun_rhat=args.rerun_rhat if args.rerun_rhat > 0 else None,
+        rerun_rhat=(
+            jp.RERUN_RHAT
+            if args.rerun_rhat is None
+            else (args.rerun_rhat if args.rerun_rhat > 0 else None)
+        ),
         chunk=args.chunk,
         seed=args.seed,
     )
@@ -261,7 +266,8 @@ def _run_capture(args, path: Path, opts, dist) -> dict:
     m = rep["uncertainty"]
     print(
         f"{res.height} x {res.width} pixels: {m['method_counts']}; MCMC pixels with R-hat > "
-        f"1.01: {m['mcmc']['pixels_rhat_above_1.01']}, > 1.1: "
+        f"1.01: {m['mcmc']['pixels_rhat_above_1.01']}, > 1.05: "
+        f"{m['mcmc']['pixels_rhat_above_1.05']}, > 1.1: "
         f"{m['mcmc']['pixels_rhat_above_1.1']}, with divergences: "
         f"{m['mcmc']['pixels_with_divergences']}"
     )
@@ -270,7 +276,7 @@ def _run_capture(args, path: Path, opts, dist) -> dict:
         print(
             f"second pass on {sp['pixels']} pixels: max R-hat median "
             f"{sp['max_rhat_before']['median']:.3f} -> {sp['max_rhat_after']['median']:.3f}, "
-            f"still above 1.1: {sp['pixels_rhat_above_1.1_after']}"
+            f"still above 1.05: {sp['pixels_rhat_above_1.05_after']}"
         )
     return report
 

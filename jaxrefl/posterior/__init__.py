@@ -24,6 +24,7 @@ calibration), :mod:`._maps` (EXR uncertainty channels).
 
 from ._adaptive import MAP_OPTIONS as MAP_OPTIONS
 from ._adaptive import METHODS as METHODS
+from ._adaptive import RERUN_RHAT as RERUN_RHAT
 from ._adaptive import AdaptiveOptions as AdaptiveOptions
 from ._adaptive import MCMCPixels as MCMCPixels
 from ._adaptive import UncertaintyMap as UncertaintyMap
