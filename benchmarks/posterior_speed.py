@@ -302,6 +302,12 @@ def map_run(args, cap, name):
             f"{mc['pixels_with_divergences']}; R-hat > 1.1 on {mc['pixels_rhat_above_1.1']} "
             f"of {mc['pixels']}"
         )
+        ok = 1.0 - (mc["pixels_rhat_above_1.05"] + mc["pixels_rhat_nan"]) / mc["pixels"]
+        print(
+            f"max R-hat <= 1.05 on {100 * ok:.2f}% of the MCMC pixels ({mc['pixels_rhat_nan']} "
+            f"without an R-hat; target >= 99%: "
+            f"{'MET' if ok >= 0.99 else 'MISSED'})"
+        )
         sp = mc["second_pass"]
         if sp["pixels"]:
             print(
