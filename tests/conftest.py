@@ -49,11 +49,11 @@ else:
 # XLA's CPU backend generates the tests' programs with its loop emitters rather than its
 # newer fusion emitters (``--xla_cpu_use_fusion_emitters=false``): most of the suite's time
 # is compiling programs that then run once on a few pixels, and the loop emitters compile
-# them in about two thirds of the time while they run about as fast. Both generate the same IEEE
-# arithmetic (a GGX model's values and gradients agree bit for bit, float32 and float64),
-# so the tests check the same numbers. Set before the backend starts, in the
-# environment so that subprocesses (the command line, notebook kernels) inherit it; a value
-# the user set is kept.
+# them in about two thirds of the time while they run about as fast. Both generate the same
+# IEEE arithmetic (a GGX model's values and gradients agree bit for bit, float32 and
+# float64), so the tests check the same numbers. Set before the backend starts, in the
+# environment so that subprocesses (the command line, notebook kernels) inherit it; a
+# value the user set is kept.
 _xla = os.environ.get("XLA_FLAGS", "")
 if "xla_cpu_use_fusion_emitters" not in _xla:
     os.environ["XLA_FLAGS"] = f"{_xla} --xla_cpu_use_fusion_emitters=false".strip()

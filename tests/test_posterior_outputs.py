@@ -273,9 +273,9 @@ def test_adaptive_chunks_have_one_shape_and_map_back(lambert, monkeypatch):
 
 
 def test_second_pass_reruns_the_pixels_whose_chains_disagree(lambert, monkeypatch):
-    """Pixels whose first-pass chains disagree (R-hat > 1.05) run a second, longer pass
-    (longer_options: twice the warm-up, thin 4, no jitter) from first-pass draws, chain c
-    from first-pass chain c, with the draws' std as the initial metric; its summaries and
+    """Pixels whose first-pass chains disagree (R-hat above ``rerun_rhat``) run a second,
+    longer pass (longer_options: twice the warm-up, thin 4, no jitter) from first-pass draws,
+    chain c from first-pass chain c, with the draws' std as the initial metric; its summaries and
     draws replace the first's and the report says what it changed (stand-in sampler)."""
     from jaxrefl.posterior import _adaptive
 

@@ -266,10 +266,11 @@ class UncertaintyMap:
                 "pixels_rhat_above_1.01": int(np.sum(self.rhat[on] > 1.01)),
                 # 1.1: the looser threshold of Gelman et al. (BDA3, sec. 11.4), the one a
                 # 200-draw map chain can be held to; 1.01 is Vehtari et al. 2021's.
+                "pixels_rhat_above_1.1": int(np.sum(self.rhat[on] > 1.1)),
+                # 1.05: RERUN_RHAT, the threshold the maps are held to
                 "pixels_rhat_above_1.05": int(np.sum(self.rhat[on] > 1.05)),
                 # NaN: a parameter whose draws did not vary (no R-hat); counted apart
                 "pixels_rhat_nan": int(np.sum(np.isnan(self.rhat[on]))),
-                "pixels_rhat_above_1.1": int(np.sum(self.rhat[on] > 1.1)),
                 "pixels_with_divergences": int(np.sum(self.divergences[on] > 0)),
                 "divergences": int(np.sum(self.divergences[on])),
                 "second_pass": {

@@ -80,8 +80,8 @@ def truncated_normal(key, a, b, dtype=jnp.float64):
 
     ``jax.random.truncated_normal`` inverts Phi through erf, and erf(a / sqrt 2) rounds to 1
     beyond a of about 6 (float64): every draw of such a segment is its near end. Here a
-    segment above 0 is inverted in its upper tail, x = -Phi^-1(Phi(-b) + u (Phi(-a) -
-    Phi(-b))), where Phi(-a) stays representable to a of about 37; a segment below 0 is
+    segment above 0 is inverted in its upper tail, x = -Phi^-1(Phi(-a) + u (Phi(-b) -
+    Phi(-a))), where Phi(-a) stays representable to a of about 37; a segment below 0 is
     mirrored into it; a segment around 0 uses Phi itself (no cancellation there). Beyond
     :data:`_TAIL` the tail is the exponential x = a + E / a truncated to b (Robert 1995 sec.
     2 for the limit).
