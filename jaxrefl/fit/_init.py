@@ -414,10 +414,11 @@ def _varpro_block(res, lin, grid_names, grid, refine, d):
         vs = [jnp.swapaxes(v, -1, -2) for v in fs]  # (n, G, C, K)
         y = jnp.swapaxes((obs_all if exact else obs)[:, None] - f0, -1, -2)
 
-        def solve(wt):
-            wv = [wt * v for v in vs]
-            a = {(i, j): jnp.sum(wv[i] * vs[j], axis=-1) for i in range(m) for j in range(i, m)}
-            b = [jnp.sum(wv[i] * y, axis=-1) + pbias[i] for i in range(m)]
+        def solve(us, z):
+            """The box-constrained x from the whitened basis u_j = sqrt(w) f_j and
+            z = sqrt(w) y: A_ij = sum_k u_i u_j, b_i = sum_k u_i z."""
+            a = {(i, j): jnp.sum(us[i] * us[j], axis=-1) for i in range(m) for j in range(i, m)}
+            b = [jnp.sum(us[i] * z, axis=-1) + pbias[i] for i in range(m)]
             for i in range(m):
                 a[i, i] = a[i, i] + prec[i]
             if m == 1:
@@ -434,29 +435,35 @@ def _varpro_block(res, lin, grid_names, grid, refine, d):
                 return [x[..., i] for i in range(m)]
             return []
 
-        def residual(xs):
-            r = y
+        def residual(xs, us, z):
+            r = z
             for j in range(m):
-                r = r - xs[j][..., None] * vs[j]
-            return r  # obs - pred, (n, G, C, K)
+                r = r - xs[j][..., None] * us[j]
+            return r  # sqrt(w) (obs - pred), (n, G, C, K)
 
-        w_unc = jnp.swapaxes(w, -1, -2)[:, None]
-        xs = solve(w_unc)
+        def whiten(wt):
+            s = jnp.sqrt(wt)
+            return [s * v for v in vs], s * y
+
+        # The basis enters only whitened: each u_j is then one fused pass over the model
+        # (a bare f_j read by several consumers would be evaluated again in each).
+        us, z = whiten(jnp.swapaxes(w, -1, -2)[:, None])
+        xs = solve(us, z)
         if exact:
             wa = jnp.swapaxes(w_all, -1, -2)[:, None]
             cens = jnp.swapaxes(d.censored, -1, -2)[:, None]
             std = jnp.swapaxes(std_all, -1, -2)[:, None]
             for _ in range(_EXACT_PASSES):
-                r = residual(xs)
+                r = residual(xs, vs, y)
                 # A censored row counts where the prediction breaks its bound: below a
                 # saturated value (r > 0) or above a dark one (r < 0).
                 on = (cens == 0) | ((cens > 0) & (r > 0)) | ((cens < 0) & (r < 0))
-                xs = solve(wa * on * _irls_weight(res.loss, -r / std))
+                xs = solve(*whiten(wa * on * _irls_weight(res.loss, -r / std)))
         # The cost from the residual itself: the expanded form s + x^T A x - 2 b^T x loses
         # the digits of a good fit in float32 (it is a small difference of large sums), and
         # near-equal grid values would then be ranked by rounding.
-        r = residual(xs)
-        cost = jnp.sum(w_unc * r * r, axis=(-2, -1))
+        r = residual(xs, us, z)
+        cost = jnp.sum(r * r, axis=(-2, -1))
         return xs, jnp.where(jnp.isfinite(cost), cost, jnp.inf)
 
     # No nonlinear parameter: one "grid value" (unused) and a single linear solve.
