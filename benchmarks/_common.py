@@ -15,6 +15,12 @@ from typing import TYPE_CHECKING
 
 import jax
 
+from jaxrefl.cli._compile import prefer_loop_emitters
+
+# The benchmarks measure what the command line runs, with its XLA settings: set here, before
+# any script starts JAX's backend (every script imports this module before computing).
+prefer_loop_emitters()
+
 if TYPE_CHECKING:
     from jaxrefl.io import Capture
 
@@ -31,9 +37,10 @@ def machine() -> str:
     except OSError:
         pass
     dev = ", ".join(sorted({d.platform for d in jax.devices()}))
+    flags = os.environ.get("XLA_FLAGS", "")
     return (
         f"{cpu}; {os.cpu_count()} cores; jax {jax.__version__} on {dev}; "
-        f"python {platform.python_version()}"
+        f"python {platform.python_version()}" + (f"; XLA_FLAGS {flags}" if flags else "")
     )
 
 

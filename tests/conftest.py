@@ -28,6 +28,8 @@ from pathlib import Path
 import jax
 import pytest
 
+from jaxrefl.cli._compile import prefer_loop_emitters
+
 _cache = os.environ.get(
     "JAXREFL_TEST_JAX_CACHE",
     str(Path(__file__).resolve().parents[1] / ".pytest_cache" / "jax-compilation"),
@@ -54,9 +56,7 @@ else:
 # float64), so the tests check the same numbers. Set before the backend starts, in the
 # environment so that subprocesses (the command line, notebook kernels) inherit it; a
 # value the user set is kept.
-_xla = os.environ.get("XLA_FLAGS", "")
-if "xla_cpu_use_fusion_emitters" not in _xla:
-    os.environ["XLA_FLAGS"] = f"{_xla} --xla_cpu_use_fusion_emitters=false".strip()
+prefer_loop_emitters()
 
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")

@@ -5,6 +5,7 @@ except the one subprocess that checks ``--help`` imports no JAX."""
 from __future__ import annotations
 
 import argparse
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -283,6 +284,23 @@ def test_compile_cache_folder(monkeypatch, tmp_path):
     assert chosen_cache_dir(off=True) is None  # --no-compile-cache
     monkeypatch.setenv("JAXREFL_NO_COMPILE_CACHE", "1")
     assert chosen_cache_dir() is None
+
+
+def test_loop_emitters_unless_the_user_chose(monkeypatch, tmp_path):
+    from jaxrefl.cli._compile import LOOP_EMITTERS, prefer_loop_emitters
+
+    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_enable_fast_math=false")
+    assert prefer_loop_emitters()
+    assert os.environ["XLA_FLAGS"].split() == ["--xla_cpu_enable_fast_math=false", LOOP_EMITTERS]
+    assert prefer_loop_emitters()  # once only
+    assert os.environ["XLA_FLAGS"].count("fusion_emitters") == 1
+    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=true")
+    assert not prefer_loop_emitters()  # the user's choice is kept
+    assert os.environ["XLA_FLAGS"] == "--xla_cpu_use_fusion_emitters=true"
+    # The command line sets it before its work (here a fit refused for a missing folder).
+    monkeypatch.delenv("XLA_FLAGS")
+    assert main(["fit", str(tmp_path / "missing"), "--out", str(tmp_path / "o")]) == 1
+    assert os.environ["XLA_FLAGS"] == LOOP_EMITTERS
 
 
 def test_compile_line_counts_programs(capsys):

@@ -235,8 +235,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     clock = None
     try:
         if getattr(module, "COMPILES", True):
-            from ._compile import CompileClock, enable_compile_cache
+            from ._compile import CompileClock, enable_compile_cache, prefer_loop_emitters
 
+            prefer_loop_emitters()
             cache = enable_compile_cache(off=args.no_compile_cache)
             clock = CompileClock().start()
         from jaxrefl import brdf
