@@ -26,9 +26,10 @@ then the slowest process's.
 
 Timings: ``compile_s`` is measured by a warm-up call on the first tile's data (time of that
 call minus the time of the same tile in the run), ``run_s`` is the sum of the tiles' times
-(from reading its data to writing its file).
-``stages_s`` splits the tiles' time (warm-up excluded) into ``read`` (the tile's
-:class:`~jaxrefl.fit.PixelData` from the photos), ``fit`` (:func:`~jaxrefl.fit.fit_pixels`:
+(from waiting for its data to writing its file). A tile's data is read on a second thread
+while the tile before it is fitted.
+``stages_s`` splits the tiles' time (warm-up excluded) into ``read`` (the wait for the
+tile's :class:`~jaxrefl.fit.PixelData` from the photos), ``fit`` (:func:`~jaxrefl.fit.fit_pixels`:
 start and solver), ``laplace``, ``errors`` (per-photo errors and the copy of the tile's
 results to the host) and ``write`` (the tile file); each stage waits for its results, so
 the split is exact up to the timer. ``choose_s`` is the time of ``auto``'s model choice.
@@ -41,6 +42,7 @@ import json
 import os
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
@@ -683,21 +685,31 @@ def fit_capture(
         from tqdm.auto import tqdm
 
         iterator = tqdm(todo, desc="fit tiles", unit="tile")
-    for i in iterator:
-        s, e = tiles[i]
-        t0 = time.perf_counter()
-        data = fitter.data(s, e)
-        fitter.stage_s["read"] += time.perf_counter() - t0
-        out = fitter(data, e - s)
-        t1 = time.perf_counter()
-        if tdir is not None:
-            save_npz_atomic(tdir / f"tile_{i:05d}.npz", **out)
-        t2 = time.perf_counter()
-        fitter.stage_s["write"] += t2 - t1
-        times.append(t2 - t0)
-        results[i] = out
-        if on_tile is not None:
-            on_tile(i, len(tiles))
+
+    def read(j: int):
+        return fitter.data(*tiles[todo[j]])
+
+    # The next tile's data is read on a second thread while this one is fitted (reading is
+    # NumPy work on the host, the fit XLA's); ``read`` counts only the wait for it.
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        ahead = pool.submit(read, 0) if todo else None
+        for j, i in enumerate(iterator):
+            s, e = tiles[i]
+            t0 = time.perf_counter()
+            assert ahead is not None
+            data = ahead.result()
+            ahead = pool.submit(read, j + 1) if j + 1 < len(todo) else None
+            fitter.stage_s["read"] += time.perf_counter() - t0
+            out = fitter(data, e - s)
+            t1 = time.perf_counter()
+            if tdir is not None:
+                save_npz_atomic(tdir / f"tile_{i:05d}.npz", **out)
+            t2 = time.perf_counter()
+            fitter.stage_s["write"] += t2 - t1
+            times.append(t2 - t0)
+            results[i] = out
+            if on_tile is not None:
+                on_tile(i, len(tiles))
     if todo:
         compile_s = max(0.0, warm - times[0])
     per_process = None
