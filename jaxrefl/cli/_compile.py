@@ -17,8 +17,10 @@ for the one ``compiling ...`` line each command prints.
 :func:`prefer_loop_emitters` has XLA's CPU backend generate the command's programs with its
 loop emitters (``--xla_cpu_use_fusion_emitters=false`` in ``XLA_FLAGS``) rather than its
 newer fusion emitters: they compile a capture fit's programs in less time and the fit runs
-slightly faster (``docs/benchmarks.md``, fit throughput), with the same IEEE arithmetic. A
-value of that option the user set in ``XLA_FLAGS`` is kept; GPU backends ignore it.
+slightly faster (``docs/benchmarks.md``, fit throughput), with the same IEEE arithmetic.
+``jaxrefl sample`` keeps the default emitters (its float64 HMC programs run slower with the
+loop emitters). A value of that option the user set in ``XLA_FLAGS`` is kept; GPU backends
+ignore it.
 """
 
 from __future__ import annotations
