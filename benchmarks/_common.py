@@ -15,6 +15,12 @@ from typing import TYPE_CHECKING
 
 import jax
 
+from jaxrefl.cli._compile import prefer_loop_emitters
+
+# The benchmarks measure what the command line runs, with its XLA settings: set here, before
+# any script starts JAX's backend (every script imports this module before computing).
+prefer_loop_emitters()
+
 if TYPE_CHECKING:
     from jaxrefl.io import Capture
 

@@ -83,10 +83,6 @@ from _common import machine, run_and_record, table
 
 import jaxrefl
 from jaxrefl import fit
-from jaxrefl.cli._compile import prefer_loop_emitters
-
-# What `jaxrefl fit` runs, with its XLA settings (set before JAX starts its backend).
-prefer_loop_emitters()
 
 TARGET_PX_S = 30_000
 TARGET_E2E_RATIO, TARGET_E2E_PX_S = 0.5, 25_000

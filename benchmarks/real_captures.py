@@ -43,11 +43,6 @@ sys.path.insert(0, str(HERE))
 
 from _common import flash_capture, machine, table, write_section  # noqa: E402
 
-from jaxrefl.cli._compile import prefer_loop_emitters  # noqa: E402
-
-# What `jaxrefl fit` runs, with its XLA settings (set before JAX starts its backend).
-prefer_loop_emitters()
-
 
 def _jaxrefl_model(cap, model: str) -> dict:
     from jaxrefl.svbrdf import FitJob, leave_one_out

@@ -18,9 +18,9 @@ for the one ``compiling ...`` line each command prints.
 loop emitters (``--xla_cpu_use_fusion_emitters=false`` in ``XLA_FLAGS``) rather than its
 newer fusion emitters: they compile a capture fit's programs in less time and the fit runs
 slightly faster (``docs/benchmarks.md``, fit throughput), with the same IEEE arithmetic.
-``jaxrefl sample`` keeps the default emitters (its float64 HMC programs run slower with the
-loop emitters). A value of that option the user set in ``XLA_FLAGS`` is kept; GPU backends
-ignore it.
+Measured trade-off: ``jaxrefl sample``'s uncertainty maps of the real captures (exact Gibbs)
+are faster with them, while its float64 HMC second pass (per-pixel lobes) is slower. A value
+of that option the user set in ``XLA_FLAGS`` is kept; GPU backends ignore it.
 """
 
 from __future__ import annotations

@@ -12,8 +12,6 @@ A subcommand is a module under ``jaxrefl/cli/`` with
 - ``run(args) -> int``: the work; JAX and the library are imported here, not at module level,
 - optionally ``resume_hint(args) -> str``: what to type to resume after Ctrl-C,
 - optionally ``COMPILES = False`` for a command that runs no JAX program (no cache option),
-- optionally ``LOOP_EMITTERS = False`` for a command whose programs run slower with XLA's
-  CPU loop emitters (:func:`jaxrefl.cli._compile.prefer_loop_emitters`, on by default),
 
 and one line in :data:`COMMANDS` below. Building the parser imports these modules and
 nothing else: ``jaxrefl --help`` must not import JAX (``tests/test_cli_behaviour.py``
@@ -239,8 +237,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if getattr(module, "COMPILES", True):
             from ._compile import CompileClock, enable_compile_cache, prefer_loop_emitters
 
-            if getattr(module, "LOOP_EMITTERS", True):
-                prefer_loop_emitters()
+            prefer_loop_emitters()
             cache = enable_compile_cache(off=args.no_compile_cache)
             clock = CompileClock().start()
         from jaxrefl import brdf

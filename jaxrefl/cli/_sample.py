@@ -53,9 +53,6 @@ from ._options import fit_config
 NOT_CONVERGED = 3  # exit status: outputs written, but the draws missed a convergence target
 EMCEE_MAX_STEPS = 30_000  # jaxrefl.posterior.EmceeOptions().max_steps (not imported: no JAX)
 HELP = "posterior sampling: uncertainty maps with diagnostics (capture or BRDF file)"
-# XLA's default (fusion) emitters: the float64 HMC programs, its second pass above all, run
-# slower with the loop emitters (docs/benchmarks.md, posterior speed).
-LOOP_EMITTERS = False
 
 
 def _crop(text: str) -> tuple[int, int, int, int]:
