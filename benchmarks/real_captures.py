@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import os
 import sys
 import time
 from pathlib import Path
@@ -40,6 +41,14 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
+# Both sides run under XLA's default CPU emitters, not the loop emitters the command line
+# (and _common) would choose: the Adam peer's programs run about twice as slow with those,
+# while jaxrefl's fits take the same run time under either (only their compile differs,
+# which is in its own column).
+if "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", ""):
+    os.environ["XLA_FLAGS"] = (
+        os.environ.get("XLA_FLAGS", "") + " --xla_cpu_use_fusion_emitters=true"
+    ).strip()
 
 from _common import flash_capture, machine, table, write_section  # noqa: E402
 
