@@ -45,8 +45,11 @@ whose posterior is a long curved ridge that chains in the fit's coordinates do n
 Where a chunk's posterior is linear-Gaussian in every BRDF parameter (``pooled`` under a
 co-located flash, censored observations included: :mod:`jaxrefl.posterior._gibbs`),
 :data:`MAP_OPTIONS` (``gibbs_sweeps=2``) draws it exactly by Gibbs sampling instead of HMC,
-two scans between kept draws; a map can then hold chunks of both (its samples' ``method``
-is ``"gibbs+hmc"``).
+two scans between kept draws; where it is so given the lobe width (the per-pixel ``ggx``,
+``beckmann``, ``ggx_rgb``: :mod:`jaxrefl.posterior._width_gibbs`), by Metropolis-within-
+Gibbs whose joint move draws the width from its marginal. A map can hold chunks of
+several (its samples' ``method`` is then e.g. ``"gibbs+hmc"``; the report's
+``timings.sampler`` names them).
 
 Chunks on disk and across processes: with ``chunk_dir`` each chunk's draws are written
 there as it finishes (a file named by the pass, a fingerprint of the pixels, sampler
@@ -399,9 +402,10 @@ class _Run:
         o, tm = self.o, self.timings
         second = o.second_pass
         restart: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-        parts, run_s = [], []
+        parts, run_s, used = [], [], []
         for real, cut, rs in self._chunks(idx, starts, o.hmc, o.seed, "MCMC pixels", "first"):
             run_s.append(rs)
+            used.append(cut.method)
             out.store(real, cut)
             if second is not None:  # draws kept for the second pass's starts only
                 # NaN R-hat (a chain that never moved) counts as disagreeing
@@ -413,6 +417,7 @@ class _Run:
         tm["mcmc_s"] = float(np.sum(run_s))
         tm["mcmc_pixels"] = int(idx.size)
         tm["mcmc_chunks"] = len(run_s)
+        tm["sampler"] = "+".join(dict.fromkeys(used))  # each chunk's (Samples.method)
         tm["mcmc_chunk_size"] = _chunk_size(int(idx.size), o.chunk, o.hmc.batch_size)
         if len(run_s) > 1:
             # the first chunk compiles; the others reuse it

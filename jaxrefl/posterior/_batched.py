@@ -56,6 +56,7 @@ from jaxrefl.fit import PixelData, device_count, map_sharded
 from ._gibbs import qualifies, sample_gibbs
 from ._logpost import LogPosterior
 from ._reparam import ConditionalAlbedo, conditional_albedo
+from ._width_gibbs import qualifies_width, sample_width_gibbs
 
 __all__ = ["HMCOptions", "Samples", "sample_pixels"]
 
@@ -90,8 +91,10 @@ class HMCOptions:
     # Where > 0 and the posterior is linear-Gaussian in every BRDF parameter
     # (:func:`jaxrefl.posterior._gibbs.qualifies`: e.g. ``pooled`` under a co-located
     # flash; censored observations by data augmentation), draw it exactly by Gibbs
-    # sampling instead, this many
-    # sweeps between kept draws (times ``thin``). 0: always HMC.
+    # sampling instead; where it is so given one lobe width (the per-pixel ``ggx``:
+    # :func:`jaxrefl.posterior._width_gibbs.qualifies_width`), by Metropolis-within-Gibbs
+    # with a collapsed proposal of the width; this many scans between kept draws (times
+    # ``thin``). 0: always HMC.
     gibbs_sweeps: int = 0
     # Kept-draw intervals the Gibbs path discards, as a fraction of ``num_warmup`` (at
     # least 1): it has no step size or metric to tune, and its chains start at the fit's
@@ -381,6 +384,20 @@ def sample_pixels(
             lp,
             data,
             jnp.broadcast_to(t0_arr, (n, lp.size)) if t0_arr.ndim < 3 else t0_arr,
+            num_chains=opts.num_chains,
+            num_warmup=opts.gibbs_warmup,
+            num_samples=opts.num_samples,
+            sweeps=opts.gibbs_sweeps * opts.thin,
+            seed=seed,
+        )
+        s.extra["options"] = opts
+        return s
+    if opts.gibbs_sweeps > 0 and qualifies_width(lp, data)[0]:
+        s = sample_width_gibbs(
+            lp,
+            data,
+            jnp.broadcast_to(t0_arr, (n, lp.size)) if t0_arr.ndim < 3 else t0_arr,
+            theta_std=None if theta_std is None else jnp.asarray(theta_std, dtype),
             num_chains=opts.num_chains,
             num_warmup=opts.gibbs_warmup,
             num_samples=opts.num_samples,

@@ -1,0 +1,494 @@
+"""Metropolis-within-Gibbs for posteriors that are linear-Gaussian given one lobe width.
+
+The per-pixel capture models (``ggx``, ``beckmann``, ``ggx_rgb``) are linear in every
+parameter but the lobe width alpha: for a fixed alpha the prediction is
+
+    pred(alpha, x) = b(alpha) + A(alpha) x        (x = albedo, F0, natural units)
+
+(Lambert's albedo / pi and the lobe's D G / (4 cos_i cos_o) times the Schlick weight and
+the irradiance; Schlick is affine in F0 at any theta_d). With the L2 loss, Gaussian noise
+sd = s u (``noise.std(obs)``; s with the Jeffreys prior p(s) ~ 1/s, or s = 1), uniform
+priors on x's box and any scalar prior p(alpha) on alpha's interval, the posterior is
+
+    p(alpha, x, s | y) ~ s^-(n + 1) exp(-SSE(alpha, x) / (2 s^2)) p(alpha) 1[lo <= x <= hi]
+
+with SSE(alpha, x) = |W^1/2 (y' - b'(alpha) - A'(alpha) x)|^2 in whitened units
+(y' = y / u, A' = A / u, b' = b / u). Given alpha it is the linear-Gaussian posterior of
+:mod:`jaxrefl.posterior._gibbs`; alpha enters through A' and b'. One scan here is
+
+1. censored observations' latent values given (alpha, x, s) (data augmentation, Tanner &
+   Wong 1987, as in :mod:`~jaxrefl.posterior._gibbs`);
+2. (alpha, x) jointly by an independence Metropolis-Hastings proposal (Tierney 1994):
+   u = log alpha from a piecewise-constant density over cells of u, each cell's weight the
+   marginal of alpha with x integrated out against a Gaussian stand-in of x's box prior,
+   N(box centre, (box width / 2)^2),
+
+       m(u) = integral exp(-SSE / (2 s^2) - |(x - c) / w|^2 / 2) dx  p(alpha) alpha
+
+   (closed form: a Gaussian integral), evaluated at the cell's midpoint; then
+   x ~ N(mu(u), H(u)^-1), the same Gaussian at the proposed u itself, with
+   H = A'^T W A' / s^2 + diag(w^-2). The acceptance ratio is the exact target over this
+   proposal's density, so the stand-in and the cells only set how often a move is accepted,
+   never what the chain converges to. The cells are 32 even ones over alpha's whole
+   interval (in log alpha) and 16 over +-6 Laplace standard deviations around the fit's
+   optimum, where an identified width is narrow. A ridge along which a lobe no photo saw
+   trades width against F0 and albedo is crossed in one move: the proposal draws alpha
+   from its marginal, not from its conditional given x;
+3. s^2 | alpha, x (Inverse-Gamma) and x | alpha, s along Q-conjugate directions (Q =
+   A'^T W A'), each a truncated 1-D Gaussian on the segment inside the box (the exact
+   Gibbs moves of :mod:`~jaxrefl.posterior._gibbs`, which also hold x against a bound the
+   Gaussian proposal of step 2 keeps crossing). The directions are the columns of L^-T for
+   the Cholesky factor L of Q + ridge: conjugate directions decouple the Gaussian as its
+   eigenvectors do, and a Cholesky of a P x P matrix written out elementwise is cheap on
+   a batch of chains where an eigendecomposition per scan is not.
+
+There is no step size, metric or gradient to tune; a kept draw is ``sweeps`` scans after
+the last. :func:`qualifies_width` says whether a posterior and a batch of pixels meet the
+conditions above; :func:`sample_width_gibbs` returns :class:`~jaxrefl.posterior.Samples`
+with ``method="gibbs_mh"`` (``acceptance_rate`` the joint moves' acceptance).
+"""
+
+from __future__ import annotations
+
+import time
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from jaxrefl.fit import L2, PixelData, ScaledSigmoid
+
+from ._gibbs import _EDGE, _density, _sweep, _theta_of, truncated_normal
+from ._logpost import LogPosterior
+from ._priors import Jeffreys, Uniform
+
+__all__ = ["WIDTH", "qualifies_width", "sample_width_gibbs"]
+
+# The nonlinear parameter: a lobe width (GGX / Beckmann alpha), one scalar per pixel.
+WIDTH = "alpha"
+# Cells of the proposal over log alpha: even ones over the whole interval, and local ones
+# over +-_LOCAL_SD Laplace standard deviations around the optimum (module docstring).
+_GLOBAL_CELLS = 32
+_LOCAL_CELLS = 16
+_LOCAL_SD = 6.0
+# Laplace std of log alpha used where the fit's is missing or not finite, and the range it
+# is clipped to (below the lower end the local cells would be narrower than float64 can
+# tell the proposal's density apart from the target's; above it they add nothing to the
+# even cells).
+_LOCAL_SD_DEFAULT = 0.5
+_LOCAL_SD_RANGE = (1e-4, 2.0)
+# Relative error of the linear prediction at a second point (see _gibbs._LINEAR_RTOL).
+_LINEAR_RTOL = 1e-9
+# Ridge relative to Q's largest diagonal entry in the Cholesky factor that gives step 3's
+# directions: keeps the factor finite where a direction is unseen (Q singular, a lobe no
+# photo saw); the moves stay exact for any directions.
+_RIDGE = 1e-10
+
+
+def _layout(lp: LogPosterior):
+    """(width index, lo (P,), hi (P,) over every natural entry, width prior) when the
+    posterior has one scalar ``alpha`` in a finite positive box and every other entry is a
+    finite box with a uniform prior that covers it; else None."""
+    width = None
+    lo, hi = [], []
+    for blk, prior in zip(lp.space.blocks, lp.priors, strict=True):
+        for r in blk.runs:
+            if not isinstance(r.bijection, ScaledSigmoid):
+                return None
+            if not (np.isfinite(r.lower) and np.isfinite(r.upper)):
+                return None
+            if blk.name == WIDTH:
+                if r.stop - r.start != 1 or width is not None or not r.lower > 0:
+                    return None
+                width = (r.start, prior)
+            elif not isinstance(prior, Uniform) or not (
+                float(prior.lower) <= r.lower and float(prior.upper) >= r.upper
+            ):
+                return None
+            lo += [r.lower] * (r.stop - r.start)
+            hi += [r.upper] * (r.stop - r.start)
+    if width is None:
+        return None
+    return width[0], np.asarray(lo, np.float64), np.asarray(hi, np.float64), width[1]
+
+
+def _insert(x, a, i):
+    """The full natural vector: x (P - 1,) with the width a inserted at index i."""
+    return jnp.concatenate([x[..., :i], jnp.asarray(a, x.dtype)[..., None], x[..., i:]], -1)
+
+
+def _drop(v, i):
+    return jnp.concatenate([v[..., :i], v[..., i + 1 :]], -1)
+
+
+def _affine(lp, d, i, x_c, a):
+    """(A (M, P - 1), b (M,)) of pixel d's prediction at width a, exact for a model affine
+    in x (one forward-mode Jacobian at x_c)."""
+
+    def pred(x):
+        return lp.residual.predict(_theta_of(lp, _insert(x, a, i)), d).reshape(-1)
+
+    jac = jax.jacfwd(pred)(x_c)
+    return jac, pred(x_c) - jac @ x_c
+
+
+def qualifies_width(lp: LogPosterior, data: PixelData) -> tuple[bool, str]:
+    """(True, "") when :func:`sample_width_gibbs` samples this posterior for every pixel of
+    ``data`` (module docstring), else (False, the first condition that fails)."""
+    if lp.light is not None:
+        return False, "the light direction is sampled"
+    if not isinstance(lp.residual.loss, L2):
+        return False, f"the loss is {type(lp.residual.loss).__name__}, not L2"
+    if lp.noise_scale is not None and not isinstance(lp.noise_scale, Jeffreys):
+        return False, "the noise scale's prior is not Jeffreys'"
+    lay = _layout(lp)
+    if lay is None:
+        return False, (
+            f"not one scalar {WIDTH!r} in a positive box with every other parameter in a "
+            "finite box with a uniform prior"
+        )
+    cens = np.asarray(data.censored) != 0
+    w = np.asarray(data.weight)
+    if np.any(cens & (w != 0) & (w != 1)):
+        return False, "a censored observation has a weight other than 0 or 1"
+    i, lo, hi, _prior = lay
+    ok = _linear_given_width(lp, data, i, jnp.asarray(lo), jnp.asarray(hi))
+    if not bool(np.all(np.asarray(ok))):
+        return False, f"the model is not linear in its parameters given {WIDTH!r}"
+    return True, ""
+
+
+@eqx.filter_jit
+def _linear_given_width(lp, data, i, lo, hi):
+    xl, xh = _drop(lo, i), _drop(hi, i)
+    x_c, x_2 = 0.5 * (xl + xh), xl + 0.3 * (xh - xl)
+
+    def one(d):
+        ok = True
+        for f in (0.2, 0.7):  # two widths inside the interval
+            a = lo[i] + f * (hi[i] - lo[i])
+            jac, b = _affine(lp, d, i, x_c, a)
+            p2 = lp.residual.predict(_theta_of(lp, _insert(x_2, a, i)), d).reshape(-1)
+            err = jnp.max(jnp.abs(p2 - (b + jac @ x_2)))
+            ok = ok & (err <= _LINEAR_RTOL * (jnp.max(jnp.abs(p2)) + 1e-300))
+        return ok
+
+    return jax.vmap(one)(data)
+
+
+def _chol(h):
+    """Cholesky factor of symmetric positive-definite (..., P, P), written out entry by
+    entry (P is small and static: elementwise operations over the batch)."""
+    p = h.shape[-1]
+    rows: list[list] = [[None] * p for _ in range(p)]
+    for j in range(p):
+        s = h[..., j, j] - sum(rows[j][k] ** 2 for k in range(j))
+        d = jnp.sqrt(s)
+        rows[j][j] = d
+        for r in range(j + 1, p):
+            rows[r][j] = (h[..., r, j] - sum(rows[r][k] * rows[j][k] for k in range(j))) / d
+    zero = jnp.zeros_like(h[..., 0, 0])
+    return jnp.stack(
+        [jnp.stack([rows[r][c] if c <= r else zero for c in range(p)], -1) for r in range(p)],
+        -2,
+    )
+
+
+def _solve_lower(l, b):
+    """L^-1 b for lower-triangular (..., P, P) and (..., P)."""
+    p = l.shape[-1]
+    out: list = []
+    for r in range(p):
+        out.append((b[..., r] - sum(l[..., r, k] * out[k] for k in range(r))) / l[..., r, r])
+    return jnp.stack(out, -1)
+
+
+def _solve_upper_t(l, b):
+    """L^-T b for lower-triangular (..., P, P) and (..., P)."""
+    p = l.shape[-1]
+    out: list = [None] * p
+    for r in reversed(range(p)):
+        s = b[..., r] - sum(l[..., k, r] * out[k] for k in range(r + 1, p))
+        out[r] = s / l[..., r, r]
+    return jnp.stack(out, -1)
+
+
+def _moments(aw, bw, y, w):
+    """(Q = A'^T W A', r = A'^T W z, z^T W z) with z = y - b', for whitened A' (..., M, P),
+    b' (..., M), data y (M,) and weights w (M,)."""
+    z = jnp.broadcast_to(y, bw.shape) - bw
+    q = jnp.einsum("...mp,m,...mq->...pq", aw, w, aw)
+    r = jnp.einsum("...mp,m,...m->...p", aw, w, z)
+    zz = jnp.einsum("...m,m,...m->...", z, w, z)
+    return q, r, zz
+
+
+def _gauss(q, r, zz, s2, dinv, c):
+    """The Gaussian of x given u from its moments: (mean mu, Cholesky L of H, log m(u)
+    without the width prior), H = Q / s^2 + diag(dinv), stand-in prior N(c, 1 / dinv)."""
+    h = q / s2 + jnp.broadcast_to(jnp.diag(dinv), q.shape)
+    m = r / s2 + jnp.broadcast_to(dinv * c, r.shape)
+    l = _chol(h)
+    v = _solve_lower(l, m)
+    mu = _solve_upper_t(l, v)
+    logdet = 2.0 * jnp.sum(jnp.log(jnp.diagonal(l, axis1=-2, axis2=-1)), -1)
+    log_m = -0.5 * (zz / s2 - jnp.sum(v * v, -1)) - 0.5 * logdet
+    return mu, l, log_m
+
+
+def sample_width_gibbs(
+    lp: LogPosterior,
+    data: PixelData,
+    theta0: Float[Array, "N D"],
+    *,
+    theta_std: Float[Array, "N D"] | None = None,
+    num_chains: int,
+    num_warmup: int,
+    num_samples: int,
+    sweeps: int,
+    seed: int = 0,
+):
+    """Draws (module docstring) of N pixels: ``num_chains`` chains each, the first
+    ``num_warmup`` kept-draw intervals discarded, then ``num_samples`` draws ``sweeps``
+    scans apart. theta0: (N, D) starts (the LM optimum) or (N, chains, D); theta_std: (N, D)
+    Laplace std in theta (centres the local cells; NaN: a default width). Returns
+    :class:`~jaxrefl.posterior.Samples` with ``method="gibbs_mh"``. The caller checks
+    :func:`qualifies_width` first."""
+    from ._batched import Samples
+
+    lay = _layout(lp)
+    assert lay is not None  # qualifies_width() checked it
+    i, lo_np, hi_np, prior = lay
+    dtype = data.obs.dtype
+    lo, hi = jnp.asarray(lo_np, dtype), jnp.asarray(hi_np, dtype)
+    n, p = data.obs.shape[0], lo.shape[0]
+    jeffreys = lp.noise_scale is not None
+    use = lp.residual.usable(data)
+    w = jnp.where(use, data.weight.astype(dtype), 0.0).reshape(n, -1)
+    obs = jnp.where(use, data.obs.astype(dtype), 0.0)
+    u_std = lp.residual.noise.std(obs).reshape(n, -1)
+    cens = jnp.where(use, data.censored, 0).reshape(n, -1).astype(jnp.int8)
+    censored = bool(np.any(np.asarray(cens) != 0))
+
+    t0 = jnp.asarray(theta0, dtype)
+    if t0.ndim == 2:
+        t0 = jnp.broadcast_to(t0[:, None, :], (n, num_chains, t0.shape[-1]))
+    finite = jnp.all(jnp.isfinite(t0), axis=(-2, -1))
+    t0 = jnp.where(finite[:, None, None], t0, 0.0)
+    v0 = lp.space.natural_vector(t0[..., :p])
+    edge = _EDGE * (hi - lo)
+    v0 = jnp.clip(v0, (lo + edge)[None, None, :], (hi - edge)[None, None, :])
+    s0 = jnp.exp(t0[..., -1]) if jeffreys else jnp.ones((n, num_chains), dtype)
+    s0 = jnp.where(jnp.isfinite(s0) & (s0 > 0), s0, 1.0)
+
+    # Laplace std of log alpha from theta's: d log(alpha) / d theta = s (1 - s) (hi - lo)
+    # / alpha for alpha = lo + (hi - lo) s.
+    a_hat = v0[:, 0, i]
+    sd_u = jnp.full((n,), _LOCAL_SD_DEFAULT, dtype)
+    if theta_std is not None:
+        ts = jnp.asarray(theta_std, dtype)[:, i]
+        frac = (a_hat - lo[i]) / (hi[i] - lo[i])
+        cand = ts * frac * (1.0 - frac) * (hi[i] - lo[i]) / a_hat
+        sd_u = jnp.where(jnp.isfinite(cand) & (cand > 0), cand, sd_u)
+    sd_u = jnp.clip(sd_u, *_LOCAL_SD_RANGE)
+
+    keys = jax.random.split(jax.random.PRNGKey(seed), n)
+    t_start = time.perf_counter()
+    vs, s2s, acc = _run(
+        lp,
+        data,
+        keys,
+        v0,
+        s0,
+        sd_u,
+        w,
+        u_std,
+        obs.reshape(n, -1),
+        cens,
+        lo,
+        hi,
+        prior,
+        i=i,
+        num_warmup=num_warmup,
+        num_samples=num_samples,
+        sweeps=sweeps,
+        jeffreys=jeffreys,
+        censored=censored,
+    )
+    vs, s2s, acc = jax.block_until_ready((vs, s2s, acc))
+    run_s = time.perf_counter() - t_start
+    theta = _theta_of(lp, vs)
+    if jeffreys:
+        theta = jnp.concatenate([theta, 0.5 * jnp.log(s2s)[..., None]], axis=-1)
+    lpd = _density(lp, theta, data)
+    pos = np.array(theta, np.float64)
+    bad = ~np.asarray(finite)
+    pos[bad] = np.nan
+    nat = np.asarray(lp.natural(jnp.asarray(pos)), np.float64)
+    shape = pos.shape[:3]
+    return Samples(
+        theta=pos,
+        natural=nat,
+        labels=lp.labels,
+        stats={
+            "acceptance_rate": np.asarray(acc, np.float64),
+            "diverging": np.zeros(shape, bool),
+            "lp": np.asarray(lpd, np.float64),
+        },
+        method="gibbs_mh",
+        tuning={"step_size": np.full(shape[:2], np.nan)},
+        run_s=run_s,
+        extra={"no_estimate": bad, "sweeps": sweeps, "reparam": "none"},
+    )
+
+
+@eqx.filter_jit
+def _run(
+    lp,
+    data,
+    keys,
+    v0,
+    s0,
+    sd_u,
+    w,
+    u_std,
+    obs,
+    cens,
+    lo,
+    hi,
+    prior,
+    *,
+    i,
+    num_warmup,
+    num_samples,
+    sweeps,
+    jeffreys,
+    censored,
+):
+    """(natural draws (N, chains, S, P), s^2 draws (N, chains, S), acceptance of the joint
+    moves (N, chains, S), averaged over the scans of each interval)."""
+    dtype = v0.dtype
+    xl, xh = _drop(lo, i), _drop(hi, i)
+    c = 0.5 * (xl + xh)
+    dinv = (2.0 / (xh - xl)) ** 2  # the stand-in prior N(c, (width / 2)^2)
+    u_lo, u_hi = jnp.log(lo[i]), jnp.log(hi[i])
+    e_u = _EDGE * (u_hi - u_lo)
+
+    def log_width_prior(u):
+        return prior.log_prob(jnp.exp(u)) + u  # density of u = log alpha
+
+    def pixel(key, v0, s0, sd_u, d, w, u_std, obs, cens):
+        yw = obs / u_std
+
+        def terms(a):
+            jac, b = _affine(lp, d, i, c, a)
+            return jac / u_std[:, None], b / u_std
+
+        # Cell edges over u: even ones, and local ones around the optimum.
+        u_hat = jnp.log(v0[0, i])
+        glob = jnp.linspace(u_lo, u_hi, _GLOBAL_CELLS + 1, dtype=dtype)
+        loc = jnp.clip(
+            u_hat + sd_u * jnp.linspace(-_LOCAL_SD, _LOCAL_SD, _LOCAL_CELLS + 1, dtype=dtype),
+            u_lo,
+            u_hi,
+        )
+        edges = jnp.sort(jnp.concatenate([glob, loc]))
+        width = jnp.diff(edges)
+        mids = 0.5 * (edges[:-1] + edges[1:])
+        aw_g, bw_g = jax.vmap(terms)(jnp.exp(mids))  # (G, M, P-1), (G, M)
+        q_g, r_g, zz_g = _moments(aw_g, bw_g, yw, w)  # r, zz change with latent values
+        log_cell = jnp.where(width > 0, jnp.log(jnp.where(width > 0, width, 1.0)), -jnp.inf)
+        prior_g = log_width_prior(mids)
+
+        def log_q(logits, u):
+            """log density of the proposal at u (normalised)."""
+            g = jnp.clip(jnp.searchsorted(edges, u, side="right") - 1, 0, width.shape[0] - 1)
+            return logits[g] - jax.nn.logsumexp(logits) - log_cell[g]
+
+        def log_target_minus_x(aw, bw, x, u, y, s2, mu, l):
+            """log target - log N(x; mu, H^-1) at (u, x)."""
+            res = y - bw - aw @ x
+            sse = jnp.sum(w * res * res)
+            dx = l.T @ (x - mu)  # |L^T (x - mu)|^2 = (x - mu)^T H (x - mu)
+            log_n = -0.5 * jnp.sum(dx * dx) + jnp.sum(jnp.log(jnp.diagonal(l)))
+            return -0.5 * sse / s2 + log_width_prior(u) - log_n
+
+        def latent(key, aw, bw, x, y_obs, s2):
+            mean = bw + aw @ x
+            sd = jnp.sqrt(s2)
+            z0 = (y_obs - mean) / sd
+            lo_z = jnp.where(cens > 0, z0, -jnp.inf)
+            hi_z = jnp.where(cens < 0, z0, jnp.inf)
+            z = truncated_normal(key, lo_z, hi_z, dtype)
+            return jnp.where(cens != 0, mean + sd * z, y_obs)
+
+        def scan_one(carry, _):
+            key, u, x, s2, aw, bw = carry
+            key, k_y, k_g, k_u, k_x, k_a, k_s = jax.random.split(key, 7)
+            y = latent(k_y, aw, bw, x, yw, s2) if censored else yw
+            # 2. the joint independence move of (u, x)
+            if censored:
+                z_g = jnp.broadcast_to(y, bw_g.shape) - bw_g
+                r_g_y = jnp.einsum("gmp,m,gm->gp", aw_g, w, z_g)
+                zz_g_y = jnp.einsum("gm,m,gm->g", z_g, w, z_g)
+            else:
+                r_g_y, zz_g_y = r_g, zz_g
+            _mu_g, _l_g, log_m = _gauss(q_g, r_g_y, zz_g_y, s2, dinv, c)
+            logits = jnp.where(width > 0, log_m + prior_g + log_cell, -jnp.inf)
+            # the cell by inverting the cells' CDF (one uniform, not one Gumbel per cell)
+            cdf = jnp.cumsum(jnp.exp(logits - jnp.max(logits)))
+            g = jnp.searchsorted(cdf, jax.random.uniform(k_g, dtype=dtype) * cdf[-1])
+            g = jnp.clip(g, 0, width.shape[0] - 1)
+            u_new = edges[g] + jax.random.uniform(k_u, dtype=dtype) * width[g]
+            u_new = jnp.clip(u_new, u_lo + e_u, u_hi - e_u)
+            aw_n, bw_n = terms(jnp.exp(u_new))
+            q_n, r_n, zz_n = _moments(aw_n, bw_n, y, w)
+            mu_n, l_n, _ = _gauss(q_n, r_n, zz_n, s2, dinv, c)
+            eps = jax.random.normal(k_x, mu_n.shape, dtype)
+            x_new = mu_n + _solve_upper_t(l_n, eps)
+            inside = jnp.all((x_new > xl) & (x_new < xh))
+            q_c, r_c, zz_c = _moments(aw, bw, y, w)
+            mu_c, l_c, _ = _gauss(q_c, r_c, zz_c, s2, dinv, c)
+            log_w_new = log_target_minus_x(aw_n, bw_n, x_new, u_new, y, s2, mu_n, l_n)
+            log_w_new = log_w_new - log_q(logits, u_new)
+            log_w_cur = log_target_minus_x(aw, bw, x, u, y, s2, mu_c, l_c) - log_q(logits, u)
+            log_ratio = jnp.where(inside, log_w_new - log_w_cur, -jnp.inf)
+            accept = jnp.log(jax.random.uniform(k_a, dtype=dtype)) < log_ratio
+            u = jnp.where(accept, u_new, u)
+            x = jnp.where(accept, x_new, x)
+            aw = jnp.where(accept, aw_n, aw)
+            bw = jnp.where(accept, bw_n, bw)
+            # 3. s^2 | u, x and x | u, s along Q-conjugate directions
+            q = jnp.where(accept, q_n, q_c)
+            r = jnp.where(accept, r_n, r_c)
+            yy = jnp.where(accept, zz_n, zz_c)
+            ridge = _RIDGE * jnp.max(jnp.diagonal(q)) + jnp.finfo(dtype).tiny
+            lq = _chol(q + ridge * jnp.eye(q.shape[0], dtype=dtype))
+            dirs = jax.vmap(lambda e: _solve_upper_t(lq, e), out_axes=1)(
+                jnp.eye(q.shape[0], dtype=dtype)
+            )  # columns L^-T e_k
+            lam = jnp.einsum("pk,pq,qk->k", dirs, q, dirs)
+            nw = jnp.sum(w)
+            x, s2 = _sweep(k_s, x, s2, q, r, yy, nw, dirs, lam, xl, xh, jeffreys)
+            return (key, u, x, s2, aw, bw), accept.astype(dtype)
+
+        def chain(key, v, s):
+            x = _drop(v, i)
+            u = jnp.clip(jnp.log(v[i]), u_lo + e_u, u_hi - e_u)
+            aw, bw = terms(jnp.exp(u))
+
+            def interval(carry, _):
+                carry, accs = jax.lax.scan(scan_one, carry, None, length=sweeps)
+                _k, u, x, s2, _a, _b = carry
+                return carry, (_insert(x, jnp.exp(u), i), s2, jnp.mean(accs))
+
+            carry, _ = jax.lax.scan(interval, (key, u, x, s * s, aw, bw), None, num_warmup)
+            _, out = jax.lax.scan(interval, carry, None, num_samples)
+            return out
+
+        ks = jax.random.split(key, v0.shape[0])
+        return jax.vmap(chain)(ks, v0, s0)
+
+    return jax.vmap(pixel)(keys, v0, s0, sd_u, data, w, u_std, obs, cens)
