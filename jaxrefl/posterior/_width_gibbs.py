@@ -166,7 +166,7 @@ def _linear_given_width(lp, data, i, lo, hi):
     x_c, x_2 = 0.5 * (xl + xh), xl + 0.3 * (xh - xl)
 
     def one(d):
-        ok = True
+        ok = jnp.asarray(True)
         for f in (0.2, 0.7):  # two widths inside the interval
             a = lo[i] + f * (hi[i] - lo[i])
             jac, b = _affine(lp, d, i, x_c, a)
