@@ -275,7 +275,7 @@ def map_run(args, cap, name):
         ["  HMC median chunk", f"{tm.get('mcmc_chunk_s_median', float('nan')):.1f}"],
         ["  HMC total (compile incl.)", f"{tm.get('mcmc_s', 0.0):.1f}"],
         [
-            f"  second pass ({tm.get('rerun_pixels', 0)} pixels, longer_options, compile incl.)",
+            f"  second pass ({tm.get('rerun_pixels', 0)} pixels, compile incl.)",
             f"{tm.get('rerun_s', 0.0):.1f}",
         ],
     ]

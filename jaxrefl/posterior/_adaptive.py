@@ -67,7 +67,13 @@ are held to) runs again under ``rerun_hmc`` (default
 :func:`longer_options`: twice the warm-up, four times the steps between kept draws). Its
 chains start from draws of the first pass, chain c from first-pass chain c mod C, so they
 begin apart and on the posterior's ridge, with the first pass's draw std as the initial
-metric. The second pass's summaries and draws replace the first's (``rerun`` marks those
+metric. Where every first-pass chunk was drawn by a sampler with nothing to tune (exact
+Gibbs, the width sampler: :data:`UNTUNED`) and ``rerun_hmc`` is not set, the second pass
+runs the first pass's settings again with a new seed, in chunks of the first pass's size:
+its near-independent draws need no longer chains, and the compiled program of the first
+pass is reused (a rerun of a few pixels in a new shape would compile a new one, which
+costs more than sampling a whole chunk). The second pass's summaries and draws replace the
+first's (``rerun`` marks those
 pixels and ``rhat_first`` keeps the first pass's R-hat, so ``report()`` shows what it
 changed). Pixels still above the threshold after it stay marked by their ``rhat``: read
 their std as a lower bound.
@@ -108,6 +114,8 @@ __all__ = [
 ]
 
 METHODS = {int(m): m.name.lower() for m in Method}
+# Samplers (Samples.method) with no step size or metric to tune (module docstring).
+UNTUNED = frozenset({"gibbs", "gibbs_mh"})
 _Z95 = 1.6448536269514722  # standard normal 95% quantile
 MAP_OPTIONS = HMCOptions(
     num_warmup=100,
@@ -431,6 +439,11 @@ class _Run:
         second = self.o.second_pass
         if second is None or not restart:
             return
+        size = None
+        used = set(str(self.timings.get("sampler", "")).split("+"))
+        if self.o.rerun_hmc is None and used and used <= UNTUNED:
+            second = self.o.hmc  # same program, new seed (module docstring)
+            size = int(self.timings["mcmc_chunk_size"])
         again = idx[np.isin(idx, np.fromiter(restart, int))]  # first pass's order
         out.rhat_first[again] = out.rhat[again]
 
@@ -441,7 +454,7 @@ class _Run:
         at = {int(i): k for k, i in enumerate(idx)}
         seed = self.o.seed + _RERUN_SEED
         for real, cut, rs in self._chunks(
-            again, starts, second, seed, "MCMC second pass", "second"
+            again, starts, second, seed, "MCMC second pass", "second", size
         ):
             run_s.append(rs)
             out.store(real, cut)
@@ -451,16 +464,18 @@ class _Run:
         self.timings["rerun_s"] = float(np.sum(run_s))
         self.timings["rerun_pixels"] = int(again.size)
 
-    def _chunks(self, idx, starts, opts: HMCOptions, seed: int, desc: str, tag: str):
+    def _chunks(self, idx, starts, opts: HMCOptions, seed: int, desc: str, tag: str, size=None):
         """Sample the pixels ``idx`` in chunks of one compiled size (module docstring).
 
+        size: pixels per chunk (None: the fewest balanced chunks of at most ``chunk``).
         starts(rows) -> (theta0 (R, D) or (R, chains, D), theta_std (R, D)) for the map's
         pixels ``rows``. Yields (real pixels, their Samples, run seconds) in chunk order.
         With a folder, a chunk found there is read rather than sampled, and a sampled one
         is written; with several processes each samples its share (chunk i: process
         i mod n), and after a barrier every process reads all of them.
         """
-        size = _chunk_size(idx.size, self.o.chunk, opts.batch_size)
+        if size is None:
+            size = _chunk_size(idx.size, self.o.chunk, opts.batch_size)
         firsts = list(range(0, idx.size, size))
         many = jax.process_count() > 1
         mine = set(process_share(list(range(len(firsts)))))

@@ -27,7 +27,10 @@ with SSE(alpha, x) = |W^1/2 (y' - b'(alpha) - A'(alpha) x)|^2 in whitened units
 
    (closed form: a Gaussian integral), evaluated at the cell's midpoint; then
    x ~ N(mu(u), H(u)^-1), the same Gaussian at the proposed u itself, with
-   H = A'^T W A' / s^2 + diag(w^-2). The acceptance ratio is the exact target over this
+   H = (A'^T W A' + D) / s^2. The stand-in's precision D = s_ref^2 diag(w^-2) is held in
+   units of s^-2 (s_ref: the start's noise scale in the warm-up, the chain's own at its end
+   after it), so the cells' Cholesky factors are formed once per phase, not every scan,
+   and a scan costs one model evaluation. The acceptance ratio is the exact target over this
    proposal's density, so the stand-in and the cells only set how often a move is accepted,
    never what the chain converges to. The cells are 32 even ones over alpha's whole
    interval (in log alpha) and 16 over +-6 Laplace standard deviations around the fit's
@@ -50,6 +53,7 @@ with ``method="gibbs_mh"`` (``acceptance_rate`` the joint moves' acceptance).
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import equinox as eqx
@@ -79,6 +83,9 @@ _LOCAL_SD = 6.0
 # even cells).
 _LOCAL_SD_DEFAULT = 0.5
 _LOCAL_SD_RANGE = (1e-4, 2.0)
+# Censored observations per pixel the compiled sampler has room for (doubled where a pixel
+# has more): a clipped highlight is seen in one or two photos.
+_CENSORED_SLOTS = 4
 # Relative error of the linear prediction at a second point (see _gibbs._LINEAR_RTOL).
 _LINEAR_RTOL = 1e-9
 # Ridge relative to Q's largest diagonal entry in the Cholesky factor that gives step 3's
@@ -112,6 +119,12 @@ def _layout(lp: LogPosterior):
     if width is None:
         return None
     return width[0], np.asarray(lo, np.float64), np.asarray(hi, np.float64), width[1]
+
+
+def _general(lp: LogPosterior) -> LogPosterior:
+    """``lp`` with its censored branch whatever the data (the same values): chunks with
+    and without censored observations then share one compiled program."""
+    return dataclasses.replace(lp, censoring=True)
 
 
 def _insert(x, a, i):
@@ -154,7 +167,7 @@ def qualifies_width(lp: LogPosterior, data: PixelData) -> tuple[bool, str]:
     if np.any(cens & (w != 0) & (w != 1)):
         return False, "a censored observation has a weight other than 0 or 1"
     i, lo, hi, _prior = lay
-    ok = _linear_given_width(lp, data, i, jnp.asarray(lo), jnp.asarray(hi))
+    ok = _linear_given_width(_general(lp), data, i, jnp.asarray(lo), jnp.asarray(hi))
     if not bool(np.all(np.asarray(ok))):
         return False, f"the model is not linear in its parameters given {WIDTH!r}"
     return True, ""
@@ -225,19 +238,6 @@ def _moments(aw, bw, y, w):
     return q, r, zz
 
 
-def _gauss(q, r, zz, s2, dinv, c):
-    """The Gaussian of x given u from its moments: (mean mu, Cholesky L of H, log m(u)
-    without the width prior), H = Q / s^2 + diag(dinv), stand-in prior N(c, 1 / dinv)."""
-    h = q / s2 + jnp.broadcast_to(jnp.diag(dinv), q.shape)
-    m = r / s2 + jnp.broadcast_to(dinv * c, r.shape)
-    l = _chol(h)
-    v = _solve_lower(l, m)
-    mu = _solve_upper_t(l, v)
-    logdet = 2.0 * jnp.sum(jnp.log(jnp.diagonal(l, axis1=-2, axis2=-1)), -1)
-    log_m = -0.5 * (zz / s2 - jnp.sum(v * v, -1)) - 0.5 * logdet
-    return mu, l, log_m
-
-
 def sample_width_gibbs(
     lp: LogPosterior,
     data: PixelData,
@@ -258,6 +258,7 @@ def sample_width_gibbs(
     :func:`qualifies_width` first."""
     from ._batched import Samples
 
+    lp = _general(lp)
     lay = _layout(lp)
     assert lay is not None  # qualifies_width() checked it
     i, lo_np, hi_np, prior = lay
@@ -269,8 +270,19 @@ def sample_width_gibbs(
     w = jnp.where(use, data.weight.astype(dtype), 0.0).reshape(n, -1)
     obs = jnp.where(use, data.obs.astype(dtype), 0.0)
     u_std = lp.residual.noise.std(obs).reshape(n, -1)
-    cens = jnp.where(use, data.censored, 0).reshape(n, -1).astype(jnp.int8)
-    censored = bool(np.any(np.asarray(cens) != 0))
+    cens_np = np.asarray(jnp.where(use, data.censored, 0)).reshape(n, -1).astype(np.int8)
+    # The censored observations of each pixel, gathered (a pixel has a few at most): their
+    # indices (N, R), padded with index 0 and sign 0, and their signs (+1 above, -1 below).
+    # R is a power of 2, at least _CENSORED_SLOTS, and every batch takes the censored path:
+    # chunks of a map with and without clipped highlights then share one compiled program.
+    count = np.sum(cens_np != 0, axis=1)
+    r_max = _CENSORED_SLOTS
+    while r_max < int(count.max()):
+        r_max *= 2
+    censored = True
+    c_idx = np.argsort(cens_np == 0, axis=1, kind="stable")[:, :r_max]
+    c_sign = np.take_along_axis(cens_np, c_idx, axis=1)
+    c_idx = np.where(c_sign != 0, c_idx, 0)
 
     t0 = jnp.asarray(theta0, dtype)
     if t0.ndim == 2:
@@ -306,7 +318,8 @@ def sample_width_gibbs(
         w,
         u_std,
         obs.reshape(n, -1),
-        cens,
+        jnp.asarray(c_idx),
+        jnp.asarray(c_sign),
         lo,
         hi,
         prior,
@@ -355,7 +368,8 @@ def _run(
     w,
     u_std,
     obs,
-    cens,
+    c_idx,
+    c_sign,
     lo,
     hi,
     prior,
@@ -379,12 +393,21 @@ def _run(
     def log_width_prior(u):
         return prior.log_prob(jnp.exp(u)) + u  # density of u = log alpha
 
-    def pixel(key, v0, s0, sd_u, d, w, u_std, obs, cens):
+    def pixel(key, v0, s0, sd_u, d, w, u_std, obs, c_idx, c_sign):
         yw = obs / u_std
+        nw = jnp.sum(w)
 
         def terms(a):
             jac, b = _affine(lp, d, i, c, a)
             return jac / u_std[:, None], b / u_std
+
+        def factor(aw, bw, y, dref):
+            """(Q, r, z'Wz, L, v) at one width: L L^T = Q + D, v = L^-1 (r + D c), for the
+            stand-in precision D = dref in units of s^-2. The proposal's Gaussian is
+            N(L^-T v, s^2 (Q + D)^-1), its factor free of s."""
+            q, r, zz = _moments(aw, bw, y, w)
+            l = _chol(q + jnp.broadcast_to(jnp.diag(dref), q.shape))
+            return q, r, zz, l, _solve_lower(l, r + jnp.broadcast_to(dref * c, r.shape))
 
         # Cell edges over u: even ones, and local ones around the optimum.
         u_hat = jnp.log(v0[0, i])
@@ -398,45 +421,70 @@ def _run(
         width = jnp.diff(edges)
         mids = 0.5 * (edges[:-1] + edges[1:])
         aw_g, bw_g = jax.vmap(terms)(jnp.exp(mids))  # (G, M, P-1), (G, M)
-        q_g, r_g, zz_g = _moments(aw_g, bw_g, yw, w)  # r, zz change with latent values
         log_cell = jnp.where(width > 0, jnp.log(jnp.where(width > 0, width, 1.0)), -jnp.inf)
         prior_g = log_width_prior(mids)
+        # the censored observations' rows (gathered once; see sample_width_gibbs)
+        aw_gc, bw_gc = aw_g[:, c_idx, :], bw_g[:, c_idx]  # (G, R, P-1), (G, R)
+        y_c, w_c = yw[c_idx], w[c_idx]
+
+        def cells(s2):
+            """The cells' factors for the stand-in N(c, s^2 / dinv): (D in units of s^-2,
+            z'Wz (G,), v (G, P-1), log weight without the data term (G,), L^-1 A'^T W on
+            the censored rows (G, P-1, R): how a latent value moves v, c'Dc)."""
+            dref = dinv * s2
+            _q, _r, zz_g, l_g, v_g = factor(aw_g, bw_g, yw, dref)
+            base_g = prior_g + log_cell - jnp.sum(jnp.log(jnp.diagonal(l_g, 0, -2, -1)), -1)
+            lia_gc = (
+                jax.vmap(lambda l, a: jax.vmap(lambda col: _solve_lower(l, col), 1, 1)(a.T))(
+                    l_g, aw_gc
+                )
+                * w_c[None, None, :]
+            )
+            return dref, zz_g, v_g, base_g, lia_gc, jnp.sum(dref * c * c)
 
         def log_q(logits, u):
             """log density of the proposal at u (normalised)."""
             g = jnp.clip(jnp.searchsorted(edges, u, side="right") - 1, 0, width.shape[0] - 1)
             return logits[g] - jax.nn.logsumexp(logits) - log_cell[g]
 
-        def log_target_minus_x(aw, bw, x, u, y, s2, mu, l):
-            """log target - log N(x; mu, H^-1) at (u, x)."""
+        def log_target_minus_x(aw, bw, x, u, y, s2, l, v):
+            """log target - log N(x; L^-T v, s^2 (L L^T)^-1) at (u, x)."""
             res = y - bw - aw @ x
             sse = jnp.sum(w * res * res)
-            dx = l.T @ (x - mu)  # |L^T (x - mu)|^2 = (x - mu)^T H (x - mu)
-            log_n = -0.5 * jnp.sum(dx * dx) + jnp.sum(jnp.log(jnp.diagonal(l)))
+            dx = l.T @ x - v  # L^T (x - mu)
+            log_n = -0.5 * jnp.sum(dx * dx) / s2 + jnp.sum(jnp.log(jnp.diagonal(l)))
             return -0.5 * sse / s2 + log_width_prior(u) - log_n
 
-        def latent(key, aw, bw, x, y_obs, s2):
-            mean = bw + aw @ x
+        def latent(key, aw, bw, x, s2):
+            """Latent whitened values of the censored observations minus their bounds
+            (R,): N(pred, s^2) truncated beyond the bound; 0 on the padding."""
+            mean = bw[c_idx] + aw[c_idx] @ x
             sd = jnp.sqrt(s2)
-            z0 = (y_obs - mean) / sd
-            lo_z = jnp.where(cens > 0, z0, -jnp.inf)
-            hi_z = jnp.where(cens < 0, z0, jnp.inf)
+            z0 = (y_c - mean) / sd
+            lo_z = jnp.where(c_sign > 0, z0, -jnp.inf)
+            hi_z = jnp.where(c_sign < 0, z0, jnp.inf)
             z = truncated_normal(key, lo_z, hi_z, dtype)
-            return jnp.where(cens != 0, mean + sd * z, y_obs)
+            return jnp.where(c_sign != 0, mean + sd * z - y_c, 0.0)
 
-        def scan_one(carry, _):
-            key, u, x, s2, aw, bw = carry
+        def scan_one(carry, grid):
+            key, u, x, s2, aw, bw, q, l = carry
+            dref, zz_g, v_g, base_g, lia_gc, cdc = grid
             key, k_y, k_g, k_u, k_x, k_a, k_s = jax.random.split(key, 7)
-            y = latent(k_y, aw, bw, x, yw, s2) if censored else yw
-            # 2. the joint independence move of (u, x)
             if censored:
-                z_g = jnp.broadcast_to(y, bw_g.shape) - bw_g
-                r_g_y = jnp.einsum("gmp,m,gm->gp", aw_g, w, z_g)
-                zz_g_y = jnp.einsum("gm,m,gm->g", z_g, w, z_g)
+                dy = latent(k_y, aw, bw, x, s2)
+                y = yw + jnp.zeros_like(yw).at[c_idx].add(dy)
+                # the cells' terms moved by the latent values: rows c_idx only
+                v_g_y = v_g + jnp.einsum("gpr,r->gp", lia_gc, dy)
+                dzz = (w_c * dy)[None, :] * (
+                    2.0 * jnp.broadcast_to(y_c, bw_gc.shape) + dy[None, :] - 2.0 * bw_gc
+                )
+                zz_g_y = zz_g + jnp.sum(dzz, axis=-1)
             else:
-                r_g_y, zz_g_y = r_g, zz_g
-            _mu_g, _l_g, log_m = _gauss(q_g, r_g_y, zz_g_y, s2, dinv, c)
-            logits = jnp.where(width > 0, log_m + prior_g + log_cell, -jnp.inf)
+                y, v_g_y, zz_g_y = yw, v_g, zz_g
+            # 2. the joint independence move of (u, x): the cell's weight is the Gaussian
+            # integral, -(z'Wz + c'Dc - |v|^2) / (2 s^2) - log det L (+ terms equal in all)
+            log_m = -0.5 * (zz_g_y + cdc - jnp.sum(v_g_y * v_g_y, -1)) / s2
+            logits = jnp.where(width > 0, log_m + base_g, -jnp.inf)
             # the cell by inverting the cells' CDF (one uniform, not one Gumbel per cell)
             cdf = jnp.cumsum(jnp.exp(logits - jnp.max(logits)))
             g = jnp.searchsorted(cdf, jax.random.uniform(k_g, dtype=dtype) * cdf[-1])
@@ -444,51 +492,61 @@ def _run(
             u_new = edges[g] + jax.random.uniform(k_u, dtype=dtype) * width[g]
             u_new = jnp.clip(u_new, u_lo + e_u, u_hi - e_u)
             aw_n, bw_n = terms(jnp.exp(u_new))
-            q_n, r_n, zz_n = _moments(aw_n, bw_n, y, w)
-            mu_n, l_n, _ = _gauss(q_n, r_n, zz_n, s2, dinv, c)
-            eps = jax.random.normal(k_x, mu_n.shape, dtype)
-            x_new = mu_n + _solve_upper_t(l_n, eps)
+            q_n, r_n, zz_n, l_n, v_n = factor(aw_n, bw_n, y, dref)
+            eps = jax.random.normal(k_x, v_n.shape, dtype)
+            x_new = _solve_upper_t(l_n, v_n + jnp.sqrt(s2) * eps)
             inside = jnp.all((x_new > xl) & (x_new < xh))
-            q_c, r_c, zz_c = _moments(aw, bw, y, w)
-            mu_c, l_c, _ = _gauss(q_c, r_c, zz_c, s2, dinv, c)
-            log_w_new = log_target_minus_x(aw_n, bw_n, x_new, u_new, y, s2, mu_n, l_n)
+            z_c = y - bw
+            r_c = jnp.einsum("mp,m,m->p", aw, w, z_c)
+            zz_c = jnp.sum(w * z_c * z_c)
+            v_c = _solve_lower(l, r_c + dref * c)
+            log_w_new = log_target_minus_x(aw_n, bw_n, x_new, u_new, y, s2, l_n, v_n)
             log_w_new = log_w_new - log_q(logits, u_new)
-            log_w_cur = log_target_minus_x(aw, bw, x, u, y, s2, mu_c, l_c) - log_q(logits, u)
+            log_w_cur = log_target_minus_x(aw, bw, x, u, y, s2, l, v_c) - log_q(logits, u)
             log_ratio = jnp.where(inside, log_w_new - log_w_cur, -jnp.inf)
             accept = jnp.log(jax.random.uniform(k_a, dtype=dtype)) < log_ratio
             u = jnp.where(accept, u_new, u)
             x = jnp.where(accept, x_new, x)
             aw = jnp.where(accept, aw_n, aw)
             bw = jnp.where(accept, bw_n, bw)
-            # 3. s^2 | u, x and x | u, s along Q-conjugate directions
-            q = jnp.where(accept, q_n, q_c)
+            q = jnp.where(accept, q_n, q)
+            l = jnp.where(accept, l_n, l)
             r = jnp.where(accept, r_n, r_c)
             yy = jnp.where(accept, zz_n, zz_c)
-            ridge = _RIDGE * jnp.max(jnp.diagonal(q)) + jnp.finfo(dtype).tiny
-            lq = _chol(q + ridge * jnp.eye(q.shape[0], dtype=dtype))
-            dirs = jax.vmap(lambda e: _solve_upper_t(lq, e), out_axes=1)(
-                jnp.eye(q.shape[0], dtype=dtype)
-            )  # columns L^-T e_k
+            # 3. s^2 | u, x and x | u, s along the columns of L^-T: conjugate for Q + D,
+            # nearly so for Q (the moves are exact for any directions)
+            eye = jnp.eye(q.shape[0], dtype=dtype)
+            dirs = jax.vmap(lambda e: _solve_upper_t(l, e), out_axes=1)(eye)
             lam = jnp.einsum("pk,pq,qk->k", dirs, q, dirs)
-            nw = jnp.sum(w)
             x, s2 = _sweep(k_s, x, s2, q, r, yy, nw, dirs, lam, xl, xh, jeffreys)
-            return (key, u, x, s2, aw, bw), accept.astype(dtype)
+            return (key, u, x, s2, aw, bw, q, l), accept.astype(dtype)
 
         def chain(key, v, s):
             x = _drop(v, i)
             u = jnp.clip(jnp.log(v[i]), u_lo + e_u, u_hi - e_u)
             aw, bw = terms(jnp.exp(u))
+            grid = cells(s * s)
+            q, _r, _zz, l, _v = factor(aw, bw, yw, grid[0])
 
-            def interval(carry, _):
-                carry, accs = jax.lax.scan(scan_one, carry, None, length=sweeps)
-                _k, u, x, s2, _a, _b = carry
-                return carry, (_insert(x, jnp.exp(u), i), s2, jnp.mean(accs))
+            def phase(carry, grid, length):
+                def interval(carry, _):
+                    carry, accs = jax.lax.scan(
+                        lambda cr, _: scan_one(cr, grid), carry, None, length=sweeps
+                    )
+                    u, x, s2 = carry[1], carry[2], carry[3]
+                    return carry, (_insert(x, jnp.exp(u), i), s2, jnp.mean(accs))
 
-            carry, _ = jax.lax.scan(interval, (key, u, x, s * s, aw, bw), None, num_warmup)
-            _, out = jax.lax.scan(interval, carry, None, num_samples)
+                return jax.lax.scan(interval, carry, None, length)
+
+            carry, _ = phase((key, u, x, s * s, aw, bw, q, l), grid, num_warmup)
+            # At the end of the warm-up the stand-in is rescaled to the chain's noise scale
+            # then (the start's can be far off); the proposal is fixed after.
+            grid = cells(carry[3])
+            carry = (*carry[:7], _chol(carry[6] + jnp.diag(grid[0])))
+            _, out = phase(carry, grid, num_samples)
             return out
 
         ks = jax.random.split(key, v0.shape[0])
         return jax.vmap(chain)(ks, v0, s0)
 
-    return jax.vmap(pixel)(keys, v0, s0, sd_u, data, w, u_std, obs, cens)
+    return jax.vmap(pixel)(keys, v0, s0, sd_u, data, w, u_std, obs, c_idx, c_sign)
