@@ -61,11 +61,14 @@ def table(headers: list[str], rows: list[list[object]]) -> str:
 
 def demo_capture(out: Path, size: int) -> Path:
     """Write a ``jaxrefl demo`` capture (photos only, no fit) of ``size`` x ``size`` to
-    ``out`` without its printed table, which is not the calling report's."""
+    ``out`` without its printed table, which is not the calling report's. The command
+    line's persistent compilation cache stays off: the benchmark's compile times are its
+    own, not programs loaded from an earlier run."""
     from jaxrefl.cli import main as cli
 
     with contextlib.redirect_stdout(io.StringIO()):
-        rc = cli(["demo", "--out", str(out), "--size", str(size), "--no-fit"])
+        args = ["demo", "--out", str(out), "--size", str(size), "--no-fit"]
+        rc = cli([*args, "--no-compile-cache"])
     if rc != 0:
         raise SystemExit("jaxrefl demo failed")
     return out
