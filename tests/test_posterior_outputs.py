@@ -442,3 +442,58 @@ def test_chunk_folder_resumes_without_sampling_again(lambert, monkeypatch, tmp_p
     assert again.timings["mcmc_s"] == first.timings["mcmc_s"] == 2.0
     jp.adaptive_uncertainty(lp, data, th, sd, flag, replace(o, seed=8), chunk_dir=folder)
     assert len(calls) == 3  # another seed: other chunks
+
+
+def test_second_pass_of_an_untuned_sampler_reuses_the_first_pass_program(lambert, monkeypatch):
+    """Where every first-pass chunk came from the width sampler, the second pass runs the
+    first pass's settings with a new seed, in chunks padded to the first pass's size: the
+    same compiled program (stand-in sampler). HMC and exact Gibbs keep longer_options."""
+    from jaxrefl.posterior import _adaptive
+
+    lp, data, r, lap = lambert
+    th, sd, flag = np.asarray(r.theta), np.asarray(lap.theta_std), np.asarray(lap.flag)
+    start = np.asarray(lp.init_theta(th))
+    calls = []
+
+    def fake(lp_, sub, th0, *, theta_std, normals, options, seed):
+        th0 = np.asarray(th0)
+        calls.append((th0.shape, options, seed))
+        rng = np.random.default_rng(seed)
+        c, m = options.num_chains, options.num_samples
+        if th0.ndim == 2:  # first pass: pixel 1's chains 1 apart
+            x = np.repeat(th0[:, None, None, :], c, 1).repeat(m, 2)
+            px = [int(np.flatnonzero(np.all(start == t, -1))[0]) for t in th0]
+            x[np.isin(px, [1]), 1] += 1.0
+        else:
+            x = np.repeat(th0.mean(1)[:, None, None, :], c, 1).repeat(m, 2)
+        x = x + 1e-2 * rng.normal(size=x.shape)
+        st = {"acceptance_rate": np.ones(x.shape[:3]), "diverging": np.zeros(x.shape[:3], bool)}
+        return jp.Samples(
+            x,
+            x,
+            lp_.labels,
+            st,
+            "gibbs_mh",
+            run_s=1.0,
+            extra={"no_estimate": np.zeros(x.shape[0], bool)},
+        )
+
+    monkeypatch.setattr(_adaptive, "sample_pixels", fake)
+    opts = jp.HMCOptions(num_warmup=5, num_samples=30, num_chains=2, gibbs_sweeps=2)
+    o = jp.AdaptiveOptions(mcmc="all", hmc=opts, chunk=4, seed=7, rerun_rhat=1.1)
+    u = jp.adaptive_uncertainty(lp, data, th, sd, flag, o)
+    assert len(calls) == 3 and u.timings["sampler"] == "gibbs_mh"
+    (s1, o1, seed1), (_s, _o, seed2), (s3, o3, seed3) = calls
+    assert o3 == o1 == opts and seed3 not in (seed1, seed2)
+    assert s3[0] == s1[0] == 3  # the rerun's one pixel padded to the first chunks' 3
+    assert u.timings["rerun_settings"] == "first pass" and u.rerun.sum() == 1
+    for method in ("hmc", "gibbs"):  # these keep longer_options for the second pass
+        calls.clear()
+        monkeypatch.setattr(
+            _adaptive,
+            "sample_pixels",
+            lambda *a, method=method, **k: replace(fake(*a, **k), method=method),
+        )
+        u = jp.adaptive_uncertainty(lp, data, th, sd, flag, o)
+        assert calls[2][1] == jp.longer_options(opts) and calls[2][0][0] == 1
+        assert "rerun_settings" not in u.timings

@@ -19,7 +19,8 @@ loop emitters (``--xla_cpu_use_fusion_emitters=false`` in ``XLA_FLAGS``) rather 
 newer fusion emitters: they compile a capture fit's programs in less time and the fit runs
 slightly faster (``docs/benchmarks.md``, fit throughput), with the same IEEE arithmetic.
 Measured trade-off: ``jaxrefl sample``'s uncertainty maps of the real captures (exact Gibbs)
-are faster with them, while its float64 HMC second pass (per-pixel lobes) is slower. A value
+are faster with them, while float64 HMC (the sampler where no Gibbs sampler applies) is
+slower. A value
 of that option the user set in ``XLA_FLAGS`` is kept; GPU backends ignore it.
 """
 

@@ -67,16 +67,18 @@ are held to) runs again under ``rerun_hmc`` (default
 :func:`longer_options`: twice the warm-up, four times the steps between kept draws). Its
 chains start from draws of the first pass, chain c from first-pass chain c mod C, so they
 begin apart and on the posterior's ridge, with the first pass's draw std as the initial
-metric. Where every first-pass chunk was drawn by a sampler with nothing to tune (exact
-Gibbs, the width sampler: :data:`UNTUNED`) and ``rerun_hmc`` is not set, the second pass
-runs the first pass's settings again with a new seed, in chunks of the first pass's size:
-its near-independent draws need no longer chains, and the compiled program of the first
-pass is reused (a rerun of a few pixels in a new shape would compile a new one, which
-costs more than sampling a whole chunk). The second pass's summaries and draws replace the
-first's (``rerun`` marks those
-pixels and ``rhat_first`` keeps the first pass's R-hat, so ``report()`` shows what it
-changed). Pixels still above the threshold after it stay marked by their ``rhat``: read
-their std as a lower bound.
+metric. Where every first-pass chunk was drawn by the width sampler
+(:mod:`jaxrefl.posterior._width_gibbs`, :data:`UNTUNED`) and ``rerun_hmc`` is not set, the
+second pass runs the first pass's settings again with a new seed, in chunks of the first
+pass's size: its joint move draws the width independently of the chain's state, so its
+draws are nearly independent and need no longer chains, and the compiled program of the
+first pass is reused (a rerun of a few pixels in a new shape would compile a new one,
+which costs more than sampling a whole chunk). Exact Gibbs keeps the longer second pass:
+its moves along a box's edge can be slow (``benchmarks/posterior_speed.py``). The second
+pass's summaries and draws replace the first's (``rerun`` marks those pixels and
+``rhat_first`` keeps the first pass's R-hat, so ``report()`` shows what it changed).
+Pixels still above the threshold after it stay marked by their ``rhat``: read their std
+as a lower bound.
 """
 
 from __future__ import annotations
@@ -114,8 +116,9 @@ __all__ = [
 ]
 
 METHODS = {int(m): m.name.lower() for m in Method}
-# Samplers (Samples.method) with no step size or metric to tune (module docstring).
-UNTUNED = frozenset({"gibbs", "gibbs_mh"})
+# Samplers (Samples.method) whose second pass repeats the first's settings (module
+# docstring): nothing to tune, nearly independent draws.
+UNTUNED = frozenset({"gibbs_mh"})
 _Z95 = 1.6448536269514722  # standard normal 95% quantile
 MAP_OPTIONS = HMCOptions(
     num_warmup=100,
@@ -444,6 +447,7 @@ class _Run:
         if self.o.rerun_hmc is None and used and used <= UNTUNED:
             second = self.o.hmc  # same program, new seed (module docstring)
             size = int(self.timings["mcmc_chunk_size"])
+            self.timings["rerun_settings"] = "first pass"
         again = idx[np.isin(idx, np.fromiter(restart, int))]  # first pass's order
         out.rhat_first[again] = out.rhat[again]
 
