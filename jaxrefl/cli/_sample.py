@@ -2,7 +2,8 @@
 
     jaxrefl sample CAPTURE_DIR --out OUT_DIR [--pixels R0:R1,C0:C1] [--downsample F]
                    [--model ggx] [--mcmc flagged|all|none] [--audit 0.02]
-                   [--warmup N] [--samples N] [--chains N] [--rerun-rhat R] [--seed S]
+                   [--warmup N] [--samples N] [--chains N] [--gibbs-sweeps N]
+                   [--rerun-rhat R] [--seed S]
     jaxrefl sample BRDF_FILE --out OUT_DIR [--brdf-model ggx]
                    [--sampler emcee|hmc] [--max-steps N] [--walkers N]
 
@@ -11,7 +12,10 @@ the ``--pixels`` crop: rows R0:R1, columns C0:C1) goes through
 :func:`jaxrefl.svbrdf.uncertainty_maps`: the capture job's float64 fit, its Laplace std,
 then :func:`jaxrefl.posterior.adaptive_uncertainty` with the
 :class:`~jaxrefl.posterior.AdaptiveOptions` the flags give (``--mcmc``, ``--audit``,
-``--warmup``/``--samples``/``--chains`` as its :class:`~jaxrefl.posterior.HMCOptions`,
+``--warmup``/``--samples``/``--chains``/``--gibbs-sweeps`` as its
+:class:`~jaxrefl.posterior.HMCOptions`: where the posterior allows, Gibbs sampling instead
+of HMC, exact for ``pooled``, with the lobe width from its collapsed marginal for the
+per-pixel models (:mod:`jaxrefl.posterior._width_gibbs`),
 ``--rerun-rhat``: the max R-hat above which a pixel runs the longer second pass, 0 for
 none, ``--seed``). The noise scale is unknown (sampled per pixel, Jeffreys prior).
 Writes OUT_DIR/uncertainty.exr (mean, std, q05, q95 per parameter, method, R-hat, ESS) and
@@ -40,6 +44,7 @@ on stderr saying what to raise).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 from pathlib import Path
 from typing import Any
@@ -109,6 +114,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--samples", type=positive_int, default=500, help="HMC draws per chain")
     p.add_argument("--chains", type=positive_int, default=4, help="chains per pixel")
+    p.add_argument(
+        "--gibbs-sweeps",
+        type=non_negative_int,
+        default=2,
+        help="scans between kept draws where a capture's posterior allows Gibbs sampling "
+        "(pooled, per-pixel lobes under a co-located flash; --warmup scaled by "
+        "HMCOptions.gibbs_warmup_fraction); 0: HMC everywhere",
+    )
     p.add_argument(
         "--rerun-rhat",
         type=_rhat,
@@ -211,7 +224,12 @@ def _progress(args) -> bool:
 def _options(args):
     from jaxrefl.posterior import HMCOptions
 
-    return HMCOptions(num_warmup=args.warmup, num_samples=args.samples, num_chains=args.chains)
+    return HMCOptions(
+        num_warmup=args.warmup,
+        num_samples=args.samples,
+        num_chains=args.chains,
+        gibbs_sweeps=args.gibbs_sweeps,
+    )
 
 
 def _run_capture(args, path: Path, opts, dist) -> dict:
@@ -288,7 +306,7 @@ def _run_brdf(args, path: Path, opts) -> dict:
     from jaxrefl import measured
     from jaxrefl import posterior as jp
 
-    sampler = opts
+    sampler = dataclasses.replace(opts, gibbs_sweeps=0)  # --sampler hmc: HMC, as asked
     if args.sampler == "emcee":
         sampler = jp.EmceeOptions(n_walkers=args.walkers, max_steps=args.max_steps)
     res = measured.sample_posterior(
