@@ -142,8 +142,8 @@ def test_draws_have_the_quadrature_marginals_of_alpha_and_f0(ggx_fit):
 
 def test_agrees_with_hmc_with_censoring_and_an_unknown_noise_scale(ggx_fit):
     """The brightest observation of each pixel recorded as clipped, noise scale unknown
-    (Jeffreys): the draws and HMC's on the Tobit likelihood have the same means (within 5
-    Monte Carlo standard errors) and standard deviations (within 15%)."""
+    (Jeffreys): the draws and HMC's (4 chains x 500) on the Tobit likelihood have the same
+    means (within 5 Monte Carlo standard errors) and standard deviations (within 15%)."""
     _cap, cf, data, pick = ggx_fit
     lp, space = _posterior(cf, fit.GaussianNoise(None))
     sub = jax.tree.map(lambda x: x[pick], data)
@@ -170,7 +170,7 @@ def test_agrees_with_hmc_with_censoring_and_an_unknown_noise_scale(ggx_fit):
         clipped,
         theta0,
         theta_std=std,
-        options=jp.HMCOptions(num_warmup=500, num_samples=1000, kernel="nuts"),
+        options=jp.HMCOptions(num_warmup=300, num_samples=500),
         seed=2,
     )
     dg, dh = jp.diagnostics(g), jp.diagnostics(h)
@@ -192,9 +192,7 @@ def test_which_posteriors_take_the_width_path(ggx_fit):
     theta0 = lp.init_theta(jnp.asarray(cf.theta[pick[:2]]), noise_scale=np.full(2, 0.01))
     opts = jp.HMCOptions(num_warmup=10, num_samples=10, num_chains=2, gibbs_sweeps=1)
     assert jp.sample_pixels(lp, sub, theta0, options=opts).method == "gibbs_mh"
-    # gibbs_sweeps=0: HMC
-    plain = jp.HMCOptions(num_warmup=10, num_samples=10, num_chains=2)
-    assert jp.sample_pixels(lp, sub, theta0, options=plain).method == "hmc"
+    # (gibbs_sweeps=0 gives HMC: test_posterior_reparam's ridge test)
     # a robust loss is not Gaussian
     huber = jp.log_posterior(lp.model, lp.space, fit.GaussianNoise(None), loss=fit.Huber(1.0))
     assert qualifies_width(huber, sub) == (False, "the loss is Huber, not L2")
