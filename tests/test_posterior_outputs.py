@@ -274,6 +274,65 @@ def test_adaptive_chunks_have_one_shape_and_map_back(lambert, monkeypatch):
         jp.AdaptiveOptions(mcmc="all", chunk=0)
 
 
+def test_chunks_sampled_in_threads_give_the_map_of_a_loop(lambert, monkeypatch):
+    """workers > 1 runs chunks at once in threads; each chunk's seed is its index's, so the
+    map equals the one-at-a-time loop's, the chunks come back in order, and the first
+    chunk runs alone on the calling thread (it compiles the program the others reuse)."""
+    import threading
+
+    from jaxrefl.posterior import _adaptive
+
+    lp, data, r, lap = lambert
+    where: dict[int, list] = {}
+
+    def fake(lp_, sub, th0, *, theta_std, normals, options, seed):
+        where[workers].append((seed, threading.current_thread()))
+        rng = np.random.default_rng(seed)
+        th0 = np.asarray(th0)
+        n, c, m = th0.shape[0], options.num_chains, options.num_samples
+        x = th0[:, None, None, :] + 1e-3 * rng.normal(size=(n, c, m, th0.shape[1]))
+        st = {"acceptance_rate": np.ones((n, c, m)), "diverging": np.zeros((n, c, m), bool)}
+        return jp.Samples(
+            x, x, lp_.labels, st, "hmc", run_s=1.0, extra={"no_estimate": np.zeros(n, bool)}
+        )
+
+    monkeypatch.setattr(_adaptive, "sample_pixels", fake)
+    th, sd, flag = np.asarray(r.theta), np.asarray(lap.theta_std), np.asarray(lap.flag)
+    maps = {}
+    opts = jp.HMCOptions(num_warmup=5, num_samples=20, num_chains=2)
+    for workers in (1, 3):
+        where[workers] = []
+        o = jp.AdaptiveOptions(
+            mcmc="all", hmc=opts, chunk=1, seed=3, workers=workers, rerun_rhat=None
+        )
+        maps[workers] = jp.adaptive_uncertainty(lp, data, th, sd, flag, o)
+    one, three = where[1], where[3]
+    assert sorted(s for s, _ in three) == [s for s, _ in one] == list(range(3, 3 + th.shape[0]))
+    assert three[0] == (3, threading.main_thread()) and three[0][1] not in [t for _, t in three[1:]]
+    # the same draws per pixel, whatever thread sampled them
+    np.testing.assert_array_equal(maps[1].samples.theta, maps[3].samples.theta)
+    for name in ("mean", "std", "q05", "q95", "rhat", "ess_bulk", "method"):
+        np.testing.assert_array_equal(getattr(maps[1], name), getattr(maps[3], name), name)
+    with pytest.raises(ValueError, match="workers"):
+        jp.AdaptiveOptions(workers=0)
+
+
+def test_in_order_raises_at_the_failing_item():
+    from jaxrefl.posterior._workers import in_order
+
+    def f(i):
+        if i == 4:
+            raise RuntimeError("item 4")
+        return i * i
+
+    got = []
+    with pytest.raises(RuntimeError, match="item 4"):
+        for v in in_order(f, range(9), 2):
+            got.append(v)
+    assert got == [0, 1, 4, 9]
+    assert list(in_order(f, range(4), 1)) == list(in_order(f, range(4), 3)) == [0, 1, 4, 9]
+
+
 def test_second_pass_reruns_the_pixels_whose_chains_disagree(lambert, monkeypatch):
     """Pixels whose first-pass chains disagree (R-hat above ``rerun_rhat``) run a second,
     longer pass (longer_options: twice the warm-up, thin 4, no jitter) from first-pass draws,

@@ -78,3 +78,4 @@ from ._sphere import SphereDirection as SphereDirection
 from ._sphere import angle_deg as angle_deg
 from ._sphere import direction_summary as direction_summary
 from ._sphere import lit_geometry as lit_geometry
+from ._workers import default_workers as default_workers

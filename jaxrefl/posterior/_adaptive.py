@@ -51,6 +51,13 @@ Gibbs whose joint move draws the width from its marginal. A map can hold chunks 
 several (its samples' ``method`` is then e.g. ``"gibbs+hmc"``; the report's
 ``timings.sampler`` names them).
 
+Chunks at once: a process samples :attr:`AdaptiveOptions.workers` chunks at a time, each in
+its own thread (:mod:`jaxrefl.posterior._workers`: on a CPU one compiled program leaves
+part of the cores idle), the first chunk alone since it compiles; chunk i is seeded
+``seed + i`` wherever it runs, so the map does not depend on ``workers``. ``timings``
+keeps both the summed seconds of the chunks' samplers (``mcmc_s``, ``rerun_s``) and each
+pass's wall time (``mcmc_wall_s``, ``rerun_wall_s``).
+
 Chunks on disk and across processes: with ``chunk_dir`` each chunk's draws are written
 there as it finishes (a file named by the pass, a fingerprint of the pixels, sampler
 settings and seed, and the chunk's index), and a rerun reads the chunks it finds rather
@@ -102,6 +109,7 @@ from ._batched import HMCOptions, Samples, sample_pixels
 from ._diagnostics import diagnostics
 from ._logpost import LogPosterior
 from ._methods import MCMC_METHODS, Method
+from ._workers import default_workers, in_order
 
 __all__ = [
     "MAP_OPTIONS",
@@ -173,6 +181,9 @@ class AdaptiveOptions:
     chunk:       MCMC pixels per compiled sampler call (>= 1)
     seed:        chooses the audit pixels and seeds the chains (chunk i: ``seed + i``)
     keep_samples: keep the draws in :attr:`UncertaintyMap.samples` (False: summaries only)
+    workers:     chunks sampled at once, each in its own thread (None: :func:`default_workers`);
+                 the summaries do not depend on it (chunk i is seeded ``seed + i`` wherever
+                 it runs)
     """
 
     mcmc: MCMCPixels = MCMCPixels.FLAGGED
@@ -183,6 +194,7 @@ class AdaptiveOptions:
     chunk: int = 2048
     seed: int = 0
     keep_samples: bool = True
+    workers: int | None = None
 
     def __post_init__(self) -> None:
         try:
@@ -198,6 +210,8 @@ class AdaptiveOptions:
             raise ValueError(f"rerun_rhat must be a positive number or None, got {self.rerun_rhat}")
         if self.chunk < 1:
             raise ValueError(f"chunk must be >= 1, got {self.chunk}")
+        if self.workers is not None and self.workers < 1:
+            raise ValueError(f"workers must be >= 1 or None, got {self.workers}")
         second = self.rerun_hmc
         if second is not None and (
             second.num_chains != self.hmc.num_chains or second.num_samples != self.hmc.num_samples
@@ -414,6 +428,7 @@ class _Run:
         second = o.second_pass
         restart: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         parts, run_s, used = [], [], []
+        t0 = time.perf_counter()
         for real, cut, rs in self._chunks(idx, starts, o.hmc, o.seed, "MCMC pixels", "first"):
             run_s.append(rs)
             used.append(cut.method)
@@ -426,6 +441,7 @@ class _Run:
             if o.keep_samples:
                 parts.append(cut)
         tm["mcmc_s"] = float(np.sum(run_s))
+        tm["mcmc_wall_s"] = time.perf_counter() - t0
         tm["mcmc_pixels"] = int(idx.size)
         tm["mcmc_chunks"] = len(run_s)
         tm["sampler"] = "+".join(dict.fromkeys(used))  # each chunk's (Samples.method)
@@ -455,6 +471,7 @@ class _Run:
             return tuple(np.stack([restart[int(i)][k] for i in rows]) for k in (0, 1))
 
         run_s = []
+        t0 = time.perf_counter()
         at = {int(i): k for k, i in enumerate(idx)}
         seed = self.o.seed + _RERUN_SEED
         for real, cut, rs in self._chunks(
@@ -466,6 +483,7 @@ class _Run:
                 _put(samples, [at[int(i)] for i in real], cut)
         out.rerun[again] = True
         self.timings["rerun_s"] = float(np.sum(run_s))
+        self.timings["rerun_wall_s"] = time.perf_counter() - t0
         self.timings["rerun_pixels"] = int(again.size)
 
     def _chunks(self, idx, starts, opts: HMCOptions, seed: int, desc: str, tag: str, size=None):
@@ -490,21 +508,32 @@ class _Run:
             self.folder.mkdir(parents=True, exist_ok=True)
             key = _fingerprint(tag, idx, opts, seed, size, self.lp.labels)
             name = lambda ci: self.folder / f"{tag}_{key}_{ci:05d}.npz"  # noqa: E731
-        bar = firsts
+        bar = None
         if self.progress and jax.process_index() == 0:
             from tqdm.auto import tqdm
 
-            bar = tqdm(firsts, desc=desc, unit="chunk")
-        for ci, a in enumerate(bar):
-            real = idx[a : a + size]
+            bar = tqdm(total=len(firsts), desc=desc, unit="chunk")
+
+        def get(ci: int) -> tuple[Samples, float] | None:
+            real = idx[firsts[ci] : firsts[ci] + size]
             got = None if name is None else _load_chunk(name(ci), real.size, self.lp.labels)
             if got is None and ci in mine:
                 got = self._sample(real, size, starts, opts, seed + ci)
                 if name is not None:
                     _save_chunk(name(ci), *got)
-            if not many:
-                assert got is not None  # one process: every chunk is its own
-                yield real, *got
+            return got
+
+        workers = default_workers() if self.o.workers is None else self.o.workers
+        try:
+            for ci, got in enumerate(in_order(get, range(len(firsts)), workers)):
+                if bar is not None:
+                    bar.update(1)
+                if not many:
+                    assert got is not None  # one process: every chunk is its own
+                    yield idx[firsts[ci] : firsts[ci] + size], *got
+        finally:
+            if bar is not None:
+                bar.close()
         if many:
             process_barrier(f"jaxrefl mcmc: {tag} pass")
             assert name is not None  # adaptive_uncertainty requires a folder here

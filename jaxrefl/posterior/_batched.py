@@ -403,6 +403,7 @@ def sample_pixels(
             num_samples=opts.num_samples,
             sweeps=opts.gibbs_sweeps * opts.thin,
             seed=seed,
+            devices=devices,
         )
         s.extra["options"] = opts
         return s

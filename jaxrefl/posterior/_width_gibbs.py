@@ -62,7 +62,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from jaxrefl.fit import L2, PixelData, ScaledSigmoid
+from jaxrefl.fit import L2, PixelData, ScaledSigmoid, device_count, map_sharded
 
 from ._gibbs import _EDGE, _density, _sweep, _theta_of, truncated_normal
 from ._logpost import LogPosterior
@@ -249,6 +249,7 @@ def sample_width_gibbs(
     num_samples: int,
     sweeps: int,
     seed: int = 0,
+    devices: int | None = None,
 ):
     """Draws (module docstring) of N pixels: ``num_chains`` chains each, the first
     ``num_warmup`` kept-draw intervals discarded, then ``num_samples`` draws ``sweeps``
@@ -279,7 +280,6 @@ def sample_width_gibbs(
     r_max = _CENSORED_SLOTS
     while r_max < int(count.max()):
         r_max *= 2
-    censored = True
     c_idx = np.argsort(cens_np == 0, axis=1, kind="stable")[:, :r_max]
     c_sign = np.take_along_axis(cens_np, c_idx, axis=1)
     c_idx = np.where(c_sign != 0, c_idx, 0)
@@ -308,28 +308,10 @@ def sample_width_gibbs(
 
     keys = jax.random.split(jax.random.PRNGKey(seed), n)
     t_start = time.perf_counter()
-    vs, s2s, acc = _run(
-        lp,
-        data,
-        keys,
-        v0,
-        s0,
-        sd_u,
-        w,
-        u_std,
-        obs.reshape(n, -1),
-        jnp.asarray(c_idx),
-        jnp.asarray(c_sign),
-        lo,
-        hi,
-        prior,
-        i=i,
-        num_warmup=num_warmup,
-        num_samples=num_samples,
-        sweeps=sweeps,
-        jeffreys=jeffreys,
-        censored=censored,
-    )
+    run = _sampler(lp, lo_np, hi_np, prior, i, num_warmup, num_samples, sweeps, jeffreys, dtype)
+    batched = (data, keys, v0, s0, sd_u, w, u_std, obs.reshape(n, -1))
+    batched = (*batched, jnp.asarray(c_idx), jnp.asarray(c_sign))
+    vs, s2s, acc = map_sharded(run, batched, device_count(devices))
     vs, s2s, acc = jax.block_until_ready((vs, s2s, acc))
     run_s = time.perf_counter() - t_start
     theta = _theta_of(lp, vs)
@@ -357,6 +339,43 @@ def sample_width_gibbs(
     )
 
 
+# One sampler function per (posterior, settings): map_sharded compiles per function object.
+_SAMPLERS: dict = {}
+
+
+def _sampler(lp, lo, hi, prior, i, num_warmup, num_samples, sweeps, jeffreys, dtype):
+    """``_run`` on a batch of pixels with everything else bound: the same object for equal
+    arguments, so that every chunk of a map reuses one compiled (and sharded) program."""
+    leaves, treedef = jax.tree.flatten((lp, prior))
+    key = (treedef, tuple(leaves), tuple(lo), tuple(hi), i, num_warmup, num_samples, sweeps)
+    key = (*key, jeffreys, jnp.dtype(dtype))
+    try:
+        hash(key)
+    except TypeError:  # array leaves: not a key; a function of its own
+        key = None
+    if key is None or key not in _SAMPLERS:
+        lo_a, hi_a = jnp.asarray(lo, dtype), jnp.asarray(hi, dtype)
+
+        def run(*batched):
+            return _run(
+                lp,
+                *batched,
+                lo_a,
+                hi_a,
+                prior,
+                i=i,
+                num_warmup=num_warmup,
+                num_samples=num_samples,
+                sweeps=sweeps,
+                jeffreys=jeffreys,
+            )
+
+        if key is None:
+            return run
+        _SAMPLERS[key] = run
+    return _SAMPLERS[key]
+
+
 @eqx.filter_jit
 def _run(
     lp,
@@ -379,7 +398,6 @@ def _run(
     num_samples,
     sweeps,
     jeffreys,
-    censored,
 ):
     """(natural draws (N, chains, S, P), s^2 draws (N, chains, S), acceptance of the joint
     moves (N, chains, S), averaged over the scans of each interval)."""
@@ -470,17 +488,15 @@ def _run(
             key, u, x, s2, aw, bw, q, l = carry
             dref, zz_g, v_g, base_g, lia_gc, cdc = grid
             key, k_y, k_g, k_u, k_x, k_a, k_s = jax.random.split(key, 7)
-            if censored:
-                dy = latent(k_y, aw, bw, x, s2)
-                y = yw + jnp.zeros_like(yw).at[c_idx].add(dy)
-                # the cells' terms moved by the latent values: rows c_idx only
-                v_g_y = v_g + jnp.einsum("gpr,r->gp", lia_gc, dy)
-                dzz = (w_c * dy)[None, :] * (
-                    2.0 * jnp.broadcast_to(y_c, bw_gc.shape) + dy[None, :] - 2.0 * bw_gc
-                )
-                zz_g_y = zz_g + jnp.sum(dzz, axis=-1)
-            else:
-                y, v_g_y, zz_g_y = yw, v_g, zz_g
+            # 1. the censored observations' latent values (padding slots move nothing)
+            dy = latent(k_y, aw, bw, x, s2)
+            y = yw + jnp.zeros_like(yw).at[c_idx].add(dy)
+            # the cells' terms moved by the latent values: rows c_idx only
+            v_g_y = v_g + jnp.einsum("gpr,r->gp", lia_gc, dy)
+            dzz = (w_c * dy)[None, :] * (
+                2.0 * jnp.broadcast_to(y_c, bw_gc.shape) + dy[None, :] - 2.0 * bw_gc
+            )
+            zz_g_y = zz_g + jnp.sum(dzz, axis=-1)
             # 2. the joint independence move of (u, x): the cell's weight is the Gaussian
             # integral, -(z'Wz + c'Dc - |v|^2) / (2 s^2) - log det L (+ terms equal in all)
             log_m = -0.5 * (zz_g_y + cdc - jnp.sum(v_g_y * v_g_y, -1)) / s2
