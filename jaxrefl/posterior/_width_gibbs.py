@@ -356,10 +356,19 @@ def _sampler(lp, lo, hi, prior, i, num_warmup, num_samples, sweeps, jeffreys, dt
     if key is None or key not in _SAMPLERS:
         lo_a, hi_a = jnp.asarray(lo, dtype), jnp.asarray(hi, dtype)
 
-        def run(*batched):
+        def run(data, keys, v0, s0, sd_u, w, u_std, obs, c_idx, c_sign):
             return _run(
                 lp,
-                *batched,
+                data,
+                keys,
+                v0,
+                s0,
+                sd_u,
+                w,
+                u_std,
+                obs,
+                c_idx,
+                c_sign,
                 lo_a,
                 hi_a,
                 prior,
