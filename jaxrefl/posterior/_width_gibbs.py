@@ -280,9 +280,9 @@ def sample_width_gibbs(
     r_max = _CENSORED_SLOTS
     while r_max < int(count.max()):
         r_max *= 2
-    c_idx = np.argsort(cens_np == 0, axis=1, kind="stable")[:, :r_max]
-    c_sign = np.take_along_axis(cens_np, c_idx, axis=1)
-    c_idx = np.where(c_sign != 0, c_idx, 0)
+    order = np.argsort(cens_np == 0, axis=1, kind="stable")[:, :r_max]
+    sign = np.take_along_axis(cens_np, order, axis=1)
+    c_idx, c_sign = jnp.asarray(np.where(sign != 0, order, 0)), jnp.asarray(sign)
 
     t0 = jnp.asarray(theta0, dtype)
     if t0.ndim == 2:
@@ -309,8 +309,7 @@ def sample_width_gibbs(
     keys = jax.random.split(jax.random.PRNGKey(seed), n)
     t_start = time.perf_counter()
     run = _sampler(lp, lo_np, hi_np, prior, i, num_warmup, num_samples, sweeps, jeffreys, dtype)
-    batched = (data, keys, v0, s0, sd_u, w, u_std, obs.reshape(n, -1))
-    batched = (*batched, jnp.asarray(c_idx), jnp.asarray(c_sign))
+    batched = (data, keys, v0, s0, sd_u, w, u_std, obs.reshape(n, -1), c_idx, c_sign)
     vs, s2s, acc = map_sharded(run, batched, device_count(devices))
     vs, s2s, acc = jax.block_until_ready((vs, s2s, acc))
     run_s = time.perf_counter() - t_start
@@ -347,8 +346,8 @@ def _sampler(lp, lo, hi, prior, i, num_warmup, num_samples, sweeps, jeffreys, dt
     """``_run`` on a batch of pixels with everything else bound: the same object for equal
     arguments, so that every chunk of a map reuses one compiled (and sharded) program."""
     leaves, treedef = jax.tree.flatten((lp, prior))
-    key = (treedef, tuple(leaves), tuple(lo), tuple(hi), i, num_warmup, num_samples, sweeps)
-    key = (*key, jeffreys, jnp.dtype(dtype))
+    settings = (i, num_warmup, num_samples, sweeps, jeffreys, jnp.dtype(dtype))
+    key: tuple | None = (treedef, tuple(leaves), tuple(lo), tuple(hi), settings)
     try:
         hash(key)
     except TypeError:  # array leaves: not a key; a function of its own
