@@ -507,8 +507,10 @@ def test_chunk_folder_resumes_without_sampling_again(lambert, monkeypatch, tmp_p
 
 def test_second_pass_of_an_untuned_sampler_reuses_the_first_pass_program(lambert, monkeypatch):
     """Where every first-pass chunk came from the width sampler, the second pass runs the
-    first pass's settings with a new seed, in chunks padded to the first pass's size: the
-    same compiled program (stand-in sampler). HMC and exact Gibbs keep longer_options."""
+    first pass's settings with twice the scans between draws (untuned_rerun: an argument of
+    the width sampler's program, not a constant) and a new seed, in chunks padded to the
+    first pass's size: the same compiled program (stand-in sampler). HMC and exact Gibbs
+    keep longer_options."""
     from jaxrefl.posterior import _adaptive
 
     lp, data, r, lap = lambert
@@ -545,9 +547,10 @@ def test_second_pass_of_an_untuned_sampler_reuses_the_first_pass_program(lambert
     u = jp.adaptive_uncertainty(lp, data, th, sd, flag, o)
     assert len(calls) == 3 and u.timings["sampler"] == "gibbs_mh"
     (s1, o1, seed1), (_s, _o, seed2), (s3, o3, seed3) = calls
-    assert o3 == o1 == opts and seed3 not in (seed1, seed2)
+    assert o1 == opts and o3 == jp.untuned_rerun(opts) == replace(opts, thin=2)
+    assert seed3 not in (seed1, seed2)
     assert s3[0] == s1[0] == 3  # the rerun's one pixel padded to the first chunks' 3
-    assert u.timings["rerun_settings"] == "first pass" and u.rerun.sum() == 1
+    assert u.timings["rerun_settings"] == "untuned" and u.rerun.sum() == 1
     for method in ("hmc", "gibbs"):  # these keep longer_options for the second pass
         calls.clear()
         monkeypatch.setattr(

@@ -138,6 +138,27 @@ def test_draws_have_the_quadrature_marginals_of_alpha_and_f0(ggx_fit):
         ks_u = _ks(np.log(s.natural[j, ..., ia]).reshape(-1), u_grid, log_u)
         ks_f = _ks(s.natural[j, ..., i_f0].reshape(-1), f0_grid, log_f0)
         assert ks_u < 0.04 and ks_f < 0.04, (j, ks_u, ks_f)
+    # the scans between draws are an argument of the compiled program, not a constant of
+    # it: twice as many (the second pass of a map, untuned_rerun) compile nothing new
+    from jaxrefl.cli._compile import CompileClock
+
+    clock = CompileClock().start()
+    try:
+        s2 = sample_width_gibbs(
+            lp,
+            sub,
+            theta0,
+            theta_std=std,
+            num_chains=4,
+            num_warmup=20,
+            num_samples=2000,
+            sweeps=2,
+            seed=12,
+        )
+    finally:
+        clock.stop()
+    assert clock.programs == 0 and s2.extra["sweeps"] == 2
+    assert np.all(np.isfinite(s2.theta)) and not np.array_equal(s2.theta, s.theta)
 
 
 def test_agrees_with_hmc_with_censoring_and_an_unknown_noise_scale(ggx_fit):
@@ -187,6 +208,9 @@ def test_agrees_with_hmc_with_censoring_and_an_unknown_noise_scale(ggx_fit):
 
 def test_which_posteriors_take_the_width_path(ggx_fit):
     _cap, cf, data, pick = ggx_fit
+    assert jp.MAP_OPTIONS.width_scans == 1 and jp.HMCOptions().width_scans is None
+    with pytest.raises(ValueError, match="width_scans"):
+        jp.HMCOptions(width_scans=0)
     lp, _space = _posterior(cf, fit.GaussianNoise(None))
     sub = jax.tree.map(lambda x: x[pick[:2]], data)
     assert qualifies_width(lp, sub) == (True, "")

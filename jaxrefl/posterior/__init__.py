@@ -31,6 +31,7 @@ from ._adaptive import UncertaintyMap as UncertaintyMap
 from ._adaptive import adaptive_uncertainty as adaptive_uncertainty
 from ._adaptive import laplace_summary as laplace_summary
 from ._adaptive import longer_options as longer_options
+from ._adaptive import untuned_rerun as untuned_rerun
 from ._batched import HMCOptions as HMCOptions
 from ._batched import Samples as Samples
 from ._batched import sample_pixels as sample_pixels

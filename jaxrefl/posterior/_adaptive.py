@@ -76,11 +76,12 @@ chains start from draws of the first pass, chain c from first-pass chain c mod C
 begin apart and on the posterior's ridge, with the first pass's draw std as the initial
 metric. Where every first-pass chunk was drawn by the width sampler
 (:mod:`jaxrefl.posterior._width_gibbs`, :data:`UNTUNED`) and ``rerun_hmc`` is not set, the
-second pass runs the first pass's settings again with a new seed, in chunks of the first
-pass's size: its joint move draws the width independently of the chain's state, so its
-draws are nearly independent and need no longer chains, and the compiled program of the
-first pass is reused (a rerun of a few pixels in a new shape would compile a new one,
-which costs more than sampling a whole chunk). Exact Gibbs keeps the longer second pass:
+second pass (:func:`untuned_rerun`) runs the first pass's settings with twice the scans
+between kept draws and a new seed, in chunks of the first pass's size: its joint move draws
+the width independently of the chain's state, so its draws are nearly independent and need
+no longer warm-up, and the compiled program of the first pass is reused (a rerun of a few
+pixels in a new shape would compile a new one, which costs more than sampling a whole
+chunk). Exact Gibbs keeps the longer second pass:
 its moves along a box's edge can be slow (``benchmarks/posterior_speed.py``). The second
 pass's summaries and draws replace the first's (``rerun`` marks those pixels and
 ``rhat_first`` keeps the first pass's R-hat, so ``report()`` shows what it changed).
@@ -121,6 +122,7 @@ __all__ = [
     "adaptive_uncertainty",
     "laplace_summary",
     "longer_options",
+    "untuned_rerun",
 ]
 
 METHODS = {int(m): m.name.lower() for m in Method}
@@ -135,6 +137,7 @@ MAP_OPTIONS = HMCOptions(
     num_integration_steps=32,
     batch_size=128,
     gibbs_sweeps=2,
+    width_scans=1,
 )
 
 # The max split R-hat above which a map pixel's chains count as disagreeing and run the
@@ -142,6 +145,14 @@ MAP_OPTIONS = HMCOptions(
 # to Vehtari et al. 2021's 1.01; BDA3's 1.1 lets a few percent of pixels through).
 RERUN_RHAT = 1.05
 _RERUN_SEED = 100_003  # offsets the second pass's seeds from the first's chunk seeds
+
+
+def untuned_rerun(opts: HMCOptions) -> HMCOptions:
+    """The second pass's settings where the first pass had nothing to tune (:data:`UNTUNED`,
+    module docstring): the first's, with twice the scans between kept draws (thin x 2). The
+    scans are an argument of the width sampler's compiled program, so the first pass's
+    program runs them."""
+    return dataclasses.replace(opts, thin=2 * opts.thin)
 
 
 def longer_options(opts: HMCOptions) -> HMCOptions:
@@ -461,9 +472,9 @@ class _Run:
         size = None
         used = set(str(self.timings.get("sampler", "")).split("+"))
         if self.o.rerun_hmc is None and used and used <= UNTUNED:
-            second = self.o.hmc  # same program, new seed (module docstring)
+            second = untuned_rerun(self.o.hmc)  # the same program (module docstring)
             size = int(self.timings["mcmc_chunk_size"])
-            self.timings["rerun_settings"] = "first pass"
+            self.timings["rerun_settings"] = "untuned"
         again = idx[np.isin(idx, np.fromiter(restart, int))]  # first pass's order
         out.rhat_first[again] = out.rhat[again]
 

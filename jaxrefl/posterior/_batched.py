@@ -96,6 +96,11 @@ class HMCOptions:
     # with a collapsed proposal of the width; this many scans between kept draws (times
     # ``thin``). 0: always HMC.
     gibbs_sweeps: int = 0
+    # Scans between kept draws of the width sampler where it runs (``gibbs_sweeps`` > 0),
+    # times ``thin``; None: ``gibbs_sweeps``. Each of its scans makes a joint move of the
+    # width and the linear parameters and a Gibbs sweep of the latter, so one can do
+    # (:data:`jaxrefl.posterior.MAP_OPTIONS`).
+    width_scans: int | None = None
     # Kept-draw intervals the Gibbs path discards, as a fraction of ``num_warmup`` (at
     # least 1): it has no step size or metric to tune, and its chains start at the fit's
     # optimum, inside the bulk (``benchmarks/posterior_speed.py`` reports the R-hat of
@@ -122,6 +127,8 @@ class HMCOptions:
                 raise ValueError(f"{k} must be >= 1, got {getattr(self, k)}")
         if self.gibbs_sweeps < 0:
             raise ValueError(f"gibbs_sweeps must be >= 0, got {self.gibbs_sweeps}")
+        if self.width_scans is not None and self.width_scans < 1:
+            raise ValueError(f"width_scans must be >= 1 or None, got {self.width_scans}")
         if not 0.0 < self.gibbs_warmup_fraction <= 1.0:
             f = self.gibbs_warmup_fraction
             raise ValueError(f"gibbs_warmup_fraction must be in (0, 1], got {f}")
@@ -401,7 +408,7 @@ def sample_pixels(
             num_chains=opts.num_chains,
             num_warmup=opts.gibbs_warmup,
             num_samples=opts.num_samples,
-            sweeps=opts.gibbs_sweeps * opts.thin,
+            sweeps=(opts.width_scans or opts.gibbs_sweeps) * opts.thin,
             seed=seed,
             devices=devices,
         )

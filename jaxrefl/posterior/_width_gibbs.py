@@ -29,10 +29,21 @@ with SSE(alpha, x) = |W^1/2 (y' - b'(alpha) - A'(alpha) x)|^2 in whitened units
    x ~ N(mu(u), H(u)^-1), the same Gaussian at the proposed u itself, with
    H = (A'^T W A' + D) / s^2. The stand-in's precision D = s_ref^2 diag(w^-2) is held in
    units of s^-2 (s_ref: the start's noise scale in the warm-up, the chain's own at its end
-   after it), so the cells' Cholesky factors are formed once per phase, not every scan,
-   and a scan costs one model evaluation. The acceptance ratio is the exact target over this
-   proposal's density, so the stand-in and the cells only set how often a move is accepted,
-   never what the chain converges to. The cells are 32 even ones over alpha's whole
+   after it), so the cells' Cholesky factors are formed once per phase, not every scan.
+   The acceptance ratio is the exact target over this proposal's density, so the stand-in
+   and the cells only set how often a move is accepted, never what the chain converges to.
+   Where the posterior of x sits against a bound of its box (an F0 near 0, an albedo near
+   1), a Gaussian draw often lands outside the box, where the target is 0. The move then
+   takes the first of :data:`_CANDIDATES` independent draws of the proposal that lands
+   inside (none inside: a rejection). This is exact: it is delayed rejection (Tierney &
+   Mira 1999) whose rejected stages have target 0, so every stage's acceptance and reverse
+   term is 0 or 1 and the last stage's ratio is the plain independence one; equivalently,
+   the proposal is truncated to the box, whose normalising constant (the inside mass) does
+   not depend on the chain's state (stages are tried only after draws outside the box, a
+   rule the reverse path follows too). Two draws cost a second model evaluation per scan
+   and turn most of the rejections where a bound binds into moves, so that one scan between
+   kept draws (``HMCOptions.width_scans`` of :data:`~jaxrefl.posterior.MAP_OPTIONS`) mixes
+   about as two did with one draw. The cells are 32 even ones over alpha's whole
    interval (in log alpha) and 16 over +-6 Laplace standard deviations around the fit's
    optimum, where an identified width is narrow. A ridge along which a lobe no photo saw
    trades width against F0 and albedo is crossed in one move: the proposal draws alpha
@@ -46,9 +57,11 @@ with SSE(alpha, x) = |W^1/2 (y' - b'(alpha) - A'(alpha) x)|^2 in whitened units
    a batch of chains where an eigendecomposition per scan is not.
 
 There is no step size, metric or gradient to tune; a kept draw is ``sweeps`` scans after
-the last. :func:`qualifies_width` says whether a posterior and a batch of pixels meet the
-conditions above; :func:`sample_width_gibbs` returns :class:`~jaxrefl.posterior.Samples`
-with ``method="gibbs_mh"`` (``acceptance_rate`` the joint moves' acceptance).
+the last, a number the compiled program takes as an argument (a longer second pass of a map
+reuses the first pass's program). :func:`qualifies_width` says whether a posterior and a
+batch of pixels meet the conditions above; :func:`sample_width_gibbs` returns
+:class:`~jaxrefl.posterior.Samples` with ``method="gibbs_mh"`` (``acceptance_rate`` the
+joint moves' acceptance).
 """
 
 from __future__ import annotations
@@ -88,6 +101,8 @@ _LOCAL_SD_RANGE = (1e-4, 2.0)
 _CENSORED_SLOTS = 4
 # Relative error of the linear prediction at a second point (see _gibbs._LINEAR_RTOL).
 _LINEAR_RTOL = 1e-9
+# Draws of the joint proposal per move, the first inside the box proposed (module docstring).
+_CANDIDATES = 2
 # Ridge relative to Q's largest diagonal entry in the Cholesky factor that gives step 3's
 # directions: keeps the factor finite where a direction is unseen (Q singular, a lobe no
 # photo saw); the moves stay exact for any directions.
@@ -308,8 +323,11 @@ def sample_width_gibbs(
 
     keys = jax.random.split(jax.random.PRNGKey(seed), n)
     t_start = time.perf_counter()
-    run = _sampler(lp, lo_np, hi_np, prior, i, num_warmup, num_samples, sweeps, jeffreys, dtype)
-    batched = (data, keys, v0, s0, sd_u, w, u_std, obs.reshape(n, -1), c_idx, c_sign)
+    run = _sampler(lp, lo_np, hi_np, prior, i, num_warmup, num_samples, jeffreys, dtype)
+    # scans between draws: an argument of the compiled program, not a constant of it, so
+    # that a second pass with more of them reuses the first pass's program
+    scans = jnp.full((n,), sweeps, jnp.int32)
+    batched = (data, keys, v0, s0, sd_u, w, u_std, obs.reshape(n, -1), c_idx, c_sign, scans)
     vs, s2s, acc = map_sharded(run, batched, device_count(devices))
     vs, s2s, acc = jax.block_until_ready((vs, s2s, acc))
     run_s = time.perf_counter() - t_start
@@ -342,11 +360,11 @@ def sample_width_gibbs(
 _SAMPLERS: dict = {}
 
 
-def _sampler(lp, lo, hi, prior, i, num_warmup, num_samples, sweeps, jeffreys, dtype):
+def _sampler(lp, lo, hi, prior, i, num_warmup, num_samples, jeffreys, dtype):
     """``_run`` on a batch of pixels with everything else bound: the same object for equal
     arguments, so that every chunk of a map reuses one compiled (and sharded) program."""
     leaves, treedef = jax.tree.flatten((lp, prior))
-    settings = (i, num_warmup, num_samples, sweeps, jeffreys, jnp.dtype(dtype))
+    settings = (i, num_warmup, num_samples, jeffreys, jnp.dtype(dtype))
     key: tuple | None = (treedef, tuple(leaves), tuple(lo), tuple(hi), settings)
     try:
         hash(key)
@@ -355,7 +373,7 @@ def _sampler(lp, lo, hi, prior, i, num_warmup, num_samples, sweeps, jeffreys, dt
     if key is None or key not in _SAMPLERS:
         lo_a, hi_a = jnp.asarray(lo, dtype), jnp.asarray(hi, dtype)
 
-        def run(data, keys, v0, s0, sd_u, w, u_std, obs, c_idx, c_sign):
+        def run(data, keys, v0, s0, sd_u, w, u_std, obs, c_idx, c_sign, scans):
             return _run(
                 lp,
                 data,
@@ -368,13 +386,13 @@ def _sampler(lp, lo, hi, prior, i, num_warmup, num_samples, sweeps, jeffreys, dt
                 obs,
                 c_idx,
                 c_sign,
+                scans,
                 lo_a,
                 hi_a,
                 prior,
                 i=i,
                 num_warmup=num_warmup,
                 num_samples=num_samples,
-                sweeps=sweeps,
                 jeffreys=jeffreys,
             )
 
@@ -397,6 +415,7 @@ def _run(
     obs,
     c_idx,
     c_sign,
+    scans,
     lo,
     hi,
     prior,
@@ -404,11 +423,11 @@ def _run(
     i,
     num_warmup,
     num_samples,
-    sweeps,
     jeffreys,
 ):
     """(natural draws (N, chains, S, P), s^2 draws (N, chains, S), acceptance of the joint
-    moves (N, chains, S), averaged over the scans of each interval)."""
+    moves (N, chains, S), averaged over the scans of each interval); scans: (N,) scans
+    between kept draws."""
     dtype = v0.dtype
     xl, xh = _drop(lo, i), _drop(hi, i)
     c = 0.5 * (xl + xh)
@@ -419,7 +438,7 @@ def _run(
     def log_width_prior(u):
         return prior.log_prob(jnp.exp(u)) + u  # density of u = log alpha
 
-    def pixel(key, v0, s0, sd_u, d, w, u_std, obs, c_idx, c_sign):
+    def pixel(key, v0, s0, sd_u, d, w, u_std, obs, c_idx, c_sign, sweeps):
         yw = obs / u_std
         nw = jnp.sum(w)
 
@@ -509,17 +528,27 @@ def _run(
             # integral, -(z'Wz + c'Dc - |v|^2) / (2 s^2) - log det L (+ terms equal in all)
             log_m = -0.5 * (zz_g_y + cdc - jnp.sum(v_g_y * v_g_y, -1)) / s2
             logits = jnp.where(width > 0, log_m + base_g, -jnp.inf)
-            # the cell by inverting the cells' CDF (one uniform, not one Gumbel per cell)
+            # _CANDIDATES draws of the proposal, cells by inverting their CDF (one uniform
+            # each, not one Gumbel per cell); the first inside the box is the proposal,
+            # none inside a rejection (module docstring)
             cdf = jnp.cumsum(jnp.exp(logits - jnp.max(logits)))
-            g = jnp.searchsorted(cdf, jax.random.uniform(k_g, dtype=dtype) * cdf[-1])
-            g = jnp.clip(g, 0, width.shape[0] - 1)
-            u_new = edges[g] + jax.random.uniform(k_u, dtype=dtype) * width[g]
-            u_new = jnp.clip(u_new, u_lo + e_u, u_hi - e_u)
-            aw_n, bw_n = terms(jnp.exp(u_new))
-            q_n, r_n, zz_n, l_n, v_n = factor(aw_n, bw_n, y, dref)
-            eps = jax.random.normal(k_x, v_n.shape, dtype)
-            x_new = _solve_upper_t(l_n, v_n + jnp.sqrt(s2) * eps)
-            inside = jnp.all((x_new > xl) & (x_new < xh))
+            pick = jax.random.uniform(k_g, (_CANDIDATES,), dtype) * cdf[-1]
+            g = jnp.clip(jnp.searchsorted(cdf, pick), 0, width.shape[0] - 1)
+            us = edges[g] + jax.random.uniform(k_u, (_CANDIDATES,), dtype) * width[g]
+            us = jnp.clip(us, u_lo + e_u, u_hi - e_u)
+            eps = jax.random.normal(k_x, (_CANDIDATES, c.shape[0]), dtype)
+
+            def candidate(u_t, e_t):
+                aw_t, bw_t = terms(jnp.exp(u_t))
+                q_t, r_t, zz_t, l_t, v_t = factor(aw_t, bw_t, y, dref)
+                x_t = _solve_upper_t(l_t, v_t + jnp.sqrt(s2) * e_t)
+                return aw_t, bw_t, q_t, r_t, zz_t, l_t, v_t, x_t
+
+            cand = jax.vmap(candidate)(us, eps)
+            inside_t = jnp.all((cand[-1] > xl[None, :]) & (cand[-1] < xh[None, :]), axis=-1)
+            first = jnp.argmax(inside_t)
+            aw_n, bw_n, q_n, r_n, zz_n, l_n, v_n, x_new = (a[first] for a in cand)
+            u_new, inside = us[first], jnp.any(inside_t)
             z_c = y - bw
             r_c = jnp.einsum("mp,m,m->p", aw, w, z_c)
             zz_c = jnp.sum(w * z_c * z_c)
@@ -554,11 +583,15 @@ def _run(
 
             def phase(carry, grid, length):
                 def interval(carry, _):
-                    carry, accs = jax.lax.scan(
-                        lambda cr, _: scan_one(cr, grid), carry, None, length=sweeps
-                    )
+                    def scan(_, state):
+                        carry, acc = state
+                        carry, a = scan_one(carry, grid)
+                        return carry, acc + a
+
+                    zero = jnp.zeros((), dtype)
+                    carry, acc = jax.lax.fori_loop(0, sweeps, scan, (carry, zero))
                     u, x, s2 = carry[1], carry[2], carry[3]
-                    return carry, (_insert(x, jnp.exp(u), i), s2, jnp.mean(accs))
+                    return carry, (_insert(x, jnp.exp(u), i), s2, acc / sweeps)
 
                 return jax.lax.scan(interval, carry, None, length)
 
@@ -573,4 +606,4 @@ def _run(
         ks = jax.random.split(key, v0.shape[0])
         return jax.vmap(chain)(ks, v0, s0)
 
-    return jax.vmap(pixel)(keys, v0, s0, sd_u, data, w, u_std, obs, c_idx, c_sign)
+    return jax.vmap(pixel)(keys, v0, s0, sd_u, data, w, u_std, obs, c_idx, c_sign, scans)

@@ -139,8 +139,8 @@ class CaptureUncertainty:
         # the second pass's settings, also where rerun_rhat turns it off; the first pass's
         # where its samplers had nothing to tune (jaxrefl.posterior._adaptive.UNTUNED)
         second = jp.longer_options(o.hmc) if o.rerun_hmc is None else o.rerun_hmc
-        if self.map.timings.get("rerun_settings") == "first pass":
-            second = o.hmc
+        if self.map.timings.get("rerun_settings") == "untuned":
+            second = jp.untuned_rerun(o.hmc)
         return {
             "model": self.model,
             "height": self.height,
