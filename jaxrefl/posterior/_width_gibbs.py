@@ -578,30 +578,50 @@ def _run(
             x = _drop(v, i)
             u = jnp.clip(jnp.log(v[i]), u_lo + e_u, u_hi - e_u)
             aw, bw = terms(jnp.exp(u))
-            grid = cells(s * s)
-            q, _r, _zz, l, _v = factor(aw, bw, yw, grid[0])
+            q = _moments(aw, bw, yw, w)[0]
 
-            def phase(carry, grid, length):
-                def interval(carry, _):
-                    def scan(_, state):
-                        carry, acc = state
+            # Both phases run one compiled loop (half the program of two): an outer scan
+            # over the phases, each rescaling the stand-in to the chain's noise scale then
+            # (the start's in the warm-up, which can be far off; the chain's own after it;
+            # the proposal is fixed within a phase), and an inner loop over its intervals
+            # whose count is the phase's, written into the draws only after the warm-up.
+            p_out = v.shape[0]
+            draws0 = (
+                jnp.zeros((num_samples, p_out), dtype),
+                jnp.zeros((num_samples,), dtype),
+                jnp.zeros((num_samples,), dtype),
+            )
+
+            def phase(state, spec):
+                carry, draws = state
+                length, keep = spec[0], spec[1] > 0
+                grid = cells(carry[3])
+                carry = (*carry[:7], _chol(carry[6] + jnp.diag(grid[0])))
+
+                def interval(t, st):
+                    carry, draws = st
+
+                    def scan(_, sc):
+                        carry, acc = sc
                         carry, a = scan_one(carry, grid)
                         return carry, acc + a
 
                     zero = jnp.zeros((), dtype)
                     carry, acc = jax.lax.fori_loop(0, sweeps, scan, (carry, zero))
                     u, x, s2 = carry[1], carry[2], carry[3]
-                    return carry, (_insert(x, jnp.exp(u), i), s2, acc / sweeps)
+                    new = (_insert(x, jnp.exp(u), i), s2, acc / sweeps)
+                    at = jnp.where(keep, t, num_samples)  # out of range in the warm-up: dropped
+                    draws = tuple(
+                        d.at[at].set(v, mode="drop") for d, v in zip(draws, new, strict=True)
+                    )
+                    return carry, draws
 
-                return jax.lax.scan(interval, carry, None, length)
+                return jax.lax.fori_loop(0, length, interval, (carry, draws)), None
 
-            carry, _ = phase((key, u, x, s * s, aw, bw, q, l), grid, num_warmup)
-            # At the end of the warm-up the stand-in is rescaled to the chain's noise scale
-            # then (the start's can be far off); the proposal is fixed after.
-            grid = cells(carry[3])
-            carry = (*carry[:7], _chol(carry[6] + jnp.diag(grid[0])))
-            _, out = phase(carry, grid, num_samples)
-            return out
+            carry = (key, u, x, s * s, aw, bw, q, jnp.zeros_like(q))
+            specs = jnp.asarray([[num_warmup, 0], [num_samples, 1]], jnp.int32)
+            (_, draws), _ = jax.lax.scan(phase, (carry, draws0), specs)
+            return draws
 
         ks = jax.random.split(key, v0.shape[0])
         return jax.vmap(chain)(ks, v0, s0)
