@@ -256,7 +256,7 @@ def test_adaptive_chunks_have_one_shape_and_map_back(lambert, monkeypatch):
     th = th.copy()
     th[5] = np.nan
     # No second pass: the stand-in's 60 draws a pixel are noise, whose R-hat can pass 1.05.
-    o = jp.AdaptiveOptions(mcmc="all", hmc=opts, chunk=4, seed=7, rerun_rhat=None)
+    o = jp.AdaptiveOptions(mcmc="all", hmc=opts, chunk=4, seed=7, rerun_rhat=None, workers=1)
     u = jp.adaptive_uncertainty(lp, data, th, sd, flag, o)
     assert [c[0] for c in calls] == [(3, 6, 3), (3, 6, 3)] and [c[2] for c in calls] == [7, 8]
     np.testing.assert_array_equal(calls[1][1], np.asarray(lp.init_theta(th[[3, 4, 3]])))
@@ -317,6 +317,19 @@ def test_chunks_sampled_in_threads_give_the_map_of_a_loop(lambert, monkeypatch):
         jp.AdaptiveOptions(workers=0)
 
 
+def test_chunk_count_fills_whole_rounds_of_workers():
+    """After the first chunk (alone: it compiles), chunks run ``workers`` at a time; their
+    count is rounded up so that no round is left with an idle worker."""
+    from jaxrefl.posterior._adaptive import _chunk_size
+
+    assert _chunk_size(22979, 2048, 128) == 1920  # 12 chunks
+    assert _chunk_size(22979, 2048, 128, workers=2) == 1792  # 13: the first, then 6 pairs
+    assert _chunk_size(3078, 2048, 128) == 1664  # 2 chunks, not 2 of 2048
+    assert _chunk_size(3078, 2048, 128, workers=2) == 1152  # 3
+    assert _chunk_size(1000, 2048, 128, workers=2) == 1024  # one chunk (of whole batches)
+    assert _chunk_size(2, 1, 128, workers=3) == 1  # never more chunks than pixels
+
+
 def test_in_order_raises_at_the_failing_item():
     from jaxrefl.posterior._workers import in_order
 
@@ -368,7 +381,7 @@ def test_second_pass_reruns_the_pixels_whose_chains_disagree(lambert, monkeypatc
     opts = jp.HMCOptions(num_warmup=5, num_samples=30, num_chains=2)
     # Threshold 1.1: the agreeing stand-in chains are 60 noise draws a pixel, whose R-hat
     # can pass 1.05 by chance; the chains 1 apart are far above either.
-    o = jp.AdaptiveOptions(mcmc="all", hmc=opts, chunk=4, seed=7, rerun_rhat=1.1)
+    o = jp.AdaptiveOptions(mcmc="all", hmc=opts, chunk=4, seed=7, rerun_rhat=1.1, workers=1)
     assert o.second_pass == jp.longer_options(opts)
     u = jp.adaptive_uncertainty(lp, data, th, sd, flag, o)
     assert len(calls) == 3  # two first-pass chunks (6 pixels), one second-pass chunk
@@ -458,6 +471,12 @@ def test_vectorised_diagnostics_match_arviz():
     for k, v in ref.items():
         np.testing.assert_allclose(dg[k], v, rtol=1e-8, err_msg=k)
     assert dg["max_rhat"][3] > 1.5 and np.isnan(dg["max_rhat"][4])
+    # the shared rank normalisation gives the separate estimators' values
+    from jaxrefl.posterior._fastdiag import ess_bulk, ess_tail, rank_diagnostics, rhat_rank
+
+    flat = np.moveaxis(x, -1, 1).reshape(n * d, c, m)
+    for a, b in zip(rank_diagnostics(flat), (rhat_rank, ess_bulk, ess_tail), strict=True):
+        np.testing.assert_array_equal(a, b(flat))
 
 
 def test_chunk_folder_resumes_without_sampling_again(lambert, monkeypatch, tmp_path):
@@ -488,7 +507,7 @@ def test_chunk_folder_resumes_without_sampling_again(lambert, monkeypatch, tmp_p
 
     monkeypatch.setattr(_adaptive, "sample_pixels", fake)
     opts = jp.HMCOptions(num_warmup=5, num_samples=30, num_chains=2)
-    o = jp.AdaptiveOptions(mcmc="all", hmc=opts, chunk=4, seed=7)
+    o = jp.AdaptiveOptions(mcmc="all", hmc=opts, chunk=4, seed=7, workers=1)
     folder = tmp_path / "mcmc"
     first = jp.adaptive_uncertainty(lp, data, th, sd, flag, o, chunk_dir=folder)
     assert len(calls) == 3 and first.rerun.any()  # two first-pass chunks, one second-pass
@@ -543,7 +562,7 @@ def test_second_pass_of_an_untuned_sampler_reuses_the_first_pass_program(lambert
 
     monkeypatch.setattr(_adaptive, "sample_pixels", fake)
     opts = jp.HMCOptions(num_warmup=5, num_samples=30, num_chains=2, gibbs_sweeps=2)
-    o = jp.AdaptiveOptions(mcmc="all", hmc=opts, chunk=4, seed=7, rerun_rhat=1.1)
+    o = jp.AdaptiveOptions(mcmc="all", hmc=opts, chunk=4, seed=7, rerun_rhat=1.1, workers=1)
     u = jp.adaptive_uncertainty(lp, data, th, sd, flag, o)
     assert len(calls) == 3 and u.timings["sampler"] == "gibbs_mh"
     (s1, o1, seed1), (_s, _o, seed2), (s3, o3, seed3) = calls

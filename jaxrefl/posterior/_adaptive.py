@@ -432,6 +432,10 @@ class _Run:
     timings: dict[str, Any]
     folder: Path | None = None
 
+    @property
+    def workers(self) -> int:
+        return default_workers() if self.o.workers is None else self.o.workers
+
     def first_pass(self, idx, starts, out: _Summaries, rng):
         """Sample the pixels ``idx``; returns their draws (None unless ``keep_samples``)
         and, per pixel whose chains disagree, its second-pass starts."""
@@ -456,7 +460,7 @@ class _Run:
         tm["mcmc_pixels"] = int(idx.size)
         tm["mcmc_chunks"] = len(run_s)
         tm["sampler"] = "+".join(dict.fromkeys(used))  # each chunk's (Samples.method)
-        tm["mcmc_chunk_size"] = _chunk_size(int(idx.size), o.chunk, o.hmc.batch_size)
+        tm["mcmc_chunk_size"] = _chunk_size(int(idx.size), o.chunk, o.hmc.batch_size, self.workers)
         if len(run_s) > 1:
             # the first chunk compiles; the others reuse it
             tm["mcmc_compile_s"] = max(0.0, run_s[0] - float(np.median(run_s[1:])))
@@ -508,7 +512,7 @@ class _Run:
         i mod n), and after a barrier every process reads all of them.
         """
         if size is None:
-            size = _chunk_size(idx.size, self.o.chunk, opts.batch_size)
+            size = _chunk_size(idx.size, self.o.chunk, opts.batch_size, self.workers)
         firsts = list(range(0, idx.size, size))
         many = jax.process_count() > 1
         mine = set(process_share(list(range(len(firsts)))))
@@ -534,9 +538,8 @@ class _Run:
                     _save_chunk(name(ci), *got)
             return got
 
-        workers = default_workers() if self.o.workers is None else self.o.workers
         try:
-            for ci, got in enumerate(in_order(get, range(len(firsts)), workers)):
+            for ci, got in enumerate(in_order(get, range(len(firsts)), self.workers)):
                 if bar is not None:
                     bar.update(1)
                 if not many:
@@ -681,12 +684,18 @@ class _Summaries:
         self.divergences[real] = dg["divergences"]
 
 
-def _chunk_size(n: int, chunk: int, batch: int) -> int:
+def _chunk_size(n: int, chunk: int, batch: int, workers: int = 1) -> int:
     """The fewest chunks of at most ``chunk`` pixels, balanced: ceil(n / ceil(n / chunk)),
     rounded up to a multiple of the sampler's ``batch`` where that stays within ``chunk``
     (sample_pixels pads a chunk to whole batches). 3,078 pixels in chunks of at most 2048,
-    batches of 128, run as 2 chunks of 1664, not 2 of 2048 with 1,018 of them padding."""
+    batches of 128, run as 2 chunks of 1664, not 2 of 2048 with 1,018 of them padding.
+    With ``workers`` chunks at once after the first (which runs alone: it compiles), the
+    count is rounded up so that those after the first fill whole rounds: 12 chunks with
+    2 workers leave the last round one chunk and a core idle, 13 smaller ones do not."""
     k = -(-n // chunk)
+    if workers > 1 and k > 1:
+        k = 1 + -(-(k - 1) // workers) * workers
+    k = min(k, n)
     size = -(-n // k)
     if size <= batch:  # one batch: sample_pixels does not pad it
         return size

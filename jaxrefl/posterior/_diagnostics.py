@@ -38,7 +38,7 @@ import numpy as np
 from jaxrefl.fit import L2, PixelData
 
 from ._batched import Samples
-from ._fastdiag import ess_bulk, ess_tail, rhat_rank
+from ._fastdiag import rank_diagnostics
 
 __all__ = [
     "diagnostics",
@@ -225,9 +225,7 @@ def diagnostics(samples: Samples) -> dict[str, np.ndarray]:
     n, c, m, d = x.shape
     # ArviZ's estimators, vectorised over pixels and parameters (._fastdiag; ArviZ loops)
     flat = np.moveaxis(x, -1, 1).reshape(n * d, c, m)
-    rhat = rhat_rank(flat).reshape(n, d)
-    bulk = ess_bulk(flat).reshape(n, d)
-    tail = ess_tail(flat).reshape(n, d)
+    rhat, bulk, tail = (a.reshape(n, d) for a in rank_diagnostics(flat))
     div = np.sum(np.asarray(samples.stats["diverging"]), axis=(1, 2))
     acc = np.mean(np.asarray(samples.stats["acceptance_rate"]), axis=(1, 2))
     bad = ~np.all(np.isfinite(x), axis=(1, 2, 3))

@@ -19,7 +19,7 @@ from statistics import NormalDist
 
 import numpy as np
 
-__all__ = ["ess_bulk", "ess_tail", "rhat_rank"]
+__all__ = ["ess_bulk", "ess_tail", "rank_diagnostics", "rhat_rank"]
 
 
 def _split(x: np.ndarray) -> np.ndarray:
@@ -137,6 +137,21 @@ def rhat_rank(x: np.ndarray) -> np.ndarray:
         tail = _rhat(_z_scale(np.abs(s - med[:, None, None])))
     # fmax: chains stuck at distinct values fold onto one constant (0/0 there); bulk says inf
     return _nan_rows(x, np.fmax(bulk, tail))
+
+
+def rank_diagnostics(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(:func:`rhat_rank`, :func:`ess_bulk`, :func:`ess_tail`) of x (B, chains, draws), the
+    rank normalisation of the split chains computed once for the R-hat and the bulk ESS
+    (the ranking is most of their cost)."""
+    x = np.asarray(x, np.float64)
+    s = _split(x)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        z = _z_scale(s)
+        bulk = _rhat(z)
+        med = np.median(s.reshape(s.shape[0], -1), -1)
+        tail = _rhat(_z_scale(np.abs(s - med[:, None, None])))
+        ess = _ess(z)
+    return _nan_rows(x, np.fmax(bulk, tail)), _nan_rows(x, ess), ess_tail(x)
 
 
 def ess_bulk(x: np.ndarray) -> np.ndarray:
