@@ -154,6 +154,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=None,
         help="emcee walkers (default: max(32, 2 D + 2) for D parameters)",
     )
+    p.add_argument(
+        "--workers",
+        type=positive_int,
+        default=None,
+        help="MCMC chunks sampled at once, in threads (default: 2 on a CPU, 1 on a GPU); "
+        "the map does not depend on it",
+    )
     p.add_argument("--seed", type=non_negative_int, default=0, help="random seed (>= 0)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_distributed_arguments(p)
@@ -249,6 +256,7 @@ def _run_capture(args, path: Path, opts, dist) -> dict:
         ),
         chunk=args.chunk,
         seed=args.seed,
+        workers=args.workers,
     )
     cap = load_capture(path)
     if args.downsample > 1:
