@@ -9,13 +9,14 @@
    time (compilation excluded and printed apart). Target: batched >= 5x emcee.
 2. Laplace vs NUTS: ratio of marginal standard deviations on the pixels Laplace flags
    reliable (identifiable), median and 5-95% range per parameter.
-3. Wall time of an adaptive uncertainty map (Laplace everywhere, HMC with ``MAP_OPTIONS``
-   on the flagged pixels and a 2% audit, fixed-size chunks of ``--map-chunk`` pixels, and
-   the second pass of ``longer_options`` on the pixels left above R-hat 1.1) of
-   the bath_tile capture downsampled to ``--map-size`` squared (needs
-   $JAXREFL_SHARED_DATA) and of a synthetic ``jaxrefl demo`` capture of that size;
-   ``--map-rows R`` crops the first R rows and extrapolates (labelled EXTRAPOLATED);
-   ``--map-size 0`` skips it.
+3. Wall time of an adaptive uncertainty map (Laplace everywhere, ``MAP_OPTIONS`` on the
+   flagged pixels and a 2% audit: HMC, or the Gibbs samplers where the posterior allows;
+   fixed-size chunks of at most ``--map-chunk`` pixels, the default number at once; the
+   second pass on the pixels left above R-hat 1.05) of a synthetic ``jaxrefl demo``
+   capture of ``--map-size`` squared, first, in a fresh process (every program compiled),
+   then of the real captures bath_tile and yellow_box at that size (needs
+   $JAXREFL_SHARED_DATA); ``--map-rows R`` crops the first R rows and extrapolates
+   (labelled EXTRAPOLATED); ``--map-size 0`` skips it.
 4. emcee SBC with ``--emcee-sbc`` simulations (the test runs 24).
 
     python benchmarks/posterior_speed.py --only-map --map-size 256 --map-rows 4
@@ -265,9 +266,10 @@ def map_run(args, cap, name):
         f"\nadaptive uncertainty map, {name}, rows 0-{rows - 1} of {h_full} x {w} "
         f"(K = {cap.shape[0]}), float64, {o.num_chains} chains of {o.num_samples} draws: "
         f"HMC ({o.num_warmup} warm-up, {o.num_integration_steps} leapfrog) or, where the "
-        f"posterior allows, Gibbs ({o.gibbs_warmup} warm-up intervals, {o.gibbs_sweeps} "
-        f"scans between draws); chunks of {tm.get('mcmc_chunk_size', 0)} pixels; sampler: "
-        f"{tm.get('sampler', '-')}:"
+        f"posterior allows, Gibbs ({o.gibbs_warmup} warm-up intervals; exact Gibbs "
+        f"{o.gibbs_sweeps} sweeps, the width sampler {o.width_scans or o.gibbs_sweeps} "
+        f"scan(s) between draws); chunks of {tm.get('mcmc_chunk_size', 0)} pixels, "
+        f"{workers} at once; sampler: {tm.get('sampler', '-')}:"
     )
     body = [
         [
@@ -276,10 +278,7 @@ def map_run(args, cap, name):
         ],
         [f"adaptive posterior ({n_mc} MCMC pixels)", f"{t_post:.1f}"],
         ["  MCMC compile (first chunk - median chunk)", f"{tm.get('mcmc_compile_s', 0.0):.1f}"],
-        [
-            f"  MCMC median chunk ({workers} at once)",
-            f"{tm.get('mcmc_chunk_s_median', float('nan')):.1f}",
-        ],
+        ["  MCMC median chunk", f"{tm.get('mcmc_chunk_s_median', float('nan')):.1f}"],
         ["  MCMC first pass, wall (compile incl.)", f"{tm.get('mcmc_wall_s', 0.0):.1f}"],
         [
             f"  second pass, wall ({tm.get('rerun_pixels', 0)} pixels, compile incl.)",
