@@ -228,6 +228,17 @@ def test_cli_sample_brdf_file(shared_data, tmp_path, capsys):
         jm.sample_posterior(src, "lambert", jp.AdaptiveOptions())
 
 
+def _draws_at_start(lp, th0, options, seed):
+    """A stand-in sampler's draws: each pixel's (N, D) start plus noise 1e-3, seeded."""
+    rng = np.random.default_rng(seed)
+    n, c, m = th0.shape[0], options.num_chains, options.num_samples
+    x = th0[:, None, None, :] + 1e-3 * rng.normal(size=(n, c, m, th0.shape[1]))
+    st = {"acceptance_rate": np.ones((n, c, m)), "diverging": np.zeros((n, c, m), bool)}
+    return jp.Samples(
+        x, x, lp.labels, st, "hmc", run_s=1.0, extra={"no_estimate": np.zeros(n, bool)}
+    )
+
+
 def test_adaptive_chunks_have_one_shape_and_map_back(lambert, monkeypatch):
     """MCMC on 5 pixels (the 6th has no estimate) in chunks of at most 4: two balanced
     chunks of 3, every sampler call the same shape (the last chunk padded by repeating
@@ -242,13 +253,7 @@ def test_adaptive_chunks_have_one_shape_and_map_back(lambert, monkeypatch):
     def fake(lp_, sub, th0, *, theta_std, normals, options, seed):
         th0 = np.asarray(th0)
         calls.append((sub.obs.shape, th0.copy(), seed))
-        rng = np.random.default_rng(seed)
-        n, c, m = th0.shape[0], options.num_chains, options.num_samples
-        x = th0[:, None, None, :] + 1e-3 * rng.normal(size=(n, c, m, th0.shape[1]))
-        st = {"acceptance_rate": np.ones((n, c, m)), "diverging": np.zeros((n, c, m), bool)}
-        return jp.Samples(
-            x, x, lp_.labels, st, "hmc", run_s=1.0, extra={"no_estimate": np.zeros(n, bool)}
-        )
+        return _draws_at_start(lp_, th0, options, seed)
 
     monkeypatch.setattr(_adaptive, "sample_pixels", fake)
     opts = jp.HMCOptions(num_warmup=5, num_samples=30, num_chains=2)
@@ -287,14 +292,7 @@ def test_chunks_sampled_in_threads_give_the_map_of_a_loop(lambert, monkeypatch):
 
     def fake(lp_, sub, th0, *, theta_std, normals, options, seed):
         where[workers].append((seed, threading.current_thread()))
-        rng = np.random.default_rng(seed)
-        th0 = np.asarray(th0)
-        n, c, m = th0.shape[0], options.num_chains, options.num_samples
-        x = th0[:, None, None, :] + 1e-3 * rng.normal(size=(n, c, m, th0.shape[1]))
-        st = {"acceptance_rate": np.ones((n, c, m)), "diverging": np.zeros((n, c, m), bool)}
-        return jp.Samples(
-            x, x, lp_.labels, st, "hmc", run_s=1.0, extra={"no_estimate": np.zeros(n, bool)}
-        )
+        return _draws_at_start(lp_, np.asarray(th0), options, seed)
 
     monkeypatch.setattr(_adaptive, "sample_pixels", fake)
     th, sd, flag = np.asarray(r.theta), np.asarray(lap.theta_std), np.asarray(lap.flag)

@@ -4,6 +4,8 @@ HMC under censoring and an unknown noise scale, and which posteriors take that p
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -111,17 +113,10 @@ def test_draws_have_the_quadrature_marginals_of_alpha_and_f0(ggx_fit):
     assert qualifies_width(lp, sub) == (True, "")
     theta0 = jnp.asarray(cf.theta[pick[:3]])
     std = svbrdf.laplace_theta_std(cf, space)[pick[:3]]
-    s = sample_width_gibbs(
-        lp,
-        sub,
-        theta0,
-        theta_std=std,
-        num_chains=4,
-        num_warmup=20,
-        num_samples=2000,
-        sweeps=1,
-        seed=11,
+    run = functools.partial(
+        sample_width_gibbs, lp, sub, theta0, theta_std=std, num_chains=4, num_warmup=20
     )
+    s = run(num_samples=2000, sweeps=1, seed=11)
     assert s.method == "gibbs_mh" and s.natural.shape == (3, 4, 2000, lp.size)
     assert np.all(np.isfinite(s.theta)) and np.all(np.isfinite(s.stats["lp"]))
     assert 0.2 < float(np.mean(s.stats["acceptance_rate"])) <= 1.0
@@ -144,17 +139,7 @@ def test_draws_have_the_quadrature_marginals_of_alpha_and_f0(ggx_fit):
 
     clock = CompileClock().start()
     try:
-        s2 = sample_width_gibbs(
-            lp,
-            sub,
-            theta0,
-            theta_std=std,
-            num_chains=4,
-            num_warmup=20,
-            num_samples=2000,
-            sweeps=2,
-            seed=12,
-        )
+        s2 = run(num_samples=2000, sweeps=2, seed=12)
     finally:
         clock.stop()
     assert clock.programs == 0 and s2.extra["sweeps"] == 2

@@ -126,17 +126,23 @@ def _nan_rows(x: np.ndarray, out: np.ndarray) -> np.ndarray:
     return np.where(np.any(np.isnan(x), axis=(1, 2)), np.nan, out)
 
 
+def _rhat_split(s: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """Max of the R-hat of the rank-normalised split chains z = _z_scale(s) and of the
+    folded |s - median|."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        bulk = _rhat(z)
+        med = np.median(s.reshape(s.shape[0], -1), -1)
+        tail = _rhat(_z_scale(np.abs(s - med[:, None, None])))
+    # fmax: chains stuck at distinct values fold onto one constant (0/0 there); bulk says inf
+    return np.fmax(bulk, tail)
+
+
 def rhat_rank(x: np.ndarray) -> np.ndarray:
     """(B, chains, draws) -> (B,) max of the rank-normalised split R-hat of x and of the
     folded |x - median| (Vehtari et al. 2021, eq. 4 and sec. 4.2)."""
     x = np.asarray(x, np.float64)
     s = _split(x)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        bulk = _rhat(_z_scale(s))
-        med = np.median(s.reshape(s.shape[0], -1), -1)
-        tail = _rhat(_z_scale(np.abs(s - med[:, None, None])))
-    # fmax: chains stuck at distinct values fold onto one constant (0/0 there); bulk says inf
-    return _nan_rows(x, np.fmax(bulk, tail))
+    return _nan_rows(x, _rhat_split(s, _z_scale(s)))
 
 
 def rank_diagnostics(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -145,13 +151,8 @@ def rank_diagnostics(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]
     (the ranking is most of their cost)."""
     x = np.asarray(x, np.float64)
     s = _split(x)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        z = _z_scale(s)
-        bulk = _rhat(z)
-        med = np.median(s.reshape(s.shape[0], -1), -1)
-        tail = _rhat(_z_scale(np.abs(s - med[:, None, None])))
-        ess = _ess(z)
-    return _nan_rows(x, np.fmax(bulk, tail)), _nan_rows(x, ess), ess_tail(x)
+    z = _z_scale(s)
+    return _nan_rows(x, _rhat_split(s, z)), _nan_rows(x, _ess(z)), ess_tail(x)
 
 
 def ess_bulk(x: np.ndarray) -> np.ndarray:

@@ -67,6 +67,7 @@ joint moves' acceptance).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 
 import equinox as eqx
@@ -361,8 +362,9 @@ _SAMPLERS: dict = {}
 
 
 def _sampler(lp, lo, hi, prior, i, num_warmup, num_samples, jeffreys, dtype):
-    """``_run`` on a batch of pixels with everything else bound: the same object for equal
-    arguments, so that every chunk of a map reuses one compiled (and sharded) program."""
+    """``_run`` with everything but the batch of pixels bound (a partial: its arguments are
+    the batch's), the same object for equal arguments, so that every chunk of a map reuses
+    one compiled (and sharded) program."""
     leaves, treedef = jax.tree.flatten((lp, prior))
     settings = (i, num_warmup, num_samples, jeffreys, jnp.dtype(dtype))
     key: tuple | None = (treedef, tuple(leaves), tuple(lo), tuple(hi), settings)
@@ -372,30 +374,8 @@ def _sampler(lp, lo, hi, prior, i, num_warmup, num_samples, jeffreys, dtype):
         key = None
     if key is None or key not in _SAMPLERS:
         lo_a, hi_a = jnp.asarray(lo, dtype), jnp.asarray(hi, dtype)
-
-        def run(data, keys, v0, s0, sd_u, w, u_std, obs, c_idx, c_sign, scans):
-            return _run(
-                lp,
-                data,
-                keys,
-                v0,
-                s0,
-                sd_u,
-                w,
-                u_std,
-                obs,
-                c_idx,
-                c_sign,
-                scans,
-                lo_a,
-                hi_a,
-                prior,
-                i=i,
-                num_warmup=num_warmup,
-                num_samples=num_samples,
-                jeffreys=jeffreys,
-            )
-
+        bound = dict(i=i, num_warmup=num_warmup, num_samples=num_samples, jeffreys=jeffreys)
+        run = functools.partial(_run, lp, lo_a, hi_a, prior, **bound)
         if key is None:
             return run
         _SAMPLERS[key] = run
@@ -405,6 +385,9 @@ def _sampler(lp, lo, hi, prior, i, num_warmup, num_samples, jeffreys, dtype):
 @eqx.filter_jit
 def _run(
     lp,
+    lo,
+    hi,
+    prior,
     data,
     keys,
     v0,
@@ -416,9 +399,6 @@ def _run(
     c_idx,
     c_sign,
     scans,
-    lo,
-    hi,
-    prior,
     *,
     i,
     num_warmup,

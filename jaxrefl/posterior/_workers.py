@@ -12,7 +12,7 @@ a map has. The results are those of a loop: each item's work depends on the item
 
 :func:`default_workers` is 2 on a CPU backend with at least two cores and 1 elsewhere:
 an accelerator runs a chunk at full width by itself, and JAX already overlaps its host
-work. More threads than 2 on a CPU mostly contend for the same cores
+work. On a CPU with more cores, more workers may pay; each holds one chunk's arrays
 (``benchmarks/posterior_speed.py`` measures the map with the default).
 """
 
