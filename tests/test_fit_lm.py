@@ -197,29 +197,36 @@ def test_compaction_stages_give_each_pixel_its_own_lm_solve(monkeypatch):
 
 def test_host_driven_steps_give_each_pixel_its_own_lm_solve(monkeypatch):
     """batched_lm called outside a trace drives its steps from Python and gathers the
-    unconverged pixels into ever fewer slots every host_round steps: every pixel takes the
-    steps lm_solve takes on it alone (float64), and the result equals the one-program
-    path's; under jit the one-program path runs."""
+    unconverged pixels into ever fewer slots every host_round steps, and the last few into
+    one round of all their remaining steps: every pixel takes the steps lm_solve takes on it
+    alone (float64), and the result equals the one-program path's; under jit the one-program
+    path runs."""
     monkeypatch.setattr(fit._lm, "_MIN_BLOCK", 0)  # gather in a block of 256 as well
     pr = make_problem("ggx_noisy_256", _GGX, n=256, noise=0.02, seed=7)
     space = fit.ParamSpace(pr.model, channels=3, grey=("albedo", "specular"))
     res = fit.make_residual(pr.model, space)
     theta0 = jnp.broadcast_to(space.from_natural({}, dtype=jnp.float64), (256, space.size))
     host = fit.LMOptions(max_iters=25, compact_after=2, host_round=3)
-    gathered: list[int] = []
-    real_gather = fit._lm._gather
+    gathered: list[tuple[int, int]] = []  # (live slots, steps) of each round with live slots
+    real_round = fit._lm._round
 
-    def recording(states, data, idx, live):
-        gathered.append(int(np.sum(np.asarray(live))))
-        return real_gather(states, data, idx, live)
+    def recording(residual_fn, states, data, idx, n, options):
+        live = int(np.sum(np.asarray(idx) < states.theta.shape[0]))
+        if live:
+            gathered.append((live, int(n)))
+        return real_round(residual_fn, states, data, idx, n, options)
 
-    monkeypatch.setattr(fit._lm, "_gather", recording)
+    monkeypatch.setattr(fit._lm, "_round", recording)
     theta, r = fit.batched_lm(res, theta0, pr.data, host, space=space)
     plain = jax.vmap(lambda t, d: fit.lm_solve(res, t, d, host, space=space))
     theta_ref, r_ref = plain(theta0, pr.data)
     it = np.asarray(r.iterations)
-    # Pixels stopped early and late, and the late ones were gathered in fewer slots.
-    assert gathered and min(gathered) < 64 and np.any(it <= 5) and np.any(it > 12), gathered
+    # Pixels stopped early and late; the late ones were gathered in fewer slots, the last
+    # of them in one round of every remaining step (the small slots: 256 / 16 = 64).
+    assert np.any(it <= 5) and np.any(it > 12), np.bincount(it)
+    assert len(gathered) >= 2 and any(n == 3 for _, n in gathered[:-1]), gathered
+    live, n = gathered[-1]
+    assert live <= 64 and n > 3, gathered
     np.testing.assert_array_equal(it, np.asarray(r_ref.iterations))
     np.testing.assert_array_equal(np.asarray(r.status), np.asarray(r_ref.status))
     np.testing.assert_allclose(np.asarray(theta), np.asarray(theta_ref), rtol=1e-7, atol=1e-10)

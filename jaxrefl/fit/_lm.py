@@ -132,12 +132,13 @@ class LMOptions(Option):
                 converged (fewer compiled copies of the step).
     host_loop, host_round: called outside a trace, :func:`batched_lm` runs its steps from
                 Python, each one compiled program, and every ``host_round`` steps (default
-                2) gathers the unconverged pixels into rounds of 1/16 or 1/4 of a block
-                (:func:`_solve_host`; ``compact_stages`` organises the other way;
-                ``chunk`` both); inside a trace (``jit``, ``shard_map``) the steps are loops of one
-                program. The same steps for every pixel either way. On CPU a step inside a
-                compiled loop costs more than the same step as a program of its own, while
-                each program called from Python costs its dispatch
+                2) gathers the unconverged pixels into rounds of 1/16 or 1/4 of a block, a
+                round one program; the last few slow pixels take all their remaining steps
+                in one program (:func:`_solve_host`; ``compact_stages`` organises the
+                other way; ``chunk`` both); inside a trace (``jit``, ``shard_map``) the
+                steps are loops of one program. The same steps for every pixel either way.
+                On CPU a step inside a compiled loop costs more than the same step as a
+                program of its own, while each program called from Python costs its dispatch
                 (``benchmarks/fit_throughput.py`` times both).
                 Default True.
     """
@@ -495,16 +496,16 @@ def _step_all(residual_fn, states, data, options):
 
 
 @eqx.filter_jit
-def _gather(states, data, idx, live):
-    """The pixels ``idx`` of states and data; slots that are not ``live`` are frozen."""
-    sub = jax.tree.map(lambda x: x[idx], states)
-    sub = eqx.tree_at(lambda s: s.converged, sub, sub.converged | ~live)
-    return sub, jax.tree.map(lambda x: x[idx], data)
-
-
-@eqx.filter_jit
-def _scatter(states, sub, idx):
-    """states with pixels ``idx`` replaced by ``sub`` (an index of N or more is dropped)."""
+def _round(residual_fn, states, data, idx, n, options):
+    """One gathered round as one program: the pixels ``idx`` (padding: an index of N or more,
+    frozen and dropped on the way back) take up to ``n`` steps (a traced count: one program
+    for any count), stopping once all of them have converged, and are scattered back."""
+    b = states.theta.shape[0]
+    get = jnp.minimum(idx, b - 1)
+    sub = jax.tree.map(lambda x: x[get], states)
+    sub = eqx.tree_at(lambda s: s.converged, sub, sub.converged | (idx >= b))
+    sub_data = jax.tree.map(lambda x: x[get], data)
+    sub = _steps_until_converged(residual_fn, sub, sub_data, options, n)
     return jax.tree.map(lambda x, y: x.at[idx].set(y, mode="drop"), states, sub)
 
 
@@ -543,8 +544,8 @@ _WARMED: set = set()
 
 def _warm(residual_fn, states, data, options) -> None:
     """Compile the gathered-round programs of both slot sizes the first time a block of
-    this shape and residual is solved in the process: one step on slots that are all
-    padding (frozen, and dropped on the way back), which changes nothing."""
+    this shape and residual is solved in the process: a round of no steps on slots that are
+    all padding, which changes nothing."""
     leaves = jax.tree.leaves((residual_fn, data))
     key = (
         jax.tree.structure((residual_fn, data)),
@@ -557,23 +558,22 @@ def _warm(residual_fn, states, data, options) -> None:
         return
     b = states.theta.shape[0]
     for cap in _slot_sizes(b):
-        idx = np.full(cap, b, np.int32)
-        sub, sub_data = _gather(
-            states, data, jnp.asarray(np.minimum(idx, b - 1)), jnp.asarray(idx < b)
-        )
-        sub = _step_all(residual_fn, sub, sub_data, options)
-        states = _scatter(states, sub, jnp.asarray(idx))
+        idx = jnp.full(cap, b, np.int32)
+        states = _round(residual_fn, states, data, idx, jnp.asarray(0, np.int32), options)
     jax.block_until_ready(states)
     _WARMED.add(key)
 
 
 def _solve_host(residual_fn, theta0, data, n_usable, options, space):
-    """:func:`batched_lm` for all N pixels, driven from Python, each step one compiled
-    program. All pixels take the first ``compact_after`` steps; then, in rounds of
+    """:func:`batched_lm` for all N pixels, driven from Python. All pixels take the first
+    ``compact_after`` steps, each step one compiled program; then, in rounds of
     ``host_round`` steps, the unconverged pixels are gathered into slots of one of two fixed
-    sizes (:func:`_slot_sizes`), step, and are scattered back, or the whole block steps
-    where that costs no more. Every unconverged pixel is in every round, so each takes the
-    same steps in the same order as ``lm_solve`` alone. Fewer than ``_MIN_BLOCK`` pixels
+    sizes (:func:`_slot_sizes`), step and are scattered back (:func:`_round`: one program a
+    round), or the whole block steps where that costs no more. Once the unconverged pixels
+    fit in the smaller slots, one last round takes them through all their remaining steps,
+    stopping when they have all converged: the long tail of a few slow pixels costs one
+    program call, not one per round. Every unconverged pixel is in every round, so each takes
+    the same steps in the same order as ``lm_solve`` alone. Fewer than ``_MIN_BLOCK`` pixels
     take plain steps (no gathering), until all have converged."""
     b = theta0.shape[0]
     states = _init_all(residual_fn, theta0, data, options)
@@ -582,6 +582,7 @@ def _solve_host(residual_fn, theta0, data, n_usable, options, space):
         states = _step_all(residual_fn, states, data, options)
     if b >= _MIN_BLOCK and it < options.max_iters:
         _warm(residual_fn, states, data, options)
+    small = _slot_sizes(b)[0]
     while it < options.max_iters:
         todo = np.flatnonzero(~np.asarray(states.converged))
         if todo.size == 0:
@@ -591,15 +592,14 @@ def _solve_host(residual_fn, theta0, data, n_usable, options, space):
         if rounds is None:
             for _ in range(n):
                 states = _step_all(residual_fn, states, data, options)
+        elif todo.size <= small:
+            rest = jnp.asarray(options.max_iters - it, np.int32)
+            states = _round(residual_fn, states, data, jnp.asarray(rounds[0]), rest, options)
+            break
         else:
             for idx in rounds:
-                # Padding slots repeat the last pixel, frozen, and are dropped on the way back.
-                sub, sub_data = _gather(
-                    states, data, jnp.asarray(np.minimum(idx, b - 1)), jnp.asarray(idx < b)
-                )
-                for _ in range(n):
-                    sub = _step_all(residual_fn, sub, sub_data, options)
-                states = _scatter(states, sub, jnp.asarray(idx))
+                steps = jnp.asarray(n, np.int32)
+                states = _round(residual_fn, states, data, jnp.asarray(idx), steps, options)
         it += n
     return _finish_all(states, theta0, n_usable, options, space)
 
