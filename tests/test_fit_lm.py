@@ -195,38 +195,45 @@ def test_compaction_stages_give_each_pixel_its_own_lm_solve(monkeypatch):
     np.testing.assert_allclose(np.asarray(r.cost), np.asarray(r_ref.cost), rtol=1e-9)
 
 
-def test_host_driven_steps_give_each_pixel_its_own_lm_solve(monkeypatch):
+@pytest.mark.parametrize("fused", [False, True])
+def test_host_driven_steps_give_each_pixel_its_own_lm_solve(monkeypatch, fused):
     """batched_lm called outside a trace drives its steps from Python and gathers the
-    unconverged pixels into ever fewer slots every host_round steps, and the last few into
-    one round of all their remaining steps: every pixel takes the steps lm_solve takes on it
-    alone (float64), and the result equals the one-program path's; under jit the one-program
-    path runs."""
+    unconverged pixels into ever fewer slots every host_round steps (``host_fused``: each
+    round one program, and the last few pixels in one round of all their remaining steps):
+    every pixel takes the steps lm_solve takes on it alone (float64), and the result equals
+    the one-program path's; under jit the one-program path runs."""
     monkeypatch.setattr(fit._lm, "_MIN_BLOCK", 0)  # gather in a block of 256 as well
     pr = make_problem("ggx_noisy_256", _GGX, n=256, noise=0.02, seed=7)
     space = fit.ParamSpace(pr.model, channels=3, grey=("albedo", "specular"))
     res = fit.make_residual(pr.model, space)
     theta0 = jnp.broadcast_to(space.from_natural({}, dtype=jnp.float64), (256, space.size))
-    host = fit.LMOptions(max_iters=25, compact_after=2, host_round=3)
-    gathered: list[tuple[int, int]] = []  # (live slots, steps) of each round with live slots
-    real_round = fit._lm._round
+    host = fit.LMOptions(max_iters=25, compact_after=2, host_round=3, host_fused=fused)
+    gathered: list[int] = []  # live slots of each gathered round
+    steps: list[int] = []  # host_fused: the steps each round may take
+    real_gather, real_round = fit._lm._gather, fit._lm._round
 
-    def recording(residual_fn, states, data, idx, n, options):
+    def recording(states, data, idx, live):
+        if not isinstance(live, jax.core.Tracer):  # not inside a fused round's program
+            gathered.append(int(np.sum(np.asarray(live))))
+        return real_gather(states, data, idx, live)
+
+    def recording_round(residual_fn, states, data, idx, n, options):
         live = int(np.sum(np.asarray(idx) < states.theta.shape[0]))
         if live:
-            gathered.append((live, int(n)))
+            gathered.append(live)
+            steps.append(int(n))
         return real_round(residual_fn, states, data, idx, n, options)
 
-    monkeypatch.setattr(fit._lm, "_round", recording)
+    monkeypatch.setattr(fit._lm, "_gather", recording)
+    monkeypatch.setattr(fit._lm, "_round", recording_round)
     theta, r = fit.batched_lm(res, theta0, pr.data, host, space=space)
     plain = jax.vmap(lambda t, d: fit.lm_solve(res, t, d, host, space=space))
     theta_ref, r_ref = plain(theta0, pr.data)
     it = np.asarray(r.iterations)
-    # Pixels stopped early and late; the late ones were gathered in fewer slots, the last
-    # of them in one round of every remaining step (the small slots: 256 / 16 = 64).
-    assert np.any(it <= 5) and np.any(it > 12), np.bincount(it)
-    assert len(gathered) >= 2 and any(n == 3 for _, n in gathered[:-1]), gathered
-    live, n = gathered[-1]
-    assert live <= 64 and n > 3, gathered
+    # Pixels stopped early and late, and the late ones were gathered in fewer slots.
+    assert gathered and min(gathered) < 64 and np.any(it <= 5) and np.any(it > 12), gathered
+    if fused:  # rounds of host_round steps, then one round of every step left
+        assert steps[:-1] and set(steps[:-1]) == {3} and steps[-1] > 3, steps
     np.testing.assert_array_equal(it, np.asarray(r_ref.iterations))
     np.testing.assert_array_equal(np.asarray(r.status), np.asarray(r_ref.status))
     np.testing.assert_allclose(np.asarray(theta), np.asarray(theta_ref), rtol=1e-7, atol=1e-10)

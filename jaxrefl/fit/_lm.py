@@ -132,15 +132,23 @@ class LMOptions(Option):
                 converged (fewer compiled copies of the step).
     host_loop, host_round: called outside a trace, :func:`batched_lm` runs its steps from
                 Python, each one compiled program, and every ``host_round`` steps (default
-                2) gathers the unconverged pixels into rounds of 1/16 or 1/4 of a block, a
-                round one program; the last few slow pixels take all their remaining steps
-                in one program (:func:`_solve_host`; ``compact_stages`` organises the
-                other way; ``chunk`` both); inside a trace (``jit``, ``shard_map``) the
-                steps are loops of one program. The same steps for every pixel either way.
-                On CPU a step inside a compiled loop costs more than the same step as a
-                program of its own, while each program called from Python costs its dispatch
+                2) gathers the unconverged pixels into rounds of 1/16 or 1/4 of a block
+                (:func:`_solve_host`; ``compact_stages`` organises the other way;
+                ``chunk`` both); inside a trace (``jit``, ``shard_map``) the steps are loops of one
+                program. The same steps for every pixel either way. On CPU a step inside a
+                compiled loop costs more than the same step as a program of its own, while
+                each program called from Python costs its dispatch
                 (``benchmarks/fit_throughput.py`` times both).
                 Default True.
+    host_fused: with ``host_loop``, each gathered round is one program (gather, up to
+                ``host_round`` steps in a loop that stops once the round has converged,
+                scatter), and once the unconverged pixels fit in the smaller slots they take
+                all their remaining steps in one such program. Fewer program calls, but a
+                step inside a compiled loop runs slower on CPU than a step program of its own
+                (whose operations XLA parallelises): it pays where steps are cheap and calls
+                many, e.g. a model linear in its free parameters started at its exact optimum
+                (the pooled capture model), and costs where steps are heavy (a GGX lobe with
+                a free width). The same steps for every pixel either way. Default False.
     """
 
     kind: ClassVar[str] = "lean"
@@ -161,6 +169,7 @@ class LMOptions(Option):
     chunk: int = eqx.field(default=2048, static=True)
     host_loop: bool = eqx.field(default=True, static=True)
     host_round: int = eqx.field(default=2, static=True)
+    host_fused: bool = eqx.field(default=False, static=True)
 
     def tolerances(self, dtype) -> tuple[float, float, float]:
         """(xtol, ftol, cond_max) for ``dtype``."""
@@ -496,17 +505,28 @@ def _step_all(residual_fn, states, data, options):
 
 
 @eqx.filter_jit
-def _round(residual_fn, states, data, idx, n, options):
-    """One gathered round as one program: the pixels ``idx`` (padding: an index of N or more,
-    frozen and dropped on the way back) take up to ``n`` steps (a traced count: one program
-    for any count), stopping once all of them have converged, and are scattered back."""
-    b = states.theta.shape[0]
-    get = jnp.minimum(idx, b - 1)
-    sub = jax.tree.map(lambda x: x[get], states)
-    sub = eqx.tree_at(lambda s: s.converged, sub, sub.converged | (idx >= b))
-    sub_data = jax.tree.map(lambda x: x[get], data)
-    sub = _steps_until_converged(residual_fn, sub, sub_data, options, n)
+def _gather(states, data, idx, live):
+    """The pixels ``idx`` of states and data; slots that are not ``live`` are frozen."""
+    sub = jax.tree.map(lambda x: x[idx], states)
+    sub = eqx.tree_at(lambda s: s.converged, sub, sub.converged | ~live)
+    return sub, jax.tree.map(lambda x: x[idx], data)
+
+
+@eqx.filter_jit
+def _scatter(states, sub, idx):
+    """states with pixels ``idx`` replaced by ``sub`` (an index of N or more is dropped)."""
     return jax.tree.map(lambda x, y: x.at[idx].set(y, mode="drop"), states, sub)
+
+
+@eqx.filter_jit
+def _round(residual_fn, states, data, idx, n, options):
+    """A gathered round as one program (``host_fused``): the pixels ``idx`` take up to ``n``
+    steps (a traced count: one program for any count), stopping once all of them have
+    converged, and are scattered back."""
+    b = states.theta.shape[0]
+    sub, sub_data = _gather(states, data, jnp.minimum(idx, b - 1), idx < b)
+    sub = _steps_until_converged(residual_fn, sub, sub_data, options, n)
+    return _scatter(states, sub, idx)
 
 
 @eqx.filter_jit
@@ -544,8 +564,9 @@ _WARMED: set = set()
 
 def _warm(residual_fn, states, data, options) -> None:
     """Compile the gathered-round programs of both slot sizes the first time a block of
-    this shape and residual is solved in the process: a round of no steps on slots that are
-    all padding, which changes nothing."""
+    this shape and residual is solved in the process: one step (``host_fused``: a round of
+    none) on slots that are all padding (frozen, and dropped on the way back), which
+    changes nothing."""
     leaves = jax.tree.leaves((residual_fn, data))
     key = (
         jax.tree.structure((residual_fn, data)),
@@ -558,23 +579,30 @@ def _warm(residual_fn, states, data, options) -> None:
         return
     b = states.theta.shape[0]
     for cap in _slot_sizes(b):
-        idx = jnp.full(cap, b, np.int32)
-        states = _round(residual_fn, states, data, idx, jnp.asarray(0, np.int32), options)
+        idx = np.full(cap, b, np.int32)
+        if options.host_fused:
+            zero = jnp.asarray(0, np.int32)
+            states = _round(residual_fn, states, data, jnp.asarray(idx), zero, options)
+            continue
+        sub, sub_data = _gather(
+            states, data, jnp.asarray(np.minimum(idx, b - 1)), jnp.asarray(idx < b)
+        )
+        sub = _step_all(residual_fn, sub, sub_data, options)
+        states = _scatter(states, sub, jnp.asarray(idx))
     jax.block_until_ready(states)
     _WARMED.add(key)
 
 
 def _solve_host(residual_fn, theta0, data, n_usable, options, space):
-    """:func:`batched_lm` for all N pixels, driven from Python. All pixels take the first
-    ``compact_after`` steps, each step one compiled program; then, in rounds of
+    """:func:`batched_lm` for all N pixels, driven from Python, each step one compiled
+    program. All pixels take the first ``compact_after`` steps; then, in rounds of
     ``host_round`` steps, the unconverged pixels are gathered into slots of one of two fixed
-    sizes (:func:`_slot_sizes`), step and are scattered back (:func:`_round`: one program a
-    round), or the whole block steps where that costs no more. Once the unconverged pixels
-    fit in the smaller slots, one last round takes them through all their remaining steps,
-    stopping when they have all converged: the long tail of a few slow pixels costs one
-    program call, not one per round. Every unconverged pixel is in every round, so each takes
-    the same steps in the same order as ``lm_solve`` alone. Fewer than ``_MIN_BLOCK`` pixels
-    take plain steps (no gathering), until all have converged."""
+    sizes (:func:`_slot_sizes`), step, and are scattered back, or the whole block steps
+    where that costs no more. Every unconverged pixel is in every round, so each takes the
+    same steps in the same order as ``lm_solve`` alone. Fewer than ``_MIN_BLOCK`` pixels
+    take plain steps (no gathering), until all have converged. ``host_fused``: each round
+    is one program (:func:`_round`), and the pixels left when they fit in the smaller slots
+    take all their remaining steps in one last round."""
     b = theta0.shape[0]
     states = _init_all(residual_fn, theta0, data, options)
     it = min(options.compact_after, options.max_iters) if b >= _MIN_BLOCK else 0
@@ -582,7 +610,6 @@ def _solve_host(residual_fn, theta0, data, n_usable, options, space):
         states = _step_all(residual_fn, states, data, options)
     if b >= _MIN_BLOCK and it < options.max_iters:
         _warm(residual_fn, states, data, options)
-    small = _slot_sizes(b)[0]
     while it < options.max_iters:
         todo = np.flatnonzero(~np.asarray(states.converged))
         if todo.size == 0:
@@ -592,14 +619,22 @@ def _solve_host(residual_fn, theta0, data, n_usable, options, space):
         if rounds is None:
             for _ in range(n):
                 states = _step_all(residual_fn, states, data, options)
-        elif todo.size <= small:
-            rest = jnp.asarray(options.max_iters - it, np.int32)
-            states = _round(residual_fn, states, data, jnp.asarray(rounds[0]), rest, options)
-            break
+        elif options.host_fused:
+            last = todo.size <= _slot_sizes(b)[0]  # the rest in one round
+            steps = jnp.asarray(options.max_iters - it if last else n, np.int32)
+            for idx in rounds:
+                states = _round(residual_fn, states, data, jnp.asarray(idx), steps, options)
+            if last:
+                break
         else:
             for idx in rounds:
-                steps = jnp.asarray(n, np.int32)
-                states = _round(residual_fn, states, data, jnp.asarray(idx), steps, options)
+                # Padding slots repeat the last pixel, frozen, and are dropped on the way back.
+                sub, sub_data = _gather(
+                    states, data, jnp.asarray(np.minimum(idx, b - 1)), jnp.asarray(idx < b)
+                )
+                for _ in range(n):
+                    sub = _step_all(residual_fn, sub, sub_data, options)
+                states = _scatter(states, sub, jnp.asarray(idx))
         it += n
     return _finish_all(states, theta0, n_usable, options, space)
 

@@ -41,7 +41,6 @@ from __future__ import annotations
 
 import contextlib
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -53,6 +52,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from jaxrefl.fit import PixelData, device_count, map_sharded
 
+from ._bind import bind_once
 from ._gibbs import qualifies, sample_gibbs
 from ._logpost import LogPosterior
 from ._reparam import ConditionalAlbedo, conditional_albedo
@@ -336,24 +336,6 @@ def _map_draws(rp: ConditionalAlbedo, pos, data: PixelData, normals, batch_size:
     return jax.lax.map(pixel, (pos, data, normals), batch_size=batch_size)
 
 
-# One sampler function per (log-posterior, settings): the mesh (map_sharded) compiles per
-# function object, so a new closure for every chunk would compile the sampler every chunk.
-_SAMPLERS: dict[Any, Callable[..., Any]] = {}
-
-
-def _sampler(target: LogPosterior | ConditionalAlbedo, opts: HMCOptions) -> Callable[..., Any]:
-    """``_run`` with ``target`` and ``opts`` bound, the same object for equal arguments."""
-    leaves, treedef = jax.tree.flatten(target)
-    key = (treedef, tuple(leaves), opts)
-    try:
-        hash(key)
-    except TypeError:  # array leaves: not a key; a function of its own
-        return lambda *a: _run(target, opts, *a)
-    if key not in _SAMPLERS:
-        _SAMPLERS[key] = lambda *a: _run(target, opts, *a)
-    return _SAMPLERS[key]
-
-
 def sample_pixels(
     lp: LogPosterior,
     data: PixelData,
@@ -458,7 +440,7 @@ def sample_pixels(
     ndev = device_count(devices)
 
     def call():
-        run = _sampler(target, opts)
+        run = bind_once(_run, target, opts)
         with _dtype_scope(dtype):
             out = jax.block_until_ready(map_sharded(run, args, ndev))
         return jax.tree.map(lambda a: a[:n], out)

@@ -67,7 +67,6 @@ joint moves' acceptance).
 from __future__ import annotations
 
 import dataclasses
-import functools
 import time
 
 import equinox as eqx
@@ -78,6 +77,7 @@ from jaxtyping import Array, Float
 
 from jaxrefl.fit import L2, PixelData, ScaledSigmoid, device_count, map_sharded
 
+from ._bind import bind_once
 from ._gibbs import _EDGE, _density, _sweep, _theta_of, truncated_normal
 from ._logpost import LogPosterior
 from ._priors import Jeffreys, Uniform
@@ -324,7 +324,10 @@ def sample_width_gibbs(
 
     keys = jax.random.split(jax.random.PRNGKey(seed), n)
     t_start = time.perf_counter()
-    run = _sampler(lp, lo_np, hi_np, prior, i, num_warmup, num_samples, jeffreys, dtype)
+    # lo and hi as Python floats (hashable: one bound program per posterior and settings)
+    box = tuple(float(v) for v in lo_np), tuple(float(v) for v in hi_np)
+    settings = dict(i=i, num_warmup=num_warmup, num_samples=num_samples, jeffreys=jeffreys)
+    run = bind_once(_run, lp, *box, prior, **settings)
     # scans between draws: an argument of the compiled program, not a constant of it, so
     # that a second pass with more of them reuses the first pass's program
     scans = jnp.full((n,), sweeps, jnp.int32)
@@ -357,31 +360,6 @@ def sample_width_gibbs(
     )
 
 
-# One sampler function per (posterior, settings): map_sharded compiles per function object.
-_SAMPLERS: dict = {}
-
-
-def _sampler(lp, lo, hi, prior, i, num_warmup, num_samples, jeffreys, dtype):
-    """``_run`` with everything but the batch of pixels bound (a partial: its arguments are
-    the batch's), the same object for equal arguments, so that every chunk of a map reuses
-    one compiled (and sharded) program."""
-    leaves, treedef = jax.tree.flatten((lp, prior))
-    settings = (i, num_warmup, num_samples, jeffreys, jnp.dtype(dtype))
-    key: tuple | None = (treedef, tuple(leaves), tuple(lo), tuple(hi), settings)
-    try:
-        hash(key)
-    except TypeError:  # array leaves: not a key; a function of its own
-        key = None
-    if key is None or key not in _SAMPLERS:
-        lo_a, hi_a = jnp.asarray(lo, dtype), jnp.asarray(hi, dtype)
-        bound = dict(i=i, num_warmup=num_warmup, num_samples=num_samples, jeffreys=jeffreys)
-        run = functools.partial(_run, lp, lo_a, hi_a, prior, **bound)
-        if key is None:
-            return run
-        _SAMPLERS[key] = run
-    return _SAMPLERS[key]
-
-
 @eqx.filter_jit
 def _run(
     lp,
@@ -409,6 +387,7 @@ def _run(
     moves (N, chains, S), averaged over the scans of each interval); scans: (N,) scans
     between kept draws."""
     dtype = v0.dtype
+    lo, hi = jnp.asarray(lo, dtype), jnp.asarray(hi, dtype)
     xl, xh = _drop(lo, i), _drop(hi, i)
     c = 0.5 * (xl + xh)
     dinv = (2.0 / (xh - xl)) ** 2  # the stand-in prior N(c, (width / 2)^2)

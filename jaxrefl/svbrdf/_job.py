@@ -333,6 +333,11 @@ class _TileFitter:
         self.config = job.config.replace(noise=self.noise, loss=self.loss)
         if not compact and isinstance(self.config.solver, fit.LMOptions):
             self.config = self.config.replace(solver=replace(self.config.solver, compact_stages=()))
+        if job.model == "pooled" and isinstance(self.config.solver, fit.LMOptions):
+            # Linear in its free parameters (alpha is shared) and started at the exact
+            # optimum (initial_theta), the pooled model's LM mostly confirms: its steps are
+            # cheap and its rounds many, which fused rounds serve better (LMOptions).
+            self.config = self.config.replace(solver=replace(self.config.solver, host_fused=True))
         self.dtype = job.dtype
         # Seconds per stage of the tiles fitted so far (module docstring, ``stages_s``).
         self.stage_s: dict[str, float] = dict.fromkeys(STAGES, 0.0)
