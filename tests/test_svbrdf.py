@@ -184,6 +184,62 @@ def test_capture_with_tilted_normals_is_recovered_by_ggx_normal():
     assert r.report["train_rmse"] < 0.5 * flat.report["train_rmse"]
 
 
+def _tilted_capture(amplitude, size=8, noise=0.0, seed=1):
+    """The demo scene with shading normals tilted by uniform slopes in +-amplitude, plus
+    Gaussian noise of std ``noise`` (float64 photos)."""
+    scene = demo_scene(size=size, seed=0, dtype=jnp.float64)
+    rng = np.random.default_rng(seed)
+    tilt = rng.uniform(-amplitude, amplitude, (2, size, size))
+    params = {**scene.params, "tilt_x": jnp.asarray(tilt[0]), "tilt_y": jnp.asarray(tilt[1])}
+    model = brdf.NormalTilt(scene.model)
+    lin = np.asarray(
+        render(model, params, scene.lights, scene.cameras, points=scene.points, cos4=False)
+    )
+    cap, _ = _demo_capture(size=size)
+    return replace(cap, images=lin + noise * rng.standard_normal(lin.shape))
+
+
+@pytest.mark.parametrize("amplitude", [0.0, 0.01])
+def test_score_test_of_the_slopes_sees_a_tilt_and_nothing_else(amplitude):
+    """The score test ``auto`` runs before fitting ``ggx_normal`` (svbrdf._score_test), on
+    the 8 x 8 demo with noise of a known std 1e-6 (the float64 jobs' noise scale). On a flat
+    surface T is a chi-square draw of mean E (within 4 null std); slopes of at most 0.01
+    (0.6 degrees) put it far above. T / 2 is also checked against an independent algebra:
+    the cost drop of one Gauss-Newton step in every parameter, less that of a step in the
+    flat parameters alone (block inversion of J^T J)."""
+    from jaxrefl.svbrdf._job import _extend_start, _TileFitter
+    from jaxrefl.svbrdf._score_test import score_test
+
+    cap = _tilted_capture(amplitude, noise=1e-6)
+    flat = _TileFitter(cap, svbrdf.FitJob(**_F64_JOB))
+    data = flat.data(0, 64)
+    train = np.ones((64, cap.n_photos), bool)
+    _, _, r1, fit_data = flat.score(data, train)
+    tilted = _TileFitter(cap, svbrdf.FitJob(**{**_F64_JOB, "model": "ggx_normal"}))
+    t, e, v = tilted.tilt_evidence(r1, fit_data)
+    assert 120 < e <= 128  # about 2 a pixel: the prior is weak against noise of 1e-6
+    if amplitude == 0.0:
+        assert abs(t - e) < 4 * np.sqrt(v), (t, e, v)
+    else:
+        assert t > e + 50 * np.sqrt(v), (t, e, v)
+    res = fit.make_residual(
+        tilted.model, tilted.space, tilted.noise, tilted.loss, tilted._tilt_prior()
+    )
+    theta = jnp.asarray(_extend_start(r1, tilted.space, np.float64, np.zeros(2)))
+    extra = (tilted.space.index("tilt_x").start, tilted.space.index("tilt_y").start)
+    ones = jnp.ones(64)
+    t_px = np.asarray(score_test(res, theta, fit_data, extra, ones)[0])
+    flat_idx = [i for i in range(theta.shape[1]) if i not in extra]
+    for i in range(0, 64, 9):
+        d = jax.tree.map(lambda a, i=i: a[i], fit_data)
+        jac = np.asarray(jax.jacfwd(res)(theta[i], d))
+        g = jac.T @ np.asarray(res(theta[i], d))
+        h = jac.T @ jac
+        full = g @ np.linalg.solve(h, g)
+        part = g[flat_idx] @ np.linalg.solve(h[np.ix_(flat_idx, flat_idx)], g[flat_idx])
+        assert t_px[i] == pytest.approx(full - part, rel=1e-6, abs=1e-9 * max(1.0, full))
+
+
 def _synthetic_pixels(n, k, sigma, seed, dtype):
     """GGX + Lambert pixels (C = 1, free albedo, specular, alpha) under K spiral lights."""
     rng = np.random.default_rng(seed)

@@ -9,7 +9,10 @@
 * ``pooled``: the coloured specular with one lobe width for the capture and pooled F0
   (:mod:`jaxrefl.svbrdf._pooled`);
 * ``ggx_normal``: the dielectric with a per-pixel shading normal, tried only where the
-  per-pixel dielectric is the best so far (:data:`REFINES`).
+  per-pixel dielectric is the best so far (:data:`REFINES`) and a score test of the slopes
+  at its optimum finds them (:data:`EVIDENCE_RATIO`, :mod:`jaxrefl.svbrdf._score_test`):
+  the refinement's fit costs more than all the other candidates together, and on a flat
+  surface it buys nothing.
 
 The score is the leave-one-photo-out RMSE over the *training* photos (the job's own
 ``holdout`` photos are never looked at, so a held-out figure of an ``auto`` fit stays an
@@ -30,7 +33,7 @@ report's ``auto`` entry lists every candidate's score and says why the winner wo
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any
 
 import equinox as eqx
@@ -49,11 +52,20 @@ __all__ = ["AUTO_CANDIDATES", "SELECTION_PIXELS", "TOLERANCE", "ModelChoice", "c
 AUTO_CANDIDATES: tuple[str, ...] = ("lambert", "pooled", "ggx", "ggx_rgb", "ggx_normal")
 SELECTION_PIXELS = 4096
 # Candidates that refine another (name -> the model they extend) are scored only when that
-# model is the best so far: a per-pixel normal on a lobe the photos do not support cannot
-# help, and the tilted fit costs more than all the other candidates together.
+# model is the best so far (a per-pixel normal on a lobe the photos do not support cannot
+# help) and the photos show their extra parameters (EVIDENCE_RATIO).
 REFINES: dict[str, str] = {"ggx_normal": "ggx"}
 # Relative margin a more complex model must win by (see the module docstring).
 TOLERANCE = 0.01
+# A refinement is scored only where the score test of its extra parameters at the base
+# model's optimum (:mod:`jaxrefl.svbrdf._score_test`) finds them: the statistic T summed over
+# the selection must exceed its expectation E without them by EVIDENCE_Z null standard
+# deviations and by the factor EVIDENCE_RATIO. The factor covers what the null's E leaves
+# out: each pixel's noise scale is an estimate from a handful of residuals (its inverse,
+# which weighs the score, is biased up by about 2 / dof), and a base model that misses
+# some of the signal leaves residuals that any new direction picks up a little of.
+EVIDENCE_Z = 3.0
+EVIDENCE_RATIO = 1.5
 
 
 @dataclass(frozen=True)
@@ -67,6 +79,8 @@ class ModelChoice:
     skipped:  candidates not scored, with the reason (:data:`REFINES`)
     pooled:   ``pooled``'s own choice (width, F0 prior) on the same training photos, which
               the fit reuses when ``pooled`` wins
+    evidence: per refinement tested, its score statistic over that statistic's expectation
+              where the refinement is not needed (:data:`EVIDENCE_RATIO`)
     """
 
     model: str
@@ -75,6 +89,7 @@ class ModelChoice:
     folds: tuple[int, ...]
     skipped: dict[str, str]
     pooled: PoolChoice | None = None
+    evidence: dict[str, float] = field(default_factory=dict)
 
     def as_dict(self) -> dict[str, Any]:
         ranked = sorted(self.cv_rmse.items(), key=lambda kv: kv[1])
@@ -91,6 +106,7 @@ class ModelChoice:
             "selection_pixels": self.pixels,
             "folds": list(self.folds),
             "skipped": dict(self.skipped),
+            "evidence": dict(self.evidence),
             "tolerance": TOLERANCE,
         }
 
@@ -147,17 +163,31 @@ def choose_model(
     cv: dict[str, float] = {}
     skipped: dict[str, str] = {}
     pool: PoolChoice | None = None
+    evidence: dict[str, float] = {}
+    base_fits: dict[str, list] = {}  # the fits a refinement's score test starts from
     for m in candidates:
         base = REFINES.get(m)
         if base in cv and cv[base] > min(cv.values()) * (1.0 + TOLERANCE):
             skipped[m] = f"refines {base}, which is not the best so far"
             continue
         fitter = _TileFitter(capture, replace(job, model=m), compact=compact, width_terms=False)
+        if base in base_fits:
+            t, e, v = np.sum([fitter.tilt_evidence(r, d) for r, d in base_fits[base]], axis=0)
+            evidence[m] = float(t / e) if e > 0 else float("inf")
+            if t <= e + EVIDENCE_Z * np.sqrt(v) or evidence[m] < EVIDENCE_RATIO:
+                skipped[m] = (
+                    f"refines {base}, and the training photos show no sign of it at {base}'s "
+                    f"optimum: score statistic {evidence[m]:.2f} x its expectation without it"
+                )
+                continue
         pool = fitter.pooled if m == "pooled" else pool
+        keep = m in REFINES.values()
         sse = cnt = 0.0
         for s in range(0, mask.shape[0], size):
             part = slice(s, s + size)
-            e, c = fitter.score(jax.tree.map(lambda a, p=part: a[p], stacked), mask[part])
+            e, c, r, d = fitter.score(jax.tree.map(lambda a, p=part: a[p], stacked), mask[part])
+            if keep:
+                base_fits.setdefault(m, []).append((r, d))
             h = held[part]
             rows = np.flatnonzero(h >= 0)
             sse += float(np.sum(e[rows, h[rows]]))
@@ -165,4 +195,4 @@ def choose_model(
         cv[m] = float(np.sqrt(sse / cnt)) if cnt > 0 else float("inf")
     best = min(cv.values())
     chosen = next(m for m in candidates if cv[m] <= best * (1.0 + TOLERANCE))
-    return ModelChoice(chosen, cv, int(data.obs.shape[0]), tuple(train), skipped, pool)
+    return ModelChoice(chosen, cv, int(data.obs.shape[0]), tuple(train), skipped, pool, evidence)

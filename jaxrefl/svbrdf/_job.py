@@ -61,6 +61,7 @@ from ._check import ModelCheck, bound_check, check_counts, ppc_failed
 from ._data import pixel_block, resolvable_alpha
 from ._models import ALPHA_RANGE, TWO_STAGE, capture_model
 from ._pooled import PoolChoice, choose_pooled
+from ._score_test import score_test
 from ._shared import WidthUncertainty, widen
 from ._shared import width_terms as shared_width_terms
 
@@ -371,19 +372,8 @@ class _TileFitter:
         assert self.first is not None  # called for two-stage models only
         model1, space1 = self.first
         r1 = fit.fit_pixels(model1, fit_data, config=self.config, space=space1)
-        noise = self.noise
-        sigma = None
-        if isinstance(noise, fit.GaussianNoise) and noise.sigma is None:
-            res1 = fit.make_residual(model1, space1, noise, self.loss)
-            s2 = np.asarray(fit.laplace(r1, fit_data, residual=res1).noise_var)
-            s2 = s2[np.isfinite(s2) & (s2 > 0)]
-            # No pixel with an estimate (all masked): any scale will do, nothing is fitted.
-            sigma = float(np.sqrt(np.median(s2))) if s2.size else 1.0
-            # An array, not a float: equinox's jit treats a float as static, and a new value
-            # in every tile or fold would compile the tilted fit again.
-            noise = fit.GaussianNoise(sigma=jnp.asarray(sigma, fit_data.obs.dtype))
-        t = float(self.job.tilt_std)
-        prior = fit.gaussian_prior(self.space, {"tilt_x": (0.0, t), "tilt_y": (0.0, t)})
+        noise, sigma, _ = self._tilt_noise(r1, fit_data)
+        prior = self._tilt_prior()
         # The tilted fit runs up to _STAGE2_ITERS steps: in one plain loop every pixel of a
         # block would take the slowest pixel's steps, so it keeps the job's solver (with its
         # compaction stages) whatever the size of the job.
@@ -400,6 +390,53 @@ class _TileFitter:
             best = r if best is None else _keep_lower(best, r)
         res = fit.make_residual(self.model, self.space, noise, self.loss, prior)
         return best, res, None if sigma is None else sigma * sigma
+
+    def _tilt_noise(self, r1, fit_data):
+        """(noise model of the tilted fit, its sigma or None, each pixel's own noise variance
+        (N,) or None) from the flat fit ``r1``. With Gaussian noise of unknown scale, sigma is
+        the median over the pixels of the flat fit's estimated noise scale (empirical Bayes:
+        the slopes' prior is in noise units); a known noise model is kept as it is."""
+        noise = self.noise
+        if not (isinstance(noise, fit.GaussianNoise) and noise.sigma is None):
+            return noise, None, None
+        assert self.first is not None  # called for two-stage models only
+        model1, space1 = self.first
+        res1 = fit.make_residual(model1, space1, noise, self.loss)
+        s2_all = np.asarray(fit.laplace(r1, fit_data, residual=res1).noise_var)
+        s2 = s2_all[np.isfinite(s2_all) & (s2_all > 0)]
+        # No pixel with an estimate (all masked): any scale will do, nothing is fitted.
+        sigma = float(np.sqrt(np.median(s2))) if s2.size else 1.0
+        # An array, not a float: equinox's jit treats a float as static, and a new value in
+        # every tile or fold would compile the tilted fit again.
+        noise = fit.GaussianNoise(sigma=jnp.asarray(sigma, fit_data.obs.dtype))
+        return noise, sigma, s2_all
+
+    def _tilt_prior(self) -> fit.GaussianPrior:
+        """The slopes' zero-mean prior, std ``tilt_std`` (in the noise units of the fit)."""
+        t = float(self.job.tilt_std)
+        return fit.gaussian_prior(self.space, {"tilt_x": (0.0, t), "tilt_y": (0.0, t)})
+
+    def tilt_evidence(self, r1, fit_data) -> np.ndarray:
+        """Sums over the pixels of (T, E, V), the score test of the slopes at the flat fit
+        ``r1`` of ``fit_data`` (:mod:`jaxrefl.svbrdf._score_test`): T / E near 1 says the
+        photos show no tilt beyond noise. For two-stage models."""
+        noise, sigma, s2 = self._tilt_noise(r1, fit_data)
+        res = fit.make_residual(self.model, self.space, noise, self.loss, self._tilt_prior())
+        theta = _extend_start(r1, self.space, fit_data.obs.dtype, np.zeros(2))
+        n = theta.shape[0]
+        if s2 is None:
+            scale = np.ones(n)
+        else:
+            # Each pixel in units of its own noise (c of the score test). Its estimate is
+            # floored at 1% of the median scale: a pixel fitted to rounding error would
+            # otherwise weigh without limit.
+            s2 = np.where(np.isfinite(s2), s2, sigma * sigma)
+            scale = sigma * sigma / np.maximum(s2, 1e-4 * sigma * sigma)
+        extra = tuple(self.space.index(nm).start for nm in ("tilt_x", "tilt_y"))
+        t, e, v = score_test(
+            res, jnp.asarray(theta), fit_data, extra, jnp.asarray(scale, theta.dtype)
+        )
+        return np.array([float(jnp.sum(t)), float(jnp.sum(e)), float(jnp.sum(v))])
 
     def _fit(self, data, train=None):
         """(fit result, residual, known noise variance or None, fitted data) of the pixels of
@@ -418,16 +455,16 @@ class _TileFitter:
             r, res, noise_var = self._two_stage(fit_data)
         return r, res, noise_var, fit_data
 
-    def score(self, data, train) -> tuple[np.ndarray, np.ndarray]:
+    def score(self, data, train):
         """Squared errors and counts (N, K) of the fit of ``data`` per pixel on ``train``
         ((N, K) bool), for every photo: the held-out scores of a selection, without the
-        Laplace step the maps need."""
+        Laplace step the maps need. Returns (errors, counts, fit result, fitted data)."""
         t0 = time.perf_counter()
-        r, res, _, _ = self._fit(data, train)
+        r, res, _, fit_data = self._fit(data, train)
         sse, cnt = _errors(res, r.theta, data)
         out = np.asarray(sse), np.asarray(cnt)
         self.stage_s["fit"] += time.perf_counter() - t0
-        return out
+        return (*out, r, fit_data)
 
     def __call__(self, data, n: int, train=None) -> dict[str, np.ndarray]:
         """Fit the first ``n`` pixels of ``data`` on the job's training photos, or per pixel
