@@ -33,6 +33,8 @@ report's ``auto`` entry lists every candidate's score and says why the winner wo
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any
 
@@ -162,37 +164,53 @@ def choose_model(
     stacked, mask, held = _stack(data, train, k, size)
     cv: dict[str, float] = {}
     skipped: dict[str, str] = {}
-    pool: PoolChoice | None = None
     evidence: dict[str, float] = {}
-    base_fits: dict[str, list] = {}  # the fits a refinement's score test starts from
+    bases = set(REFINES.values())
+
+    def score(m: str, fitter=None):
+        """(fitter, leave-one-photo-out RMSE, the fits of each tile of rows where a
+        refinement starts from ``m``'s)."""
+        if fitter is None:
+            fitter = _TileFitter(capture, replace(job, model=m), compact=compact, width_terms=False)
+        sse = cnt = 0.0
+        fits = []
+        for s in range(0, mask.shape[0], size):
+            part = slice(s, s + size)
+            e, c, r, d = fitter.score(jax.tree.map(lambda a, p=part: a[p], stacked), mask[part])
+            if m in bases:
+                fits.append((r, d))
+            h = held[part]
+            rows = np.flatnonzero(h >= 0)
+            sse += float(np.sum(e[rows, h[rows]]))
+            cnt += float(np.sum(c[rows, h[rows]]))
+        return fitter, float(np.sqrt(sse / cnt)) if cnt > 0 else float("inf"), fits
+
+    # The candidates that refine none are independent: they are scored side by side (most of
+    # their time is compiling their programs, which runs on one core each).
+    plain = [m for m in candidates if m not in REFINES]
+    with ThreadPoolExecutor(max(1, min(len(plain), os.cpu_count() or 1))) as ex:
+        done = dict(zip(plain, ex.map(score, plain), strict=True))
+    pool: PoolChoice | None = done["pooled"][0].pooled if "pooled" in done else None
+    cv.update({m: done[m][1] for m in plain})
     for m in candidates:
         base = REFINES.get(m)
+        if base is None:
+            continue
         if base in cv and cv[base] > min(cv.values()) * (1.0 + TOLERANCE):
             skipped[m] = f"refines {base}, which is not the best so far"
             continue
         fitter = _TileFitter(capture, replace(job, model=m), compact=compact, width_terms=False)
-        if base in base_fits:
-            t, e, v = np.sum([fitter.tilt_evidence(r, d) for r, d in base_fits[base]], axis=0)
-            evidence[m] = float(t / e) if e > 0 else float("inf")
+        if base in done:
+            ev = np.sum([fitter.tilt_evidence(r, d) for r, d in done[base][2]], axis=0)
+            t, e, v = (float(x) for x in ev)
+            evidence[m] = t / e if e > 0 else float("inf")
             if t <= e + EVIDENCE_Z * np.sqrt(v) or evidence[m] < EVIDENCE_RATIO:
                 skipped[m] = (
                     f"refines {base}, and the training photos show no sign of it at {base}'s "
                     f"optimum: score statistic {evidence[m]:.2f} x its expectation without it"
                 )
                 continue
-        pool = fitter.pooled if m == "pooled" else pool
-        keep = m in REFINES.values()
-        sse = cnt = 0.0
-        for s in range(0, mask.shape[0], size):
-            part = slice(s, s + size)
-            e, c, r, d = fitter.score(jax.tree.map(lambda a, p=part: a[p], stacked), mask[part])
-            if keep:
-                base_fits.setdefault(m, []).append((r, d))
-            h = held[part]
-            rows = np.flatnonzero(h >= 0)
-            sse += float(np.sum(e[rows, h[rows]]))
-            cnt += float(np.sum(c[rows, h[rows]]))
-        cv[m] = float(np.sqrt(sse / cnt)) if cnt > 0 else float("inf")
+        cv[m] = score(m, fitter)[1]
     best = min(cv.values())
     chosen = next(m for m in candidates if cv[m] <= best * (1.0 + TOLERANCE))
     return ModelChoice(chosen, cv, int(data.obs.shape[0]), tuple(train), skipped, pool, evidence)
