@@ -264,8 +264,10 @@ def main() -> int:
         "Noise model: additive Gaussian, independent between photos and channels. The "
         "per-pixel models: each pixel's residual variance plus a discrepancy variance "
         "tau^2(radiance); `pooled` (one noise scale for the capture): a variance function "
-        "v(radiance) in its place. Both are estimated from the training photos' "
-        "leave-one-photo-out errors only (median-matched per radiance bin)."
+        "v(radiance) in its place, and its Laplace parameter variance (formed with the one "
+        "scale) rescaled to the errors' own variance at the pixel's radiances. Both are "
+        "estimated from the training photos' leave-one-photo-out errors only "
+        "(median-matched per radiance bin)."
     )
     print()
     for name in [c for c in args.captures.split(",") if c]:

@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -115,6 +117,44 @@ def test_one_capture_noise_scale_is_replaced_by_a_variance_function(fitted):
     assert not kept.replaces_noise
     known = float(cf.extra["pooled"].sigma) ** 2
     np.testing.assert_allclose(predictive(cap, cf, kept).noise_var, known, rtol=1e-5)
+
+
+def test_variance_function_rescales_the_parameter_term_to_the_pixels_own_noise():
+    """Noise that grows with the radiance (std 3% of it) over albedos spread across two
+    decades, under ``pooled``'s one noise scale: its Laplace covariance takes every pixel as
+    noisy as the capture's median, so a dark pixel's parameter term alone is wider than its
+    errors. The variance function rescales it by f = 1 / mean(v_fit / e^2(mu)) over the
+    pixel's training observations (checked against that formula), which brings the dark
+    fifth of the held-out photo down towards its nominal 50% (e^2 includes the parameter
+    term, so the rescaled intervals stay a little wide)."""
+    scene = demo_scene(size=SIZE)
+    rng = np.random.default_rng(7)
+    albedo = np.exp(rng.uniform(np.log(0.005), np.log(0.8), (SIZE, SIZE, 1)))
+    truth = {
+        "albedo": albedo * np.ones(3),
+        "specular": np.full((SIZE, SIZE, 3), F0_IN),
+        "alpha": np.full((SIZE, SIZE), 0.2),
+    }
+    clean = photograph_maps(scene, truth)
+    noisy = clean.images * (1.0 + 0.03 * rng.standard_normal(clean.images.shape))
+    cap = replace(clean, images=noisy.astype(np.float32))
+    cf = fit_capture(cap, FitJob(model="pooled", holdout=(HELD,), tile_pixels=SIZE * SIZE))
+    disc = estimate_discrepancy(cap, cf)
+    assert disc.error_var is not None and np.all(disc.var <= disc.error_var), disc.as_dict()
+    pred = predictive(cap, cf, disc)
+    plain = predictive(cap, cf, Discrepancy(disc.radiance, disc.var, replaces_noise=True))
+    known = float(cf.extra["pooled"].sigma) ** 2
+    err = np.interp(pred.mean, disc.radiance, disc.error_var)
+    train = np.arange(cap.n_photos) != HELD
+    f = 1.0 / np.mean((known / err)[:, train], axis=(1, 2))
+    ok = ~pred.no_covariance
+    np.testing.assert_allclose(pred.param_var[ok], (plain.param_var * f[:, None, None])[ok])
+    lum = pred.mean[:, HELD].mean(-1)
+    dark = lum <= np.quantile(lum, 0.2)
+    rescaled, _ = pred.coverage(HELD, 0.5, dark)
+    unscaled, _ = plain.coverage(HELD, 0.5, dark)
+    assert unscaled > 0.7 and rescaled < unscaled - 0.12, (rescaled, unscaled)
+    assert abs(pred.coverage(HELD, 0.5)[0] - 0.5) < 0.05
 
 
 def test_laplace_intervals_are_student_t_where_the_noise_was_estimated(fitted):

@@ -36,6 +36,15 @@ with three variances, all in the capture's linear radiance units squared:
   fit whose noise is one known scale for the whole capture (``pooled``'s: too wide for dark
   pixels and too narrow for bright ones, where photon noise and misregistration grow with
   the radiance); a per-pixel model keeps its own per-pixel noise estimate plus tau^2(mu).
+  The Laplace covariance of such a fit was formed with that one noise scale too, so the
+  parameter term is rescaled to the noise measured at the pixel's own radiances:
+  v_param * f with 1 / f = the mean over the pixel's usable training observations of
+  v_fit / e^2(mu) (the precision-weighted average, exact where every observation informs
+  the parameters alike), e^2(mu) the held-out errors' own median-matched variance per bin
+  (:attr:`Discrepancy.error_var`: the parameter term not taken out, so a bound from above
+  on the noise, and never 0 where the errors are not). Without it, dark pixels, whose
+  errors are a few times smaller than the capture's noise scale, get parameter intervals
+  wider than all of their errors.
 
 The central interval of level p is mu +- z_p sqrt(v), z_p the standard normal's
 (1 + p)/2 quantile. :meth:`Predictive.coverage` counts the share of a photo's uncensored,
@@ -93,6 +102,8 @@ class Discrepancy:
     folds:    the training photos held out in turn
     replaces_noise: tau^2 is the whole variance beyond the parameter term: the fit's noise
               term is replaced by it (:func:`estimate_discrepancy` ``replace_noise``)
+    error_var: (B,) with ``replaces_noise``, the held-out errors' own variance per bin, by
+              which the parameter term is rescaled (module docstring); else None
     """
 
     radiance: np.ndarray
@@ -100,6 +111,7 @@ class Discrepancy:
     rows: int = 0
     folds: tuple[int, ...] = ()
     replaces_noise: bool = False
+    error_var: np.ndarray | None = None
 
     @classmethod
     def zero(cls) -> Discrepancy:
@@ -117,6 +129,7 @@ class Discrepancy:
             "rows": self.rows,
             "folds": list(self.folds),
             "replaces_noise": self.replaces_noise,
+            "error_std": None if self.error_var is None else np.sqrt(self.error_var).tolist(),
         }
 
 
@@ -299,6 +312,10 @@ def predictive(
     nvar = _noise_var(fitter, cf.maps["noise_std"], mean)
     dvar = disc(mean)
     if disc.replaces_noise:  # a variance function of the radiance in place of the noise
+        if disc.error_var is not None:  # the parameter term at the measured noise
+            err = np.interp(mean, disc.radiance, disc.error_var)
+            train_use = np.concatenate([d.weight > 0 for d in datas]) & fitter.train[None, :, None]
+            pvar = pvar * _rescale(nvar, err, train_use)[:, None, None]
         nvar, dvar = dvar, np.zeros_like(dvar)
     # The posterior predictive check on the pixel's own training photos (module docstring).
     # The capture's noise variance (the median over pixels), or the variance function itself.
@@ -342,6 +359,18 @@ def model_check(capture, cf: CaptureFit, discrepancy: Discrepancy | None = None)
 
 
 # ----------------------------------------------------------------------------- discrepancy
+def _rescale(v_fit: np.ndarray, v_new: np.ndarray, use: np.ndarray) -> np.ndarray:
+    """(N,) f = 1 / mean over each pixel's ``use`` entries of v_fit / v_new: the factor that
+    turns a Laplace covariance formed with noise variances ``v_fit`` (N, K, C) into one
+    formed with ``v_new``; 1 where a pixel has no such entry."""
+    # Floored at the smallest normal: only errors that are all 0 in a bin reach it.
+    ratio = v_fit / np.maximum(v_new, np.finfo(np.float64).tiny)
+    ok = use & np.isfinite(ratio)
+    n = np.sum(ok, axis=(1, 2))
+    mean = np.sum(np.where(ok, ratio, 0.0), axis=(1, 2)) / np.maximum(n, 1)
+    return np.where((n > 0) & (mean > 0), 1.0 / np.where(mean > 0, mean, 1.0), 1.0)
+
+
 def _solve_tau2(e2: np.ndarray, v: np.ndarray) -> float:
     """The smallest t >= 0 with median(e2 / (v + t)) <= the chi-square(1) median (bisection
     on a monotone function; 0 where the model's own variance already suffices)."""
@@ -404,7 +433,7 @@ def estimate_discrepancy(
     data = _subsample(capture, per, seed, cf.job.dtype)
     size = cf.job.tile_pixels
     stacked, mask, held = _stack(data, train, k, size)
-    e2s, vs, mus = [], [], []
+    e2s, vs, mus, rows_f = [], [], [], []
     for s in range(0, mask.shape[0], size):
         part = slice(s, s + size)
         d = jax.tree.map(lambda a, p=part: a[p], stacked)
@@ -420,10 +449,12 @@ def estimate_discrepancy(
         rows = np.flatnonzero(hk >= 0)
         if rows.size == 0:
             continue
-        mu = np.asarray(mu, np.float64)[rows, hk[rows]]
+        mu_all = np.asarray(mu, np.float64)[rows]
+        nv_all = _noise_var(fitter, np.sqrt(out["noise_var"])[rows], mu_all)
+        mu = mu_all[np.arange(rows.size), hk[rows]]
         pv = np.asarray(pv, np.float64)[rows, hk[rows]]
         pv = np.where(np.asarray(formed)[rows, None], pv, 0.0)
-        nv = _noise_var(fitter, np.sqrt(out["noise_var"])[rows], mu[:, None, :])[:, 0]
+        nv = nv_all[np.arange(rows.size), hk[rows]]
         y = np.asarray(d.obs, np.float64)[rows, hk[rows]]
         ok = (np.asarray(d.weight)[rows, hk[rows]] > 0) & (
             np.asarray(d.censored)[rows, hk[rows]] == 0
@@ -432,22 +463,25 @@ def estimate_discrepancy(
         e2s.append(((y - mu) ** 2)[ok])
         vs.append((pv if replace_noise else pv + nv)[ok])
         mus.append(mu[ok])
+        if replace_noise:  # what the rescaling of this row's parameter term needs
+            use = (np.asarray(d.weight)[rows] > 0) & mask[part][rows][:, :, None]
+            rows_f.append((mu_all, nv_all, use, np.nonzero(ok)[0]))
     e2, v, m = (np.concatenate(x) if x else np.zeros(0) for x in (e2s, vs, mus))
     if e2.size == 0:
         return Discrepancy.zero()
     edges = np.quantile(m, np.linspace(0.0, 1.0, bins + 1))
     which = np.clip(np.searchsorted(edges, m, side="right") - 1, 0, bins - 1)
-    centres, tau2 = [], []
-    for b in range(bins):
-        sel = which == b
-        if np.any(sel):
-            centres.append(float(np.median(m[sel])))
-            tau2.append(_solve_tau2(e2[sel], v[sel]))
+    live = [b for b in range(bins) if np.any(which == b)]
+    centres = np.asarray([float(np.median(m[which == b])) for b in live])
     order = np.argsort(centres)
-    return Discrepancy(
-        np.asarray(centres)[order],
-        np.asarray(tau2)[order],
-        int(e2.size),
-        tuple(train),
-        replaces_noise=replace_noise,
-    )
+
+    def solve(v):
+        return np.asarray([_solve_tau2(e2[which == b], v[which == b]) for b in live])[order]
+
+    if not replace_noise:
+        return Discrepancy(centres[order], solve(v), int(e2.size), tuple(train))
+    # The errors' own variance function, then each held-out value's parameter term rescaled
+    # by its row's factor under it (module docstring).
+    err = Discrepancy(centres[order], solve(np.zeros_like(v)))
+    f = np.concatenate([_rescale(nv, err(mu), use)[i] for mu, nv, use, i in rows_f])
+    return Discrepancy(centres[order], solve(v * f), int(e2.size), tuple(train), True, err.var)
