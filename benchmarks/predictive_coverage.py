@@ -19,10 +19,12 @@ out by ``ggx`` (grey F0 up to 0.25: half the pixels lie beyond its range) and by
 parameters by the Laplace 50% and 90% intervals (:func:`jaxrefl.svbrdf.laplace_interval`:
 Student t with n_used - P degrees of freedom in the unconstrained space, the noise scale
 being estimated per pixel, mapped to natural units), and of the held-out photo by the
-predictive intervals, split by the flag.
+predictive intervals, split by the flag. Then the same with the intervals a user gets from
+``jaxrefl sample CAPTURE``: the uncertainty map's q05-q95 (the Laplace Gaussian where its
+flags call it reliable, MCMC on the other pixels; :func:`jaxrefl.svbrdf.uncertainty_maps`).
 
     python benchmarks/predictive_coverage.py [--size 256] [--captures bath_tile,yellow_box]
-        [--model pooled] [--synthetic-size 32] [--no-write]
+        [--model pooled] [--synthetic-size 32] [--no-posterior] [--no-write]
 
 It prints the tables and writes them, dated and with the machine, to the section
 ``predictive_coverage`` of ``docs/benchmarks.md``.
@@ -253,12 +255,75 @@ def synthetic(size: int, model: str) -> None:
     print()
 
 
+def synthetic_map(size: int, model: str) -> None:
+    """The 90% intervals a user gets from ``jaxrefl sample CAPTURE`` on the synthetic
+    capture (the uncertainty map's q05-q95: the Laplace Gaussian where its flags call it
+    reliable, MCMC elsewhere and on an audit sample), split as in :func:`synthetic`.
+    Needs ``jax_enable_x64`` (the map's fit is float64)."""
+    from jaxrefl import fit
+    from jaxrefl.posterior import MCMC_METHODS
+    from jaxrefl.svbrdf import FitJob, predictive, uncertainty_maps
+
+    cap, truth = _synthetic(size)
+    t0 = time.perf_counter()
+    job = FitJob(model=model, holdout=(SYN_HELD,), config=fit.FitConfig(dtype=np.float64))
+    cu = uncertainty_maps(cap, job)
+    wall = time.perf_counter() - t0
+    flag = predictive(cap, cu.fit).misspecified
+    m = cu.map
+    true = {
+        "albedo.R": truth["albedo"][..., 0],
+        "specular": truth["specular"][..., 0],
+        "specular.R": truth["specular"][..., 0],
+        "alpha": truth["alpha"],
+    }
+    spec = "specular" if "specular" in m.labels else "specular.R"
+    groups = {
+        "unflagged": ~flag,
+        "flagged": flag,
+        "all": np.ones(flag.size, bool),
+        "F0 in model range": truth["specular"][..., 0].reshape(-1) <= SYN_MODELS[model],
+    }
+    mcmc = np.isin(m.method, MCMC_METHODS)
+    rows = []
+    for gname, sel in groups.items():
+        cells = [gname, str(int(np.sum(sel))), str(int(np.sum(sel & mcmc)))]
+        for lab in ("albedo.R", spec, "alpha"):
+            j = m.labels.index(lab)
+            t = true[lab].reshape(-1)
+            ok = sel & np.isfinite(m.q05[:, j]) & np.isfinite(m.q95[:, j])
+            inside = (t >= m.q05[:, j]) & (t <= m.q95[:, j])
+            cells.append(_pct(float(np.mean(inside[ok]))) if ok.any() else "-")
+        rows.append(cells)
+    print(
+        f"### Synthetic capture, {size} x {size}, model `{model}`: the uncertainty map's 90% "
+        "intervals (`uncertainty_maps`)"
+    )
+    print()
+    f0 = "F0" if spec == "specular" else "F0.R"
+    heads = ["pixels", "count", "MCMC", "albedo.R 90%", f"{f0} 90%", "alpha 90%"]
+    print(table(heads, rows))
+    print()
+    print(
+        "Coverage in % of the true parameter by the map's q05-q95 (Laplace where reliable, "
+        f"MCMC on the other pixels and an audit sample), the same capture and held-out photo "
+        f"as above; methods: {m.method_counts()}; {wall:.0f} s with compilation."
+    )
+    print()
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--size", type=int, default=256)
     ap.add_argument("--captures", default="bath_tile,yellow_box")
     ap.add_argument("--model", default="pooled")
     ap.add_argument("--synthetic-size", type=int, default=32)
+    ap.add_argument(
+        "--no-posterior",
+        dest="posterior",
+        action="store_false",
+        help="skip the uncertainty map's intervals on the synthetic capture",
+    )
     args = ap.parse_args()
     print(
         "Noise model: additive Gaussian, independent between photos and channels. The "
@@ -275,6 +340,12 @@ def main() -> int:
     if args.synthetic_size > 0:
         for model in SYN_MODELS:
             synthetic(args.synthetic_size, model)
+        if args.posterior:
+            import jax
+
+            jax.config.update("jax_enable_x64", True)
+            for model in SYN_MODELS:
+                synthetic_map(args.synthetic_size, model)
     return 0
 
 
