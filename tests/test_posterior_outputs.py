@@ -183,6 +183,11 @@ def test_cli_sample_capture_end_to_end(tmp_path):
     slope = np.asarray(res.posterior.space.dnatural(jax.numpy.asarray(res.fit.theta)))[:, 0]
     std_map = res.fit.maps[svbrdf.map_name(lab, "_std")].reshape(-1)
     np.testing.assert_allclose(res.theta_std[:, 0] * np.abs(slope), std_map, rtol=1e-12)
+    # A held-out photo stays out of the posterior as it stayed out of the fit.
+    crop = load_capture(cap).crop(2, 6, 2, 6)
+    held = svbrdf.uncertainty_maps(crop, replace(job, holdout=(0,)), options)
+    w = np.asarray(held.data.weight)
+    assert np.all(w[:, 0] == 0) and np.all(np.any(w[:, 1:] > 0, axis=(1, 2)))
     with pytest.raises(ValueError, match="float64"):
         svbrdf.uncertainty_maps(cap, svbrdf.FitJob(model="lambert"), options)
 

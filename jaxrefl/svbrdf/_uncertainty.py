@@ -280,7 +280,11 @@ def uncertainty_maps(
     t_fit = time.perf_counter() - t0
     model, space = cf.model()
     lp = jp.log_posterior(model, space, fit.GaussianNoise(None))
-    data = pixel_block(capture, 0, h * w, dtype=np.float64)
+    # The job's held-out photos stay out of the posterior as they stayed out of the fit
+    # (weight 0: still in the data, for posterior predictive draws of them).
+    train = np.ones(capture.n_photos, bool)
+    train[list(job.holdout)] = False
+    data = pixel_block(capture, 0, h * w, photos=train, dtype=np.float64)
     theta_std = laplace_theta_std(cf, space)
     noise0 = cf.maps["noise_std"].reshape(-1)
     noise0 = np.where(np.isfinite(noise0) & (noise0 > 0), noise0, _NOISE_START)
