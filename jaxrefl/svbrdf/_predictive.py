@@ -376,8 +376,11 @@ def _solve_tau2(e2: np.ndarray, v: np.ndarray) -> float:
     on a monotone function; 0 where the model's own variance already suffices)."""
 
     def excess(t):
-        # Floored at the smallest normal: only v = 0 (no parameter term) at t = 0 reaches it.
-        return float(np.median(e2 / np.maximum(v + t, np.finfo(np.float64).tiny))) - _CHI2_1_MEDIAN
+        # Floored at the smallest normal: only v = 0 (no parameter term) at t = 0 reaches it,
+        # where a ratio may overflow to inf, which reads as "too narrow" as it should.
+        with np.errstate(over="ignore"):
+            ratio = e2 / np.maximum(v + t, np.finfo(np.float64).tiny)
+        return float(np.median(ratio)) - _CHI2_1_MEDIAN
 
     if e2.size == 0 or excess(0.0) <= 0:
         return 0.0
