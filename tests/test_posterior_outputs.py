@@ -100,6 +100,42 @@ def test_adaptive_method_map_and_exr(lambert, tmp_path):
     assert im.metadata["method_codes"]["1"] == "laplace"
 
 
+def test_laplace_summaries_are_student_t_where_the_noise_was_estimated(lambert):
+    """With ``dof`` per pixel the Laplace quantiles are theta* +- t_{0.95, dof} theta_std
+    pushed through the bijection and the std is scaled by sqrt(dof / (dof - 2)); dof = inf
+    gives the Gaussian ones; a finite dof <= 2 (no variance) sends the pixel to MCMC."""
+    from scipy import stats
+
+    lp, data, r, lap = lambert
+    theta_std, flag = np.asarray(lap.theta_std), np.asarray(lap.flag)
+    theta = np.asarray(r.theta)
+    g = jp.laplace_summary(lp, theta, theta_std)
+    dof = np.array([np.inf, 15.0, 4.0, 15.0, 30.0, 2.0])
+    t = jp.laplace_summary(lp, theta, theta_std, dof)
+    np.testing.assert_array_equal(t[0][0], g[0][0])  # dof inf: the Gaussian summary
+    np.testing.assert_array_equal(t[2][0], g[2][0])
+    sp = lp.space
+    for j in (1, 2, 4):
+        q = stats.t.ppf(0.95, dof[j])
+        lo = np.asarray(sp.natural_vector(theta[j] - q * theta_std[j]))
+        hi = np.asarray(sp.natural_vector(theta[j] + q * theta_std[j]))
+        np.testing.assert_allclose(t[2][j], lo, rtol=1e-12)
+        np.testing.assert_allclose(t[3][j], hi, rtol=1e-12)
+        np.testing.assert_allclose(t[1][j], g[1][j] * np.sqrt(dof[j] / (dof[j] - 2)), rtol=1e-12)
+        assert np.all(t[3][j] - t[2][j] > g[3][j] - g[2][j])  # wider than the Gaussian's
+    assert np.all(np.isnan(t[1][5]))
+    none = jp.AdaptiveOptions(mcmc="none")
+    u = jp.adaptive_uncertainty(lp, data, theta, theta_std, flag, none, dof=dof)
+    np.testing.assert_array_equal(u.q95[:, :3], np.asarray(t[3]))
+    assert np.all(u.method == 1)  # mcmc="none": the dof-2 pixel keeps its (NaN) summary
+    some = jp.AdaptiveOptions(
+        mcmc="flagged", audit=0.0, hmc=jp.HMCOptions(num_warmup=20, num_samples=20, num_chains=2)
+    )
+    u2 = jp.adaptive_uncertainty(lp, data, theta, theta_std, flag, some, dof=dof)
+    assert u2.method[5] == 2 and u2.method[0] == 2  # dof 2, and the AT_BOUND pixel
+    assert np.all(u2.method[1:5] == 1) and np.all(np.isfinite(u2.std[5, :3]))
+
+
 def test_cli_sample_capture_end_to_end(tmp_path):
     """`jaxrefl demo` (8 x 8) then `jaxrefl sample` on a 4 x 4 crop, Lambert model, MCMC on
     every pixel: the EXR, the NetCDF and report.json with diagnostics; then

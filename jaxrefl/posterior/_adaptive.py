@@ -21,7 +21,10 @@ code  name            summary from
 
 Laplace summaries in natural units: ``mean`` is the optimum x* = g(theta*), ``std`` the
 delta-method std theta_std |g'(theta*)|, and the quantiles g(theta* + z_q theta_std)
-(exact quantiles of the pushed-forward Gaussian, since g is monotone per entry).
+(exact quantiles of the pushed-forward marginal, since g is monotone per entry). z_q is the
+normal quantile where the noise scale is known and the Student t quantile of the pixel's
+degrees of freedom where the fit estimated it (``dof``, :func:`laplace_summary`), whose
+std is then theta_std sqrt(dof / (dof - 2)).
 MCMC summaries are the draws' mean, std and empirical 5% / 95% quantiles.
 
 Every setting is one immutable :class:`AdaptiveOptions`: which pixels are sampled
@@ -103,6 +106,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
+from scipy import stats
 
 from jaxrefl.fit import LaplaceFlag, PixelData, process_barrier, process_share
 
@@ -325,17 +329,40 @@ class UncertaintyMap:
         }
 
 
-def laplace_summary(lp: LogPosterior, theta_hat: np.ndarray, theta_std: np.ndarray):
-    """(mean, std, q05, q95) in natural units of the Laplace Gaussian N(theta*, theta_std^2)
-    (module docstring); the BRDF entries only (P of them)."""
+def laplace_summary(
+    lp: LogPosterior,
+    theta_hat: np.ndarray,
+    theta_std: np.ndarray,
+    dof: np.ndarray | None = None,
+):
+    """(mean, std, q05, q95) in natural units of the Laplace marginals in theta (module
+    docstring); the BRDF entries only (P of them).
+
+    dof: (N,) degrees of freedom of each pixel's marginals, or None. Where the noise scale
+    was estimated from the pixel's own residuals (n - P degrees of freedom), the marginal of
+    theta_j under the Jeffreys prior on the scale is a Student t with scale theta_std, not a
+    Gaussian (Gelman et al., *BDA3*, sec. 14.2): the quantiles are theta* +- t_{0.95, dof}
+    theta_std and the std is theta_std sqrt(dof / (dof - 2)), pushed through the bijection
+    as above. inf (or None): the Gaussian of a known scale. A finite dof <= 2 has no
+    finite variance: those pixels get NaN here, and :func:`adaptive_uncertainty` samples
+    them."""
     space = lp.space
     t = jnp.asarray(np.nan_to_num(theta_hat))
+    n = np.shape(theta_hat)[0]
+    nu = np.full(n, np.inf) if dof is None else np.asarray(dof, np.float64).reshape(n)
+    t_ok = np.isfinite(nu) & (nu > 2)
+    # Quantile and std factor per pixel: Student t where dof is finite, normal where inf.
+    z = np.full(n, _Z95)
+    z[t_ok] = stats.t.ppf(0.95, nu[t_ok])
+    inflate = np.ones(n)
+    inflate[t_ok] = np.sqrt(nu[t_ok] / (nu[t_ok] - 2.0))
     s = jnp.asarray(np.nan_to_num(theta_std))
     mean = np.array(space.natural_vector(t))
-    std = np.array(s * jnp.abs(space.dnatural(t)))
-    q05 = np.array(space.natural_vector(t - _Z95 * s))
-    q95 = np.array(space.natural_vector(t + _Z95 * s))
+    std = np.array(s * jnp.abs(space.dnatural(t))) * inflate[:, None]
+    q05 = np.array(space.natural_vector(t - z[:, None] * s))
+    q95 = np.array(space.natural_vector(t + z[:, None] * s))
     bad = ~(np.all(np.isfinite(theta_hat), -1) & np.all(np.isfinite(theta_std), -1))
+    bad |= ~(t_ok | np.isposinf(nu))
     for a in (mean, std, q05, q95):
         a[bad] = np.nan
     return mean, std, q05, q95
@@ -351,6 +378,7 @@ def adaptive_uncertainty(
     *,
     noise_scale: np.ndarray | None = None,
     normals: np.ndarray | None = None,
+    dof: np.ndarray | None = None,
     progress: bool = False,
     chunk_dir: str | Path | None = None,
 ) -> UncertaintyMap:
@@ -360,7 +388,10 @@ def adaptive_uncertainty(
     theta-space std; flag: (N,) Laplace flags (:class:`jaxrefl.fit.LaplaceFlag`);
     options: :class:`AdaptiveOptions` (None: its defaults). noise_scale: (N,) starting
     noise scale when ``lp`` samples it (e.g. the Laplace residual std); normals: (N, 3)
-    when ``lp`` samples a light. progress: a tqdm bar over the chunks. chunk_dir: a folder
+    when ``lp`` samples a light. dof: (N,) degrees of freedom of the Laplace marginals
+    (:func:`laplace_summary`: Student t where finite, e.g. n - P where the fit estimated
+    each pixel's noise scale; None: Gaussian); a pixel whose finite dof is <= 2 is sampled
+    as if flagged (its t marginal has no variance). progress: a tqdm bar over the chunks. chunk_dir: a folder
     where each MCMC chunk's draws are written when sampled and read back on a rerun
     (resume); required in a job of several processes (module docstring), which exchange
     their chunks there.
@@ -376,9 +407,10 @@ def adaptive_uncertainty(
     flag = np.asarray(flag).astype(np.int64)
     has = np.all(np.isfinite(theta_hat), axis=-1) & ((flag & LaplaceFlag.NO_ESTIMATE) == 0)
     t0 = time.perf_counter()
-    mean, std, q05, q95 = laplace_summary(lp, theta_hat, theta_std)
+    mean, std, q05, q95 = laplace_summary(lp, theta_hat, theta_std, dof)
     rng = np.random.default_rng(o.seed)  # the audit pixels, then the second pass's starts
-    method = _choose_methods(has, flag, o, rng)
+    unreliable = (flag != 0) | (has & np.any(np.isnan(std), -1))
+    method = _choose_methods(has, unreliable, o, rng)
     timings = {"laplace_summary_s": time.perf_counter() - t0}
     out = _Summaries.from_laplace(mean, std, q05, q95, lp.size)
     idx = np.flatnonzero(np.isin(method, MCMC_METHODS))
@@ -616,19 +648,20 @@ def _load_chunk(path: Path, m: int, labels) -> tuple[Samples, float] | None:
     return smp, float(a["run_s"])
 
 
-def _choose_methods(has: np.ndarray, flag: np.ndarray, o: AdaptiveOptions, rng) -> np.ndarray:
+def _choose_methods(has: np.ndarray, unreliable: np.ndarray, o: AdaptiveOptions, rng) -> np.ndarray:
     """(N,) uint8 method codes (:data:`METHODS`): 0 without an estimate, else 1 (Laplace),
-    2 (MCMC, flagged) or 3 (MCMC audit of a reliable pixel) as ``o.mcmc`` and ``o.audit``
-    choose; the audit pixels are drawn with ``rng``."""
+    2 (MCMC, Laplace unreliable: flagged, or no finite summary) or 3 (MCMC audit of a
+    reliable pixel) as ``o.mcmc`` and ``o.audit`` choose; the audit pixels are drawn with
+    ``rng``."""
     method = np.where(has, Method.LAPLACE, Method.NONE).astype(np.uint8)
     if o.mcmc == MCMCPixels.FLAGGED:
-        reliable = np.flatnonzero(has & (flag == 0))
+        reliable = np.flatnonzero(has & ~unreliable)
         n_audit = int(np.ceil(o.audit * reliable.size)) if o.audit > 0 and reliable.size else 0
         audit_idx = rng.choice(reliable, size=n_audit, replace=False) if n_audit else []
-        method[has & (flag != 0)] = Method.MCMC
+        method[has & unreliable] = Method.MCMC
         method[np.asarray(audit_idx, dtype=int)] = Method.MCMC_AUDIT
     elif o.mcmc == MCMCPixels.ALL:
-        method[has] = np.where(flag[has] == 0, Method.MCMC_AUDIT, Method.MCMC)
+        method[has] = np.where(unreliable[has], Method.MCMC, Method.MCMC_AUDIT)
     return method
 
 

@@ -11,7 +11,8 @@ where Laplace is not to be trusted.
    std_theta = std_x / |g'(theta*)|.
 3. :func:`jaxrefl.posterior.adaptive_uncertainty` with the given
    :class:`~jaxrefl.posterior.AdaptiveOptions`: Laplace summaries where the flags call the
-   Gaussian reliable, HMC on the flagged pixels and an audit sample. The posterior is the
+   Gaussian reliable (Student t marginals with :func:`laplace_dof` degrees of freedom where
+   the fit estimated the pixel's noise scale, as the sampled posterior does), HMC on the flagged pixels and an audit sample. The posterior is the
    fitted model's with Gaussian noise of unknown scale per pixel (Jeffreys prior) and the
    default priors (:func:`jaxrefl.posterior.default_priors`); the chains start from theta*
    and the residual noise std (1e-2 where that is not a positive number).
@@ -297,6 +298,7 @@ def uncertainty_maps(
         cf.maps["laplace_flag"].reshape(-1),
         options,
         noise_scale=noise0,
+        dof=laplace_dof(cf),
         progress=progress,
         chunk_dir=None if out_dir is None else Path(out_dir) / "mcmc",
     )
