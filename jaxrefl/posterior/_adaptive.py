@@ -391,10 +391,10 @@ def adaptive_uncertainty(
     when ``lp`` samples a light. dof: (N,) degrees of freedom of the Laplace marginals
     (:func:`laplace_summary`: Student t where finite, e.g. n - P where the fit estimated
     each pixel's noise scale; None: Gaussian); a pixel whose finite dof is <= 2 is sampled
-    as if flagged (its t marginal has no variance). progress: a tqdm bar over the chunks. chunk_dir: a folder
-    where each MCMC chunk's draws are written when sampled and read back on a rerun
-    (resume); required in a job of several processes (module docstring), which exchange
-    their chunks there.
+    as if flagged (its t marginal has no variance). progress: a tqdm bar over the chunks.
+    chunk_dir: a folder where each MCMC chunk's draws are written when sampled and read
+    back on a rerun (resume); required in a job of several processes (module docstring),
+    which exchange their chunks there.
     """
     o = AdaptiveOptions() if options is None else options
     if chunk_dir is None and jax.process_count() > 1:

@@ -12,10 +12,11 @@ where Laplace is not to be trusted.
 3. :func:`jaxrefl.posterior.adaptive_uncertainty` with the given
    :class:`~jaxrefl.posterior.AdaptiveOptions`: Laplace summaries where the flags call the
    Gaussian reliable (Student t marginals with :func:`laplace_dof` degrees of freedom where
-   the fit estimated the pixel's noise scale, as the sampled posterior does), HMC on the flagged pixels and an audit sample. The posterior is the
-   fitted model's with Gaussian noise of unknown scale per pixel (Jeffreys prior) and the
-   default priors (:func:`jaxrefl.posterior.default_priors`); the chains start from theta*
-   and the residual noise std (1e-2 where that is not a positive number).
+   the fit estimated the pixel's noise scale, as the sampled posterior does), MCMC on the
+   flagged pixels and an audit sample. The posterior is the fitted model's with Gaussian
+   noise of unknown scale per pixel (Jeffreys prior) and the default priors
+   (:func:`jaxrefl.posterior.default_priors`); the chains start from theta* and the
+   residual noise std (1e-2 where that is not a positive number).
 
 :func:`write_uncertainty` writes ``uncertainty.exr`` (mean, std, q05, q95 per parameter,
 method, R-hat, ESS; :func:`jaxrefl.posterior.write_uncertainty_exr`), where pixels were
