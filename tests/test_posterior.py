@@ -239,6 +239,39 @@ def test_priors_log_prob_and_sampling():
     assert est == pytest.approx(1.0, rel=0.02)
 
 
+def test_multivariate_normal_prior_is_scipys_density_over_the_block():
+    from scipy import stats
+
+    cov = ((0.02, 0.019, 0.018), (0.019, 0.02, 0.019), (0.018, 0.019, 0.021))
+    mvn = jp.MultivariateNormal((0.2, 0.25, 0.3), cov)
+    hash(mvn)  # static in a compiled sampler
+    x = np.random.default_rng(3).uniform(0.0, 1.0, (7, 3))
+    ref = stats.multivariate_normal((0.2, 0.25, 0.3), cov).logpdf(x)
+    got = np.asarray(mvn.log_prob(jnp.asarray(x)))
+    assert got.shape == (7,)
+    np.testing.assert_allclose(got - got[0], ref - ref[0], rtol=1e-10, atol=1e-9)
+    d = mvn.sample(np.random.default_rng(4), (40000,))
+    np.testing.assert_allclose(np.cov(d.T), cov, atol=1.5e-3)
+    # in units of the noise: N(mean, (s / s_ref)^2 cov), normalising factor included
+    scaled = jp.MultivariateNormal((0.2, 0.25, 0.3), cov, noise_ref=0.01)
+    x0 = jnp.asarray(x[0])
+    offs = [
+        float(scaled.log_prob_scaled(x0, s_))
+        - stats.multivariate_normal((0.2, 0.25, 0.3), np.asarray(cov) * (s_ / 0.01) ** 2).logpdf(
+            x[0]
+        )
+        for s_ in (0.005, 0.01, 0.03)
+    ]
+    np.testing.assert_allclose(offs, offs[0], rtol=0, atol=1e-9)
+    assert float(scaled.log_prob_scaled(x0, 0.01)) == pytest.approx(float(mvn.log_prob(x0)))
+    with pytest.raises(ValueError, match="noise_ref"):
+        jp.MultivariateNormal((0.0,), ((1.0,),), noise_ref=0.0)
+    with pytest.raises(ValueError, match="positive definite"):
+        jp.MultivariateNormal((0.0, 0.0), ((1.0, 2.0), (2.0, 1.0)))
+    with pytest.raises(ValueError, match="symmetric"):
+        jp.MultivariateNormal((0.0, 0.0), ((1.0, 0.5), (0.0, 1.0)))
+
+
 def test_default_priors_follow_the_space():
     model, space = __import__("jaxrefl.svbrdf", fromlist=["x"]).capture_model("ggx")
     pri = jp.default_priors(space)

@@ -60,6 +60,7 @@ from ._methods import Method as Method
 from ._priors import HalfCauchy as HalfCauchy
 from ._priors import Jeffreys as Jeffreys
 from ._priors import LogNormal as LogNormal
+from ._priors import MultivariateNormal as MultivariateNormal
 from ._priors import Normal as Normal
 from ._priors import Prior as Prior
 from ._priors import Uniform as Uniform

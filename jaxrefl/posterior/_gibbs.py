@@ -205,15 +205,21 @@ class _Terms(NamedTuple):
     cens: Array
 
 
-def _sweep(key, x, s2, q, r, yy, nw, evec, evals, lo, hi, jeffreys):
-    """One scan: s^2 | x (when sampled), then x along each eigenvector of Q in turn. One
-    chain."""
+def _sweep(key, x, s2, q, r, yy, nw, evec, evals, lo, hi, jeffreys, pp=None, pm=None, k=0):
+    """One scan: s^2 | x (when sampled), then x along each direction in turn (columns of
+    ``evec``, with evals[k] = d_k^T Q d_k). One chain. pp, pm, k: where given, a Gaussian
+    prior N(pm, s^2 pp^-1) on x (pp in units of s^-2, truncated to the box; s^-k its
+    normalising factor, k its rank where it is in units of the noise), else x's prior is
+    uniform on the box. It adds d^T pp d to a direction's precision, and (x - pm)^T pp
+    (x - pm) and k to s^2's Inverse-Gamma conditional."""
     k_s, k_x = jax.random.split(key)
     dtype = x.dtype
     if jeffreys:
         # SSE >= 0 in exact arithmetic; the expanded form can round below 0 at an exact fit.
         sse = jnp.maximum(yy - 2.0 * x @ r + x @ (q @ x), jnp.finfo(dtype).tiny)
-        g = jax.random.gamma(k_s, 0.5 * nw, dtype=dtype)
+        if pp is not None:
+            sse = sse + (x - pm) @ pp @ (x - pm)
+        g = jax.random.gamma(k_s, 0.5 * (nw + k), dtype=dtype)
         s2 = 0.5 * sse / g
     keys = jax.random.split(k_x, x.shape[0])
     lam_max = jnp.max(evals)
@@ -228,11 +234,16 @@ def _sweep(key, x, s2, q, r, yy, nw, evec, evals, lo, hi, jeffreys):
         t1, t2 = (lo - x) / d_s, (hi - x) / d_s
         t_lo = jnp.max(jnp.where(moves, jnp.minimum(t1, t2), -jnp.inf))
         t_hi = jnp.min(jnp.where(moves, jnp.maximum(t1, t2), jnp.inf))
-        # A direction the data do not see (eigenvalue ~ 0): its conditional is the prior's,
-        # uniform on the segment. The floor keeps the division finite either way.
+        # A direction neither the data nor a Gaussian prior sees (precision ~ 0): its
+        # conditional is the uniform prior's on the segment. The floor keeps the division
+        # finite either way.
+        grad = d @ (q @ x - r)
+        if pp is not None:  # the prior's precision and pull along d, in units of s^-2
+            lam = lam + d @ pp @ d
+            grad = grad + d @ (pp @ (x - pm))
         seen = lam > 1e-14 * lam_max
         lam_s = jnp.where(seen, lam, 1.0)
-        mean = -(d @ (q @ x - r)) / lam_s
+        mean = -grad / lam_s
         sd = jnp.sqrt(s2 / lam_s)
         z = truncated_normal(keys[k], (t_lo - mean) / sd, (t_hi - mean) / sd, dtype)
         u = jax.random.uniform(keys[k], dtype=dtype)

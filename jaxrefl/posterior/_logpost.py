@@ -150,8 +150,15 @@ class LogPosterior(eqx.Module):
         for blk in self.space.blocks:
             for r in blk.runs:
                 total = total + jnp.sum(_log_dforward(r.bijection, tb[r.start : r.stop]))
+        # A prior in units of the noise (MultivariateNormal.noise_ref) takes the scale s
+        # (1 where the noise is known).
+        s = jnp.ones((), theta.dtype) if log_s is None else jnp.exp(log_s)
         for blk, prior in zip(self.space.blocks, self.priors, strict=True):
-            total = total + jnp.sum(prior.log_prob(x[blk.start : blk.stop]))
+            xb = x[blk.start : blk.stop]
+            if getattr(prior, "noise_ref", None) is not None:
+                total = total + jnp.sum(prior.log_prob_scaled(xb, s))
+            else:
+                total = total + jnp.sum(prior.log_prob(xb))
         if u is not None and self.light is not None:
             total = total + self.light.log_density(u)
         if log_s is not None and self.noise_scale is not None:

@@ -22,6 +22,7 @@ prior                   log density (up to a constant)                     suppo
 ``HalfCauchy(scale)``   -log(1 + (x / scale)^2)                            x >= 0
 ``Jeffreys()``          -log x  (improper; a noise scale)                  x > 0
 ``VonMisesFisher``      kappa mu . l + log(kappa / (4 pi sinh kappa))      |l| = 1
+``MultivariateNormal``  -(x - mu)^T S^-1 (x - mu) / 2 over a whole block   R^k
 =====================  ================================================  ===============
 
 Default priors (:func:`default_priors`): a log-normal with median 0.1 and log sd 1.5 on the
@@ -46,6 +47,7 @@ __all__ = [
     "HalfCauchy",
     "Jeffreys",
     "LogNormal",
+    "MultivariateNormal",
     "Normal",
     "Prior",
     "Uniform",
@@ -92,6 +94,60 @@ class Normal(Prior):
 
     def sample(self, rng, shape):
         return rng.normal(self.mean, self.std, size=shape)
+
+
+class MultivariateNormal(Prior):
+    """Gaussian N(mean, cov) over a whole block of k entries (the channels of a coloured
+    F0, say), correlated: ``log_prob`` takes (*b, k) and returns (*b,). ``mean`` (k,) and
+    ``cov`` (k, k, symmetric positive definite) are tuples, so that the prior hashes (a
+    static part of a compiled sampler). Truncated to the block's box by its bijections, as
+    every prior here.
+
+    noise_ref: None, or a noise scale s_ref > 0 in the units of the posterior's noise
+    scale s (sd = s noise.std(obs), :mod:`jaxrefl.posterior._logpost`; s = 1 where the
+    noise is known). Then the prior is in units of the noise, N(mean, (s / s_ref)^2 cov):
+    the conjugate Normal-Inverse-Gamma prior of a linear model with an unknown noise scale
+    (Gelman et al., *BDA3*, sec. 14.8), which equals N(mean, cov) where s = s_ref and which
+    the linear-Gaussian samplers draw exactly (:mod:`jaxrefl.posterior._width_gibbs`).
+    Its log density, normalising factor (s / s_ref)^-k included, is :meth:`log_prob_scaled`.
+    """
+
+    mean: tuple[float, ...]
+    cov: tuple[tuple[float, ...], ...]
+    noise_ref: float | None = None
+
+    def __check_init__(self):
+        c = np.asarray(self.cov, np.float64)
+        k = len(self.mean)
+        if c.shape != (k, k) or not np.allclose(c, c.T):
+            raise ValueError(f"MultivariateNormal needs a symmetric ({k}, {k}) cov, got {c}")
+        if not np.all(np.linalg.eigvalsh(c) > 0):
+            raise ValueError(f"MultivariateNormal needs a positive definite cov, got {c}")
+        if self.noise_ref is not None and not self.noise_ref > 0:
+            raise ValueError(f"noise_ref must be a positive noise scale, got {self.noise_ref}")
+
+    @property
+    def precision(self) -> np.ndarray:
+        """cov^-1 (k, k), float64."""
+        return np.linalg.inv(np.asarray(self.cov, np.float64))
+
+    def log_prob(self, x):
+        """log N(x; mean, cov) up to a constant; (*b, k) -> (*b,). With ``noise_ref`` this
+        is the density where s = s_ref (see :meth:`log_prob_scaled`)."""
+        d = x - jnp.broadcast_to(jnp.asarray(self.mean, x.dtype), x.shape)
+        return -0.5 * jnp.einsum("...i,ij,...j->...", d, jnp.asarray(self.precision, x.dtype), d)
+
+    def log_prob_scaled(self, x, s):
+        """log N(x; mean, (s / s_ref)^2 cov) up to a constant free of s: (s_ref / s)^2 times
+        :meth:`log_prob` minus k log(s / s_ref). Without ``noise_ref``, :meth:`log_prob`."""
+        if self.noise_ref is None:
+            return self.log_prob(x)
+        ratio = self.noise_ref / s
+        return ratio * ratio * self.log_prob(x) + len(self.mean) * jnp.log(ratio)
+
+    def sample(self, rng, shape):
+        """Draws of N(mean, cov) (with ``noise_ref``: at s = s_ref), shape (*shape, k)."""
+        return rng.multivariate_normal(np.asarray(self.mean), np.asarray(self.cov), size=shape)
 
 
 class LogNormal(Prior):

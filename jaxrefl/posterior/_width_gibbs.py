@@ -56,6 +56,16 @@ with SSE(alpha, x) = |W^1/2 (y' - b'(alpha) - A'(alpha) x)|^2 in whitened units
    eigenvectors do, and a Cholesky of a P x P matrix written out elementwise is cheap on
    a batch of chains where an eigendecomposition per scan is not.
 
+Gaussian priors on x: an entry's uniform prior may be replaced by a Gaussian one (truncated
+to the box): :class:`~jaxrefl.posterior.MultivariateNormal` with ``noise_ref``, in units of
+the noise, N(m, (s / s_ref)^2 S) (the conjugate Normal-Inverse-Gamma prior), or, where the
+noise is known (s = 1), any Gaussian. It adds (x - m)^T S^-1 s_ref^2 (x - m) / (2 s^2) to
+the exponent, a quadratic in units of s^-2 like the SSE: the proposal below takes it as its
+own stand-in for those entries, the Gibbs moves add it to each direction's precision, and
+s^2's conditional gains it and the prior's rank k (its normalising factor s^-k). A Gaussian
+prior in absolute units with an unknown noise scale is not this conjugate form: HMC samples
+it (:func:`qualifies_width`).
+
 There is no step size, metric or gradient to tune; a kept draw is ``sweeps`` scans after
 the last, a number the compiled program takes as an argument (a longer second pass of a map
 reuses the first pass's program). :func:`qualifies_width` says whether a posterior and a
@@ -80,7 +90,7 @@ from jaxrefl.fit import L2, PixelData, ScaledSigmoid, device_count, map_sharded
 from ._bind import bind_once
 from ._gibbs import _EDGE, _density, _sweep, _theta_of, truncated_normal
 from ._logpost import LogPosterior
-from ._priors import Jeffreys, Uniform
+from ._priors import Jeffreys, MultivariateNormal, Normal, Uniform
 
 __all__ = ["WIDTH", "qualifies_width", "sample_width_gibbs"]
 
@@ -111,12 +121,24 @@ _RIDGE = 1e-10
 
 
 def _layout(lp: LogPosterior):
-    """(width index, lo (P,), hi (P,) over every natural entry, width prior) when the
-    posterior has one scalar ``alpha`` in a finite positive box and every other entry is a
-    finite box with a uniform prior that covers it; else None."""
+    """(width index, lo (P,), hi (P,) over every natural entry, width prior, Gaussian prior)
+    when the posterior has one scalar ``alpha`` in a finite positive box and every other
+    entry is in a finite box with a uniform prior that covers it or a Gaussian prior
+    (:class:`Normal` per entry, :class:`MultivariateNormal` over its block; truncated to
+    the box); else None. The Gaussian prior is None where every such prior is uniform, else
+    a hashable (mean (P,), precision (P, P) in units of s^-2, k, absolute): zeros in the
+    uniform entries' and the width's rows and columns; a prior in units of the noise
+    (``noise_ref``) has precision cov^-1 noise_ref^2 (module docstring), one in absolute
+    units cov^-1, exact only where s = 1 (a known noise); k counts the entries of the
+    former (their prior's normalising factor s^-k), ``absolute`` says whether any prior is
+    of the latter kind."""
     width = None
     lo, hi = [], []
+    p = lp.space.size
+    mean, prec = np.zeros(p), np.zeros((p, p))
+    k_scaled, absolute = 0, False
     for blk, prior in zip(lp.space.blocks, lp.priors, strict=True):
+        at = slice(blk.start, blk.stop)
         for r in blk.runs:
             if not isinstance(r.bijection, ScaledSigmoid):
                 return None
@@ -126,6 +148,20 @@ def _layout(lp: LogPosterior):
                 if r.stop - r.start != 1 or width is not None or not r.lower > 0:
                     return None
                 width = (r.start, prior)
+            elif isinstance(prior, Normal):
+                idx = np.arange(r.start, r.stop)
+                mean[idx] = float(prior.mean)
+                prec[idx, idx] = 1.0 / float(prior.std) ** 2
+                absolute = True
+            elif isinstance(prior, MultivariateNormal):
+                if len(prior.mean) != blk.stop - blk.start:
+                    return None
+                if r.start == blk.start:  # once per block
+                    mean[at] = prior.mean
+                    ref = 1.0 if prior.noise_ref is None else float(prior.noise_ref) ** 2
+                    prec[at, at] = prior.precision * ref
+                    k_scaled += 0 if prior.noise_ref is None else len(prior.mean)
+                    absolute |= prior.noise_ref is None
             elif not isinstance(prior, Uniform) or not (
                 float(prior.lower) <= r.lower and float(prior.upper) >= r.upper
             ):
@@ -134,7 +170,10 @@ def _layout(lp: LogPosterior):
             hi += [r.upper] * (r.stop - r.start)
     if width is None:
         return None
-    return width[0], np.asarray(lo, np.float64), np.asarray(hi, np.float64), width[1]
+    gauss = None
+    if np.any(prec != 0):
+        gauss = tuple(mean.tolist()), tuple(map(tuple, prec.tolist())), k_scaled, absolute
+    return width[0], np.asarray(lo, np.float64), np.asarray(hi, np.float64), width[1], gauss
 
 
 def _general(lp: LogPosterior) -> LogPosterior:
@@ -176,13 +215,18 @@ def qualifies_width(lp: LogPosterior, data: PixelData) -> tuple[bool, str]:
     if lay is None:
         return False, (
             f"not one scalar {WIDTH!r} in a positive box with every other parameter in a "
-            "finite box with a uniform prior"
+            "finite box with a uniform or Gaussian prior"
         )
     cens = np.asarray(data.censored) != 0
     w = np.asarray(data.weight)
     if np.any(cens & (w != 0) & (w != 1)):
         return False, "a censored observation has a weight other than 0 or 1"
-    i, lo, hi, _prior = lay
+    i, lo, hi, _prior, gauss = lay
+    if gauss is not None and gauss[3] and lp.noise_scale is not None:
+        return False, (
+            "a Gaussian prior in absolute units with an unknown noise scale (give a "
+            "MultivariateNormal a noise_ref: a prior in units of the noise)"
+        )
     ok = _linear_given_width(_general(lp), data, i, jnp.asarray(lo), jnp.asarray(hi))
     if not bool(np.all(np.asarray(ok))):
         return False, f"the model is not linear in its parameters given {WIDTH!r}"
@@ -278,7 +322,7 @@ def sample_width_gibbs(
     lp = _general(lp)
     lay = _layout(lp)
     assert lay is not None  # qualifies_width() checked it
-    i, lo_np, hi_np, prior = lay
+    i, lo_np, hi_np, prior, gauss = lay
     dtype = data.obs.dtype
     lo, hi = jnp.asarray(lo_np, dtype), jnp.asarray(hi_np, dtype)
     n, p = data.obs.shape[0], lo.shape[0]
@@ -327,7 +371,7 @@ def sample_width_gibbs(
     # lo and hi as Python floats (hashable: one bound program per posterior and settings)
     box = tuple(float(v) for v in lo_np), tuple(float(v) for v in hi_np)
     settings = dict(i=i, num_warmup=num_warmup, num_samples=num_samples, jeffreys=jeffreys)
-    run = bind_once(_run, lp, *box, prior, **settings)
+    run = bind_once(_run, lp, *box, prior, gauss, **settings)
     # scans between draws: an argument of the compiled program, not a constant of it, so
     # that a second pass with more of them reuses the first pass's program
     scans = jnp.full((n,), sweeps, jnp.int32)
@@ -366,6 +410,7 @@ def _run(
     lo,
     hi,
     prior,
+    gauss,
     data,
     keys,
     v0,
@@ -389,8 +434,16 @@ def _run(
     dtype = v0.dtype
     lo, hi = jnp.asarray(lo, dtype), jnp.asarray(hi, dtype)
     xl, xh = _drop(lo, i), _drop(hi, i)
-    c = 0.5 * (xl + xh)
-    dinv = (2.0 / (xh - xl)) ** 2  # the stand-in prior N(c, (width / 2)^2)
+    centre, box_prec = 0.5 * (xl + xh), (2.0 / (xh - xl)) ** 2
+    # The stand-in prior of each entry: N(centre, (width / 2)^2) in absolute units; where
+    # the entry has a Gaussian prior N(pm, s^2 pp^-1) (pp in units of s^-2), that prior.
+    k_prior = 0
+    pm = pp = None
+    if gauss is not None:
+        pm = _drop(jnp.asarray(gauss[0], dtype), i)
+        pp = _drop(_drop(jnp.asarray(gauss[1], dtype), i).T, i)
+        box_prec = jnp.where(jnp.diagonal(pp) > 0, 0.0, box_prec)
+        k_prior = gauss[2]
     u_lo, u_hi = jnp.log(lo[i]), jnp.log(hi[i])
     e_u = _EDGE * (u_hi - u_lo)
 
@@ -402,16 +455,16 @@ def _run(
         nw = jnp.sum(w)
 
         def terms(a):
-            jac, b = _affine(lp, d, i, c, a)
+            jac, b = _affine(lp, d, i, centre, a)
             return jac / u_std[:, None], b / u_std
 
-        def factor(aw, bw, y, dref):
+        def factor(aw, bw, y, dref, dc):
             """(Q, r, z'Wz, L, v) at one width: L L^T = Q + D, v = L^-1 (r + D c), for the
-            stand-in precision D = dref in units of s^-2. The proposal's Gaussian is
-            N(L^-T v, s^2 (Q + D)^-1), its factor free of s."""
+            stand-in's precision D = dref (P - 1, P - 1) in units of s^-2 and dc = D c.
+            The proposal's Gaussian is N(L^-T v, s^2 (Q + D)^-1), its factor free of s."""
             q, r, zz = _moments(aw, bw, y, w)
-            l = _chol(q + jnp.broadcast_to(jnp.diag(dref), q.shape))
-            return q, r, zz, l, _solve_lower(l, r + jnp.broadcast_to(dref * c, r.shape))
+            l = _chol(q + jnp.broadcast_to(dref, q.shape))
+            return q, r, zz, l, _solve_lower(l, r + jnp.broadcast_to(dc, r.shape))
 
         # Cell edges over u: even ones, and local ones around the optimum.
         u_hat = jnp.log(v0[0, i])
@@ -432,11 +485,16 @@ def _run(
         y_c, w_c = yw[c_idx], w[c_idx]
 
         def cells(s2):
-            """The cells' factors for the stand-in N(c, s^2 / dinv): (D in units of s^-2,
-            z'Wz (G,), v (G, P-1), log weight without the data term (G,), L^-1 A'^T W on
-            the censored rows (G, P-1, R): how a latent value moves v, c'Dc)."""
-            dref = dinv * s2
-            _q, _r, zz_g, l_g, v_g = factor(aw_g, bw_g, yw, dref)
+            """The cells' factors for the stand-in with its box part at s: (D in units of
+            s^-2, D c, z'Wz (G,), v (G, P-1), log weight without the data term (G,),
+            L^-1 A'^T W on the censored rows (G, P-1, R): how a latent value moves v,
+            c'Dc)."""
+            dref = jnp.diag(box_prec * s2)
+            dc = box_prec * s2 * centre
+            cdc = jnp.sum(box_prec * s2 * centre * centre)
+            if pp is not None:
+                dref, dc, cdc = dref + pp, dc + pp @ pm, cdc + pm @ pp @ pm
+            _q, _r, zz_g, l_g, v_g = factor(aw_g, bw_g, yw, dref, dc)
             base_g = prior_g + log_cell - jnp.sum(jnp.log(jnp.diagonal(l_g, 0, -2, -1)), -1)
             lia_gc = (
                 jax.vmap(lambda l, a: jax.vmap(lambda col: _solve_lower(l, col), 1, 1)(a.T))(
@@ -444,7 +502,7 @@ def _run(
                 )
                 * w_c[None, None, :]
             )
-            return dref, zz_g, v_g, base_g, lia_gc, jnp.sum(dref * c * c)
+            return dref, dc, zz_g, v_g, base_g, lia_gc, cdc
 
         def log_q(logits, u):
             """log density of the proposal at u (normalised)."""
@@ -457,7 +515,10 @@ def _run(
             sse = jnp.sum(w * res * res)
             dx = l.T @ x - v  # L^T (x - mu)
             log_n = -0.5 * jnp.sum(dx * dx) / s2 + jnp.sum(jnp.log(jnp.diagonal(l)))
-            return -0.5 * sse / s2 + log_width_prior(u) - log_n
+            out = -0.5 * sse / s2 + log_width_prior(u) - log_n
+            if pp is not None:  # the Gaussian prior of x (uniform ones are constant; s^-k
+                out = out - 0.5 * (x - pm) @ pp @ (x - pm) / s2  # is too, s being fixed)
+            return out
 
         def latent(key, aw, bw, x, s2):
             """Latent whitened values of the censored observations minus their bounds
@@ -472,7 +533,7 @@ def _run(
 
         def scan_one(carry, grid):
             key, u, x, s2, aw, bw, q, l = carry
-            dref, zz_g, v_g, base_g, lia_gc, cdc = grid
+            dref, dc, zz_g, v_g, base_g, lia_gc, cdc = grid
             key, k_y, k_g, k_u, k_x, k_a, k_s = jax.random.split(key, 7)
             # 1. the censored observations' latent values (padding slots move nothing)
             dy = latent(k_y, aw, bw, x, s2)
@@ -495,11 +556,11 @@ def _run(
             g = jnp.clip(jnp.searchsorted(cdf, pick), 0, width.shape[0] - 1)
             us = edges[g] + jax.random.uniform(k_u, (_CANDIDATES,), dtype) * width[g]
             us = jnp.clip(us, u_lo + e_u, u_hi - e_u)
-            eps = jax.random.normal(k_x, (_CANDIDATES, c.shape[0]), dtype)
+            eps = jax.random.normal(k_x, (_CANDIDATES, centre.shape[0]), dtype)
 
             def candidate(u_t, e_t):
                 aw_t, bw_t = terms(jnp.exp(u_t))
-                q_t, r_t, zz_t, l_t, v_t = factor(aw_t, bw_t, y, dref)
+                q_t, r_t, zz_t, l_t, v_t = factor(aw_t, bw_t, y, dref, dc)
                 x_t = _solve_upper_t(l_t, v_t + jnp.sqrt(s2) * e_t)
                 return aw_t, bw_t, q_t, r_t, zz_t, l_t, v_t, x_t
 
@@ -511,7 +572,7 @@ def _run(
             z_c = y - bw
             r_c = jnp.einsum("mp,m,m->p", aw, w, z_c)
             zz_c = jnp.sum(w * z_c * z_c)
-            v_c = _solve_lower(l, r_c + dref * c)
+            v_c = _solve_lower(l, r_c + dc)
             log_w_new = log_target_minus_x(aw_n, bw_n, x_new, u_new, y, s2, l_n, v_n)
             log_w_new = log_w_new - log_q(logits, u_new)
             log_w_cur = log_target_minus_x(aw, bw, x, u, y, s2, l, v_c) - log_q(logits, u)
@@ -530,7 +591,7 @@ def _run(
             eye = jnp.eye(q.shape[0], dtype=dtype)
             dirs = jax.vmap(lambda e: _solve_upper_t(l, e), out_axes=1)(eye)
             lam = jnp.einsum("pk,pq,qk->k", dirs, q, dirs)
-            x, s2 = _sweep(k_s, x, s2, q, r, yy, nw, dirs, lam, xl, xh, jeffreys)
+            x, s2 = _sweep(k_s, x, s2, q, r, yy, nw, dirs, lam, xl, xh, jeffreys, pp, pm, k_prior)
             return (key, u, x, s2, aw, bw, q, l), accept.astype(dtype)
 
         def chain(key, v, s):
@@ -555,7 +616,7 @@ def _run(
                 carry, draws = state
                 length, keep = spec[0], spec[1] > 0
                 grid = cells(carry[3])
-                carry = (*carry[:7], _chol(carry[6] + jnp.diag(grid[0])))
+                carry = (*carry[:7], _chol(carry[6] + grid[0]))
 
                 def interval(t, st):
                     carry, draws = st
