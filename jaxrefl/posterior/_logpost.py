@@ -72,7 +72,7 @@ from jaxrefl.fit import (
 )
 from jaxrefl.scene import orthonormal_basis, to_local
 
-from ._priors import Jeffreys, Prior, resolve_priors
+from ._priors import Jeffreys, MultivariateNormal, Prior, resolve_priors
 from ._sphere import SphereDirection
 
 __all__ = ["LogPosterior", "SharedLight", "log_posterior"]
@@ -155,7 +155,7 @@ class LogPosterior(eqx.Module):
         s = jnp.ones((), theta.dtype) if log_s is None else jnp.exp(log_s)
         for blk, prior in zip(self.space.blocks, self.priors, strict=True):
             xb = x[blk.start : blk.stop]
-            if getattr(prior, "noise_ref", None) is not None:
+            if isinstance(prior, MultivariateNormal) and prior.noise_ref is not None:
                 total = total + jnp.sum(prior.log_prob_scaled(xb, s))
             else:
                 total = total + jnp.sum(prior.log_prob(xb))
