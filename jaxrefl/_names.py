@@ -77,6 +77,11 @@ def canonical(name: str) -> str:
     return ALIASES.get(key, key)
 
 
+# Where uncertainty_maps takes a capture's priors (jaxrefl.svbrdf.uncertainty_maps, sample
+# --priors): estimated from the reliably fitted pixels, or the model's defaults.
+PRIOR_SOURCES = ("population", "default")
+
+
 def describe(name: str) -> list[str]:
     """What ``name`` (any spelling) means in each table it belongs to, one line each;
     empty when it names nothing."""

@@ -149,6 +149,8 @@ def test_cli_sample_capture_end_to_end(tmp_path):
     assert main([*argv, "--workers", "1"]) == 0  # the library call below: the default workers
     rep = json.loads((out / "report.json").read_text())
     assert rep["height"] == 4 and rep["width"] == 4
+    # --priors population (default): Lambert has no lobe to pool, its defaults stay
+    assert rep["prior_source"]["source"] == "default" and "lobe" in rep["prior_source"]["why"]
     u = rep["uncertainty"]
     assert u["method_counts"]["mcmc"] + u["method_counts"]["mcmc_audit"] == 16
     assert u["mcmc"]["max_rhat"]["median"] < 1.2

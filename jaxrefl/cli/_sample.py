@@ -3,7 +3,7 @@
     jaxrefl sample CAPTURE_DIR --out OUT_DIR [--pixels R0:R1,C0:C1] [--downsample F]
                    [--model ggx] [--mcmc flagged|all|none] [--audit 0.02]
                    [--warmup N] [--samples N] [--chains N] [--gibbs-sweeps N]
-                   [--rerun-rhat R] [--seed S]
+                   [--rerun-rhat R] [--priors population|default] [--seed S]
     jaxrefl sample BRDF_FILE --out OUT_DIR [--brdf-model ggx]
                    [--sampler emcee|hmc] [--max-steps N] [--walkers N]
 
@@ -17,7 +17,9 @@ then :func:`jaxrefl.posterior.adaptive_uncertainty` with the
 of HMC, exact for ``pooled``, with the lobe width from its collapsed marginal for the
 per-pixel models (:mod:`jaxrefl.posterior._width_gibbs`),
 ``--rerun-rhat``: the max R-hat above which a pixel runs the longer second pass, 0 for
-none, ``--seed``). The noise scale is unknown (sampled per pixel, Jeffreys prior).
+none, ``--seed``). The noise scale is unknown (sampled per pixel, Jeffreys prior). The
+lobe's priors (``--priors``) are by default estimated from the pixels whose Laplace is
+reliable (:func:`jaxrefl.svbrdf.population_priors`); ``default`` takes the model's own.
 Writes OUT_DIR/uncertainty.exr (mean, std, q05, q95 per parameter, method, R-hat, ESS) and
 OUT_DIR/posterior.nc (ArviZ InferenceData of the MCMC pixels, with observed data and
 posterior predictive draws) by :func:`jaxrefl.svbrdf.write_uncertainty`, and
@@ -49,7 +51,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from jaxrefl._names import CAPTURE_MODELS, MEASURED_MODELS, canonical
+from jaxrefl._names import CAPTURE_MODELS, MEASURED_MODELS, PRIOR_SOURCES, canonical
 
 from ._distributed import add_distributed_arguments, distributed_from_args
 from ._main import check_out_dir, fraction, non_negative_float, non_negative_int, positive_int
@@ -128,6 +130,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=None,
         help="rerun pixels above this max R-hat, longer (0: no second pass; default "
         "jaxrefl.posterior.RERUN_RHAT, 1.05)",
+    )
+    p.add_argument(
+        "--priors",
+        default=PRIOR_SOURCES[0],
+        choices=PRIOR_SOURCES,
+        help="a capture's lobe priors: estimated from its reliably fitted pixels "
+        "(population), or the model's defaults",
     )
     p.add_argument(
         "--chunk", type=positive_int, default=2048, help="MCMC pixels per compiled sampler call"
@@ -271,6 +280,7 @@ def _run_capture(args, path: Path, opts, dist) -> dict:
         cap,
         job,
         options,
+        priors=args.priors,
         progress=_progress(args),
         out_dir=None if dist is None else args.out,  # the processes' exchange (resume)
         distributed=dist,

@@ -96,6 +96,14 @@ class Normal(Prior):
         return rng.normal(self.mean, self.std, size=shape)
 
 
+def _floats(v) -> tuple[float, ...]:
+    return tuple(float(x) for x in np.asarray(v, np.float64).reshape(-1))
+
+
+def _float_or_none(v) -> float | None:
+    return None if v is None else float(v)
+
+
 class MultivariateNormal(Prior):
     """Gaussian N(mean, cov) over a whole block of k entries (the channels of a coloured
     F0, say), correlated: ``log_prob`` takes (*b, k) and returns (*b,). ``mean`` (k,) and
@@ -112,9 +120,10 @@ class MultivariateNormal(Prior):
     Its log density, normalising factor (s / s_ref)^-k included, is :meth:`log_prob_scaled`.
     """
 
-    mean: tuple[float, ...]
-    cov: tuple[tuple[float, ...], ...]
-    noise_ref: float | None = None
+    # Python floats whatever the caller gives (NumPy scalars would be traced as arrays)
+    mean: tuple[float, ...] = eqx.field(converter=_floats)
+    cov: tuple[tuple[float, ...], ...] = eqx.field(converter=lambda c: tuple(map(_floats, c)))
+    noise_ref: float | None = eqx.field(default=None, converter=_float_or_none)
 
     def __check_init__(self):
         c = np.asarray(self.cov, np.float64)

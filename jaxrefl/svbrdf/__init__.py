@@ -26,7 +26,8 @@ held-out photos), :mod:`._job` (tiled fit with Laplace uncertainty and resume),
 :mod:`._holdout` (leave-one-photo-out against a baseline), :mod:`._outputs` (EXR maps,
 report, previews), :mod:`._export` (textures, a Mitsuba 3 scene and a glTF 2.0 material
 for renderers), :mod:`._uncertainty` (the fit's Laplace std, then MCMC where Laplace is
-flagged: posterior uncertainty maps), :mod:`._check` (where the model cannot be right: the
+flagged: posterior uncertainty maps), :mod:`._population` (the lobe's priors of flagged
+pixels from the reliably fitted ones), :mod:`._check` (where the model cannot be right: the
 ``misspecified`` map), :mod:`._predictive` (posterior predictive intervals of photos, with a
 model-discrepancy term measured on training photos; their coverage of held-out photos).
 """
@@ -69,6 +70,7 @@ from ._outputs import write_outputs as write_outputs
 from ._outputs import write_previews as write_previews
 from ._pooled import PoolChoice as PoolChoice
 from ._pooled import choose_pooled as choose_pooled
+from ._population import population_priors as population_priors
 from ._predictive import LEVELS as LEVELS
 from ._predictive import Discrepancy as Discrepancy
 from ._predictive import Predictive as Predictive

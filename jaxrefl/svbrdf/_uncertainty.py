@@ -14,8 +14,11 @@ where Laplace is not to be trusted.
    Gaussian reliable (Student t marginals with :func:`laplace_dof` degrees of freedom where
    the fit estimated the pixel's noise scale, as the sampled posterior does), MCMC on the
    flagged pixels and an audit sample. The posterior is the fitted model's with Gaussian
-   noise of unknown scale per pixel (Jeffreys prior) and the default priors
-   (:func:`jaxrefl.posterior.default_priors`); the chains start from theta* and the
+   noise of unknown scale per pixel (Jeffreys prior); the lobe's priors are by default
+   estimated from the pixels whose Laplace is reliable (:func:`population_priors`:
+   empirical Bayes, so that a pixel whose highlight no photo saw is not pushed onto a
+   bright, rough lobe by the volume of a uniform prior), the others are
+   :func:`jaxrefl.posterior.default_priors`; the chains start from theta* and the
    residual noise std (1e-2 where that is not a positive number).
 
 :func:`write_uncertainty` writes ``uncertainty.exr`` (mean, std, q05, q95 per parameter,
@@ -30,6 +33,7 @@ timings).
 from __future__ import annotations
 
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -40,10 +44,12 @@ import numpy as np
 
 from jaxrefl import fit
 from jaxrefl import posterior as jp
+from jaxrefl._names import PRIOR_SOURCES
 from jaxrefl.fit import PixelData
 
 from ._data import pixel_block
 from ._job import CaptureFit, FitJob, fit_capture, map_name
+from ._population import population_priors
 from ._uncertainty_plots import write_uncertainty_plots
 
 __all__ = [
@@ -71,6 +77,8 @@ class CaptureUncertainty:
     data:      (N, K, C) the pixels' observations, float64
     theta_std: (N, P) the Laplace std in the unconstrained space (NaN: no estimate)
     options:   the settings the map was made with
+    prior_summary: where the priors came from (``source``: population, default or given;
+               for a population, its pixels and estimates: :func:`population_priors`)
     timings:   seconds in :func:`fit_capture` (``fit_s``) and in
                :func:`jaxrefl.posterior.adaptive_uncertainty` (``posterior_s``)
     """
@@ -84,6 +92,7 @@ class CaptureUncertainty:
     width: int
     options: jp.AdaptiveOptions
     timings: dict[str, float] = field(default_factory=dict)
+    prior_summary: dict[str, Any] = field(default_factory=dict)
 
     @property
     def model(self) -> str:
@@ -149,6 +158,7 @@ class CaptureUncertainty:
             "width": self.width,
             "noise": NOISE,
             "priors": {b.name: repr(p) for b, p in zip(lp.space.blocks, lp.priors, strict=True)},
+            "prior_source": dict(self.prior_summary),
             "sampler": {**vars(o.hmc)},
             "second_pass": {"rerun_rhat": o.rerun_rhat, "options": {**vars(second)}},
             # misspecified pixels (jaxrefl.svbrdf._check): their intervals are not calibrated
@@ -230,6 +240,7 @@ def uncertainty_maps(
     job: FitJob | None = None,
     options: jp.AdaptiveOptions | None = None,
     *,
+    priors: str | Mapping[str, jp.Prior] = "population",
     progress: bool = False,
     out_dir: str | Path | None = None,
     distributed: fit.Distributed | None = None,
@@ -245,6 +256,10 @@ def uncertainty_maps(
               resolution between nearby draws. Its ``tile_pixels`` is capped at the pixel
               count (one tile, no padding, for a small capture or crop)
     options:  :class:`jaxrefl.posterior.AdaptiveOptions` (None: its defaults)
+    priors:   ``"population"`` (default): the lobe's priors estimated from the pixels
+              Laplace calls reliable (:func:`population_priors`); ``"default"``:
+              :func:`jaxrefl.posterior.default_priors`; or priors by parameter name
+              (the defaults for the others)
     progress: tqdm bars over the fit's tiles and the MCMC chunks
     out_dir:  where the fit's tiles (``out_dir/fit``) and the MCMC chunks' draws
               (``out_dir/mcmc``) are written as they finish, and read back by a rerun
@@ -263,6 +278,8 @@ def uncertainty_maps(
     if job.dtype != np.float64:
         raise ValueError(f"uncertainty_maps needs a float64 FitJob, not {job.dtype}")
     options = jp.AdaptiveOptions() if options is None else options
+    if isinstance(priors, str) and priors not in PRIOR_SOURCES:
+        raise ValueError(f"priors must be one of {PRIOR_SOURCES} or a mapping, not {priors!r}")
     if distributed is not None:
         if out_dir is None:
             raise ValueError(
@@ -281,7 +298,13 @@ def uncertainty_maps(
     cf = fit_capture(capture, job, fit_dir, progress=progress, distributed=distributed)
     t_fit = time.perf_counter() - t0
     model, space = cf.model()
-    lp = jp.log_posterior(model, space, fit.GaussianNoise(None))
+    if isinstance(priors, str):
+        chosen, prior_summary = (
+            population_priors(cf, space) if priors == "population" else ({}, {"source": "default"})
+        )
+    else:
+        chosen, prior_summary = dict(priors), {"source": "given"}
+    lp = jp.log_posterior(model, space, fit.GaussianNoise(None), priors=chosen)
     # The job's held-out photos stay out of the posterior as they stayed out of the fit
     # (weight 0: still in the data, for posterior predictive draws of them).
     train = np.ones(capture.n_photos, bool)
@@ -314,6 +337,7 @@ def uncertainty_maps(
         width=w,
         options=options,
         timings={"fit_s": t_fit, "posterior_s": t_post},
+        prior_summary=prior_summary,
     )
 
 

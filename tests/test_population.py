@@ -1,0 +1,102 @@
+"""Population priors (:mod:`jaxrefl.svbrdf._population`): the empirical Bayes estimates
+from the reliably fitted pixels, the fallbacks, and what they change on the pixels whose
+lobe no photo saw."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxrefl import fit, svbrdf
+from jaxrefl import posterior as jp
+from jaxrefl.demo import demo_scene, photograph_maps
+from jaxrefl.svbrdf import _population
+
+SIZE = 10
+SIGMA = 0.004
+
+
+@pytest.fixture(scope="module")
+def grey_capture():
+    """A co-located flash capture of grey-F0 dielectrics (F0 0-0.5, alpha 0.04-0.64),
+    fitted with the coloured-F0 ``ggx_rgb``: (capture, fit, truth)."""
+    scene = demo_scene(size=SIZE)
+    rng = np.random.default_rng(8)
+    f0 = rng.uniform(0.0, 0.5, (SIZE, SIZE))
+    truth = {
+        "albedo": rng.uniform(0.05, 0.8, (SIZE, SIZE, 3)),
+        "specular": np.repeat(f0[..., None], 3, -1),
+        "alpha": rng.uniform(0.2, 0.8, (SIZE, SIZE)) ** 2,
+    }
+    cap = photograph_maps(scene, truth, SIGMA, rng)
+    job = svbrdf.FitJob(model="ggx_rgb", config=fit.FitConfig(dtype=np.float64))
+    return cap, svbrdf.fit_capture(cap, job), truth
+
+
+def test_population_priors_are_the_reliable_pixels_moments(grey_capture, monkeypatch):
+    cap, cf, _truth = grey_capture
+    _model, space = cf.model()
+    priors, summary = svbrdf.population_priors(cf, space)
+    flag = cf.maps["laplace_flag"].reshape(-1)
+    noise = cf.maps["noise_std"].reshape(-1)
+    ok = (flag == 0) & np.isfinite(noise)
+    assert summary["source"] == "population" and summary["pixels"] == int(ok.sum())
+    assert 0 < (flag != 0).sum() and ok.sum() >= _population.MIN_PIXELS
+    x = np.asarray(space.natural_vector(jnp.asarray(cf.theta[ok])))
+    f0 = x[:, space.index("specular")]
+    spec = priors["specular"]
+    assert isinstance(spec, jp.MultivariateNormal)
+    np.testing.assert_allclose(spec.mean, f0.mean(0), rtol=1e-12)
+    want = np.cov(f0.T) + _population.F0_FLOOR_STD**2 * np.eye(3)
+    np.testing.assert_allclose(np.asarray(spec.cov), want, rtol=1e-10)
+    assert spec.noise_ref == pytest.approx(float(np.median(noise[ok])))
+    # the population is grey: its channels move together
+    corr = want / np.sqrt(np.outer(np.diag(want), np.diag(want)))
+    assert corr[0, 1] > 0.9 and corr[1, 2] > 0.9
+    log_a = np.log(x[:, space.index("alpha")].reshape(-1))
+    assert priors["alpha"].median == pytest.approx(float(np.exp(np.median(log_a))))
+    assert priors["alpha"].log_std == pytest.approx(
+        max(float(np.std(log_a)), _population.ALPHA_FLOOR_LOG_STD)
+    )
+    # fallbacks: too few reliable pixels, a model without a per-pixel lobe
+    with monkeypatch.context() as mp:
+        mp.setattr(_population, "MIN_PIXELS", 10_000)
+        none, why = svbrdf.population_priors(cf)
+        assert none == {} and why["source"] == "default" and "fewer than" in why["why"]
+    lam = svbrdf.fit_capture(
+        cap, svbrdf.FitJob(model="lambert", config=fit.FitConfig(dtype=np.float64))
+    )
+    none, why = svbrdf.population_priors(lam)
+    assert none == {} and "no per-pixel lobe" in why["why"]
+    with pytest.raises(ValueError, match="priors must be one of"):
+        svbrdf.uncertainty_maps(cap, priors="uniform")
+
+
+def test_unseen_lobes_keep_the_populations_grey_f0(grey_capture):
+    """On the pixels Laplace flags (mostly lobes no photo saw), the default uniform prior on
+    a coloured F0 lets each channel wander over [0, 1]: the draws' spread of F0.R - F0.G is
+    that of independent channels. The population prior of a grey capture keeps them
+    together (spread at most a third) and its draws of F0 lie nearer the truth."""
+    cap, cf, truth = grey_capture
+    model, space = cf.model()
+    flag = cf.maps["laplace_flag"].reshape(-1)
+    rows = np.flatnonzero(flag != 0)[:24]
+    block = svbrdf.pixel_block(cap, 0, SIZE * SIZE, dtype=np.float64)
+    data = jax.tree.map(lambda a: a[rows], block)
+    noise0 = np.nan_to_num(cf.maps["noise_std"].reshape(-1)[rows], nan=1e-2)
+    std = np.concatenate([svbrdf.laplace_theta_std(cf, space)[rows], np.ones((rows.size, 1))], 1)
+    opts = jp.HMCOptions(num_warmup=50, num_samples=200, num_chains=2, gibbs_sweeps=1)
+    spread, err = {}, {}
+    for name, priors in (("default", {}), ("population", svbrdf.population_priors(cf)[0])):
+        lp = jp.log_posterior(model, space, fit.GaussianNoise(None), priors=priors)
+        th0 = lp.init_theta(jnp.asarray(cf.theta[rows]), noise_scale=np.maximum(noise0, 1e-3))
+        s = jp.sample_pixels(lp, data, th0, theta_std=std, options=opts, seed=2)
+        assert s.method == "gibbs_mh"
+        r, g = (s.natural[..., lp.labels.index(f"specular.{c}")] for c in "RG")
+        spread[name] = float(np.median(np.std(r - g, axis=(1, 2))))
+        f0_true = truth["specular"][..., 0].reshape(-1)[rows]
+        err[name] = float(np.median(np.abs(np.median(r, axis=(1, 2)) - f0_true)))
+    assert spread["population"] < spread["default"] / 3, spread
+    assert err["population"] < err["default"], err
