@@ -12,7 +12,8 @@
 3. Wall time of an adaptive uncertainty map (Laplace everywhere, ``MAP_OPTIONS`` on the
    flagged pixels and a 2% audit: HMC, or the Gibbs samplers where the posterior allows;
    fixed-size chunks of at most ``--map-chunk`` pixels, the default number at once; the
-   second pass on the pixels left above R-hat 1.05) of a synthetic ``jaxrefl demo``
+   second pass on the pixels left above R-hat 1.05; the priors and Laplace marginals of
+   ``svbrdf.uncertainty_maps``) of a synthetic ``jaxrefl demo``
    capture of ``--map-size`` squared, first, in a fresh process (every program compiled),
    then of the real captures bath_tile and yellow_box at that size (needs
    $JAXREFL_SHARED_DATA); ``--map-rows R`` crops the first R rows and extrapolates
@@ -230,7 +231,11 @@ def map_run(args, cap, name):
     rows = h_full if args.map_rows <= 0 else min(h_full, args.map_rows)
     n = rows * w
     model, space = cf.model()
-    lp = jp.log_posterior(model, space, fit.GaussianNoise(None))
+    # the priors and Laplace marginals of svbrdf.uncertainty_maps: the lobe's priors from
+    # the reliably fitted pixels, Student t marginals where the noise was estimated
+    priors, _ = svbrdf.population_priors(cf, space)
+    lp = jp.log_posterior(model, space, fit.GaussianNoise(None), priors=priors)
+    dof = svbrdf.laplace_dof(cf)[:n]
     theta = np.asarray(cf.theta, np.float64)[:n]
     noise0 = np.nan_to_num(cf.maps["noise_std"].reshape(-1)[:n], nan=1e-2)
     flag = cf.maps["laplace_flag"].reshape(-1)[:n]
@@ -246,6 +251,7 @@ def map_run(args, cap, name):
             flag,
             jp.AdaptiveOptions(hmc=jp.MAP_OPTIONS, chunk=args.map_chunk, keep_samples=False),
             noise_scale=np.where(noise0 > 0, noise0, 1e-2),
+            dof=dof,
             progress=True,
         )
 

@@ -20,8 +20,9 @@ parameters by the Laplace 50% and 90% intervals (:func:`jaxrefl.svbrdf.laplace_i
 Student t with n_used - P degrees of freedom in the unconstrained space, the noise scale
 being estimated per pixel, mapped to natural units), and of the held-out photo by the
 predictive intervals, split by the flag. Then the same with the intervals a user gets from
-``jaxrefl sample CAPTURE``: the uncertainty map's q05-q95 (the Laplace Gaussian where its
-flags call it reliable, MCMC on the other pixels; :func:`jaxrefl.svbrdf.uncertainty_maps`).
+``jaxrefl sample CAPTURE`` with its default settings: the uncertainty map's q05-q95 (the
+Laplace marginals where its flags call them reliable, MCMC on the other pixels under the
+population priors; :func:`jaxrefl.svbrdf.uncertainty_maps`).
 
     python benchmarks/predictive_coverage.py [--size 256] [--captures bath_tile,yellow_box]
         [--model pooled] [--synthetic-size 32] [--no-posterior] [--no-write]
@@ -255,19 +256,36 @@ def synthetic(size: int, model: str) -> None:
     print()
 
 
+def _prior_line(summary: dict) -> str:
+    """The map's priors in a few words (``CaptureUncertainty.prior_summary``)."""
+    if summary.get("source") != "population":
+        return f"{summary.get('source', '-')} ({summary.get('why', '')})".replace(" ()", "")
+    f0 = summary["specular"]
+    sd = np.sqrt(np.diag(np.asarray(f0["cov"])))
+    return (
+        f"population of {summary['pixels']} reliable pixels: F0 mean "
+        f"{np.round(f0['mean'], 3).tolist()}, std {np.round(sd, 3).tolist()}; alpha median "
+        f"{summary['alpha']['median']:.3f}, log std {summary['alpha']['log_std']:.2f}"
+    )
+
+
 def synthetic_map(size: int, model: str) -> None:
     """The 90% intervals a user gets from ``jaxrefl sample CAPTURE`` on the synthetic
     capture (the uncertainty map's q05-q95: the Laplace Gaussian where its flags call it
     reliable, MCMC elsewhere and on an audit sample), split as in :func:`synthetic`.
     Needs ``jax_enable_x64`` (the map's fit is float64)."""
     from jaxrefl import fit
+    from jaxrefl import posterior as jp
     from jaxrefl.posterior import MCMC_METHODS
     from jaxrefl.svbrdf import FitJob, predictive, uncertainty_maps
 
     cap, truth = _synthetic(size)
     t0 = time.perf_counter()
     job = FitJob(model=model, holdout=(SYN_HELD,), config=fit.FitConfig(dtype=np.float64))
-    cu = uncertainty_maps(cap, job)
+    # the sampler settings of `jaxrefl sample`'s defaults (4 chains of 500 draws; the Gibbs
+    # samplers where the posterior allows), its default priors (population_priors)
+    opts = jp.AdaptiveOptions(hmc=jp.HMCOptions(gibbs_sweeps=2))
+    cu = uncertainty_maps(cap, job, opts)
     wall = time.perf_counter() - t0
     flag = predictive(cap, cu.fit).misspecified
     m = cu.map
@@ -307,7 +325,8 @@ def synthetic_map(size: int, model: str) -> None:
     print(
         "Coverage in % of the true parameter by the map's q05-q95 (Laplace where reliable, "
         f"MCMC on the other pixels and an audit sample), the same capture and held-out photo "
-        f"as above; methods: {m.method_counts()}; {wall:.0f} s with compilation."
+        f"as above; methods: {m.method_counts()}; sampler {m.timings.get('sampler', '-')}; "
+        f"priors: {_prior_line(cu.prior_summary)}; {wall:.0f} s with compilation."
     )
     print()
 

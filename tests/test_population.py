@@ -35,9 +35,16 @@ def grey_capture():
     return cap, svbrdf.fit_capture(cap, job), truth
 
 
-def test_population_priors_are_the_reliable_pixels_moments(grey_capture, monkeypatch):
-    cap, cf, _truth = grey_capture
-    _model, space = cf.model()
+def test_population_priors_of_a_grey_capture(grey_capture, monkeypatch):
+    """The priors are the reliable pixels' moments (F0's covariance with the floor, in
+    units of their median noise; alpha's log-normal), with fallbacks to the defaults. Then,
+    on the pixels Laplace flags (mostly lobes no photo saw), the default uniform prior on
+    a coloured F0 lets each channel wander over [0, 1]: the draws' spread of F0.R - F0.G is
+    that of independent channels. The population prior of this grey capture keeps them
+    together (spread at most a third) and its draws of F0 lie nearer the truth. (One test:
+    the fit is most of its cost.)"""
+    cap, cf, truth = grey_capture
+    model, space = cf.model()
     priors, summary = svbrdf.population_priors(cf, space)
     flag = cf.maps["laplace_flag"].reshape(-1)
     noise = cf.maps["noise_std"].reshape(-1)
@@ -72,16 +79,7 @@ def test_population_priors_are_the_reliable_pixels_moments(grey_capture, monkeyp
     assert none == {} and "no per-pixel lobe" in why["why"]
     with pytest.raises(ValueError, match="priors must be one of"):
         svbrdf.uncertainty_maps(cap, priors="uniform")
-
-
-def test_unseen_lobes_keep_the_populations_grey_f0(grey_capture):
-    """On the pixels Laplace flags (mostly lobes no photo saw), the default uniform prior on
-    a coloured F0 lets each channel wander over [0, 1]: the draws' spread of F0.R - F0.G is
-    that of independent channels. The population prior of a grey capture keeps them
-    together (spread at most a third) and its draws of F0 lie nearer the truth."""
-    cap, cf, truth = grey_capture
-    model, space = cf.model()
-    flag = cf.maps["laplace_flag"].reshape(-1)
+    # what it changes on the flagged pixels
     rows = np.flatnonzero(flag != 0)[:24]
     block = svbrdf.pixel_block(cap, 0, SIZE * SIZE, dtype=np.float64)
     data = jax.tree.map(lambda a: a[rows], block)
@@ -89,8 +87,8 @@ def test_unseen_lobes_keep_the_populations_grey_f0(grey_capture):
     std = np.concatenate([svbrdf.laplace_theta_std(cf, space)[rows], np.ones((rows.size, 1))], 1)
     opts = jp.HMCOptions(num_warmup=50, num_samples=200, num_chains=2, gibbs_sweeps=1)
     spread, err = {}, {}
-    for name, priors in (("default", {}), ("population", svbrdf.population_priors(cf)[0])):
-        lp = jp.log_posterior(model, space, fit.GaussianNoise(None), priors=priors)
+    for name, chosen in (("default", {}), ("population", priors)):
+        lp = jp.log_posterior(model, space, fit.GaussianNoise(None), priors=chosen)
         th0 = lp.init_theta(jnp.asarray(cf.theta[rows]), noise_scale=np.maximum(noise0, 1e-3))
         s = jp.sample_pixels(lp, data, th0, theta_std=std, options=opts, seed=2)
         assert s.method == "gibbs_mh"

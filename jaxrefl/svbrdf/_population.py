@@ -16,7 +16,7 @@ uncertainty map does not sample:
 
 - ``specular`` (F0, grey or per channel): :class:`~jaxrefl.posterior.MultivariateNormal`
   with the reliable pixels' mean and covariance of the fitted F0, plus
-  :data:`F0_FLOOR_STD`^2 on the diagonal (materials the reliable pixels do not show), in
+  :data:`F0_FLOOR_STD`^2 on the diagonal (a numerical floor, kept small: see there), in
   units of the noise (``noise_ref`` the reliable pixels' median noise std: N(m, (s /
   s_ref)^2 S), the conjugate form the width sampler draws exactly). Channels that move
   together in the population (a grey dielectric, a gold's tint) keep doing so in the
@@ -48,10 +48,14 @@ __all__ = ["ALPHA_FLOOR_LOG_STD", "F0_FLOOR_STD", "MIN_PIXELS", "population_prio
 # Reliable pixels below which the population is not estimated (a 3 x 3 covariance from
 # fewer is mostly noise).
 MIN_PIXELS = 30
-# Std added to every F0 channel of the population prior: the spread of F0 among materials
-# of one kind (dielectrics 0.02-0.06), so that a material the reliable pixels do not show
-# keeps some prior mass.
-F0_FLOOR_STD = 0.02
+# Std added to every F0 channel of the population prior: keeps its covariance positive
+# definite where the reliable pixels' F0 does not vary (all at a bound, say). It is kept
+# below the F0 a fit resolves: the fitted values' covariance already holds each fit's own
+# estimation noise, and a wider floor costs dark lobes prior mass. Where the population is
+# grey, F0 near 0 needs every channel's deviation from grey to stay above 0 (the box's
+# corner), so the prior's mass at a grey level g below the floor shrinks like (g /
+# floor)^2, which pushes an unseen dark lobe towards a brighter, rougher one.
+F0_FLOOR_STD = 0.002
 # Smallest log std of the alpha prior: a factor of 1.3 in roughness, the spread within one
 # material's patches.
 ALPHA_FLOOR_LOG_STD = 0.25
