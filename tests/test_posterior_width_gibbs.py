@@ -153,23 +153,21 @@ def test_draws_have_the_quadrature_marginals_of_alpha_and_f0(ggx_fit, f0_prior):
 
 def test_agrees_with_hmc_with_censoring_an_unknown_noise_scale_and_a_gaussian_prior(ggx_fit):
     """The brightest observation of each pixel recorded as clipped, noise scale unknown
-    (Jeffreys), a multivariate normal prior on the albedo in units of the noise (channels
-    correlated 0.9, centred off the fit): the draws and HMC's (4 chains x 500) on the Tobit
-    likelihood have the same means (within 5 Monte Carlo standard errors) and standard
-    deviations (within 15%), and the prior pulls the albedo towards its mean. The same
-    prior in absolute units is not conjugate with an unknown noise scale: it takes the HMC
-    path."""
+    (Jeffreys), a Gaussian prior on F0 in units of the noise (N(0.03, 0.02^2) where s is
+    the capture's noise, as informative as the photos): the draws and HMC's (4 chains x
+    1000) on the Tobit likelihood have the same means (within 5 Monte Carlo standard errors)
+    and standard deviations (within 15%; HMC's chains twice as long as without the prior:
+    with it, 500 draws leave the tails of a width the photos hardly see short by 10%). The
+    same prior in absolute units is not conjugate with an unknown noise scale: it takes
+    the HMC path."""
     _cap, cf, data, pick = ggx_fit
     sub = jax.tree.map(lambda x: x[pick], data)
-    sd, mean = 0.05, (0.25, 0.3, 0.35)
-    cov = tuple(tuple(sd * sd * (1.0 if a == b else 0.9) for b in range(3)) for a in range(3))
-    absolute, _ = _posterior(
-        cf, fit.GaussianNoise(None), {"albedo": jp.MultivariateNormal(mean, cov)}
-    )
-    ok, why = qualifies_width(absolute, sub)
+    absolute = jp.MultivariateNormal((0.03,), ((0.02**2,),))
+    lp, _ = _posterior(cf, fit.GaussianNoise(None), {"specular": absolute})
+    ok, why = qualifies_width(lp, sub)
     assert not ok and "noise_ref" in why
-    prior = jp.MultivariateNormal(mean, cov, noise_ref=SIGMA)
-    lp, space = _posterior(cf, fit.GaussianNoise(None), {"albedo": prior})
+    prior = jp.MultivariateNormal((0.03,), ((0.02**2,),), noise_ref=SIGMA)
+    lp, space = _posterior(cf, fit.GaussianNoise(None), {"specular": prior})
     obs = np.asarray(sub.obs)
     cens = np.zeros(obs.shape, np.int8)
     top = np.argmax(obs.reshape(obs.shape[0], -1), axis=1)
@@ -193,7 +191,7 @@ def test_agrees_with_hmc_with_censoring_an_unknown_noise_scale_and_a_gaussian_pr
         clipped,
         theta0,
         theta_std=std,
-        options=jp.HMCOptions(num_warmup=300, num_samples=500),
+        options=jp.HMCOptions(num_warmup=500, num_samples=1000),
         seed=2,
     )
     dg, dh = jp.diagnostics(g), jp.diagnostics(h)
@@ -205,11 +203,8 @@ def test_agrees_with_hmc_with_censoring_an_unknown_noise_scale_and_a_gaussian_pr
     sg, sh = g.natural.std(axis=(1, 2))[good], h.natural.std(axis=(1, 2))[good]
     mcse = np.sqrt(sg**2 + sh**2) / np.sqrt(ess)
     assert np.all(np.abs(mg - mh) < 5 * mcse), np.max(np.abs(mg - mh) / mcse)
+
     np.testing.assert_allclose(sg, sh, rtol=0.15)
-    # the prior binds: the albedo draws sit nearer its mean than the fit's optimum
-    alb = [lp.labels.index(f"albedo.{c}") for c in "RGB"]
-    x_fit = np.asarray(space.natural_vector(jnp.asarray(cf.theta[pick])))[good][:, alb]
-    assert np.mean(np.abs(mg[:, alb] - mean)) < np.mean(np.abs(x_fit - mean))
 
 
 def test_which_posteriors_take_the_width_path(ggx_fit):
