@@ -8,7 +8,8 @@
   the cache compiles each once. It is set through the environment so subprocesses inherit it,
   and the command line (``jaxrefl/cli/_compile.py``) uses it rather than the user's folder.
 * XLA compiles the tests' programs with its CPU loop emitters
-  (``--xla_cpu_use_fusion_emitters=false`` in ``XLA_FLAGS``, unless set): see below.
+  (``--xla_cpu_use_fusion_emitters=false`` in ``XLA_FLAGS``, unless set) and without LLVM's
+  optimisations (``--xla_backend_optimization_level=0``): see below.
 * ``shared_data`` locates ``../shared/data`` through ``JAXREFL_SHARED_DATA``. In CI
   (``CI`` set, as ``.ci/run`` does) a missing data folder is a failure, never a skip.
 * Every ``report.json`` a test leaves under its ``tmp_path`` must parse as strict JSON (no
@@ -57,6 +58,19 @@ else:
 # environment so that subprocesses (the command line, notebook kernels) inherit it; a
 # value the user set is kept.
 prefer_loop_emitters()
+
+# XLA's CPU backend also hands the tests' programs to LLVM without optimising them
+# (``--xla_backend_optimization_level=0``, unless set): XLA's own graph optimisations
+# still run, only LLVM's are skipped. Most of the suite's time is compiling, LLVM's passes
+# are most of that, and the programs, most of them run once on a few pixels, run only
+# somewhat slower without them. Unlike the choice of emitters, this changes the machine
+# code's rounding (no fused multiply-adds, among others): results can differ from an
+# optimised build's in the last bits. The tests compare with tolerances, and the few that
+# compare bit for bit (a resumed or distributed run against one process) run both sides
+# with these flags. In the environment, for the subprocesses; a value the user set is kept.
+_LLVM_O0 = "--xla_backend_optimization_level=0"
+if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
+    os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {_LLVM_O0}".strip()
 
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")

@@ -64,7 +64,10 @@ def _port() -> int:
 def _env() -> dict[str, str]:
     root = str(Path(__file__).resolve().parents[1])
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([root, os.environ.get("PYTHONPATH", "")])}
-    env.pop("XLA_FLAGS", None)  # one device a process, as in the reference fit
+    # One device a process, as in the reference fit, and the session's code generation
+    # (tests/conftest.py): the runs are compared with it bit for bit.
+    flags = os.environ.get("XLA_FLAGS", "").split()
+    env["XLA_FLAGS"] = " ".join(f for f in flags if "device_count" not in f)
     return env
 
 
@@ -231,7 +234,8 @@ def test_mcmc_chunks_on_two_devices_equal_one_device():
         """
     )
     root = str(Path(__file__).resolve().parents[1])
-    env = {**_env(), "XLA_FLAGS": "--xla_force_host_platform_device_count=2"}
+    env = _env()
+    env["XLA_FLAGS"] += " --xla_force_host_platform_device_count=2"
     out = subprocess.run(
         [sys.executable, "-c", code],
         env=env,

@@ -58,8 +58,10 @@ def test_collinear_lights_are_detected_and_redone_in_float64():
 
 
 def test_exponent_1e4_stopped_short_is_detected_by_the_float64_step():
-    # Seed 2, n = 4: float32 stops 0.18% and 0.32% above the optimum on problems 1 and 3,
-    # with no status flag; problems 0 and 2 are within 0.04% (measured: float64 costs).
+    # Seed 2, n = 4: float32 stops a few tenths of a percent above the optimum on some of
+    # the problems, with no status flag, and within 0.04% on the others (float64 costs).
+    # Which problems stop short depends on how the compiled code rounds (XLA's code
+    # generation), so the test asks for the decision rule, not for particular problems.
     pr = stiff_problems("exponent_1e4", n=4, k=64, seed=2)
     rr = fit_pixels_retry(pr.model, pr.data)
     r32 = rr.result32
@@ -67,7 +69,7 @@ def test_exponent_1e4_stopped_short_is_detected_by_the_float64_step():
     assert np.all(np.asarray(r32.status) == fit.Status.CONVERGED)
     gain32 = step_gain(r32, pr.data)
     assert np.array_equal(rr.retried, gain32 > GAIN_RTOL)
-    assert rr.retried.tolist() == [False, True, False, True]
+    assert 0 < rr.retried.sum() < rr.retried.size, gain32  # some stopped short, not all
     c32, c = cost64(r32, pr.data), cost64(rr.result, pr.data)
     assert np.array_equal(rr.kept_float64, rr.retried)
     # Where float64 was kept the cost dropped by at least what the step showed, and the
