@@ -11,8 +11,9 @@ import pytest
 
 from jaxrefl import fit, svbrdf
 from jaxrefl import posterior as jp
+from jaxrefl.cli._fit import print_summary
 from jaxrefl.demo import demo_scene, photograph_maps
-from jaxrefl.svbrdf import _population
+from jaxrefl.svbrdf import _check, _population
 
 SIZE = 10
 SIGMA = 0.004
@@ -33,6 +34,27 @@ def grey_capture():
     cap = photograph_maps(scene, truth, SIGMA, rng)
     job = svbrdf.FitJob(model="ggx_rgb", config=fit.FitConfig(dtype=np.float64))
     return cap, svbrdf.fit_capture(cap, job), truth
+
+
+def test_a_lobe_narrower_than_the_photos_resolve_is_flagged_at_the_floor(grey_capture, capsys):
+    """The grey capture's alpha reaches 0.04, below its resolvable width (about 0.05): such
+    pixels' widths pile against the floor, and the fit's ``misspecified`` map marks them
+    ALPHA_AT_FLOOR (with AT_MODEL_BOUND); ``jaxrefl fit`` says how many."""
+    _cap, cf, truth = grey_capture
+    bits = cf.maps["misspecified"].reshape(-1)
+    floor = (bits & svbrdf.ModelCheck.ALPHA_AT_FLOOR) != 0
+    alpha_min = cf.report["alpha_min"]
+    assert floor.any() and np.all(bits[floor] & svbrdf.ModelCheck.AT_MODEL_BOUND)
+    assert cf.report["misspecified_counts"]["ALPHA_AT_FLOOR"] == int(floor.sum())
+    fitted = cf.params()["alpha"].reshape(-1)
+    assert np.all(fitted[floor] < alpha_min + _check.NEAR * (1.0 - alpha_min))
+    # a sub-resolution truth is among them, and a width well inside the range never is
+    below = truth["alpha"].reshape(-1) < alpha_min
+    assert np.any(floor & below)
+    assert not np.any(floor & (fitted > 2 * alpha_min))
+    print_summary(cf.report)
+    out = capsys.readouterr().out
+    assert f"of them {int(floor.sum())} with alpha at its floor {alpha_min:.3f}" in out, out
 
 
 def test_population_priors_of_a_grey_capture(grey_capture, monkeypatch):

@@ -14,10 +14,12 @@ from jaxrefl.svbrdf import (
     Discrepancy,
     FitJob,
     ModelCheck,
+    capture_model,
     estimate_discrepancy,
     fit_capture,
     predictive,
 )
+from jaxrefl.svbrdf._check import bound_bits
 
 SIZE = 16
 SIGMA = 0.004
@@ -64,6 +66,33 @@ def test_out_of_range_f0_is_flagged_and_in_range_is_not(fitted):
     assert m.dtype == np.uint32
     assert np.mean(m[:, SPLIT:] != 0) > 0.9 and np.mean(m[:, :SPLIT] != 0) < 0.02
     assert cf.report["misspecified_counts"]["misspecified"] == int(np.sum(m != 0))
+
+
+def test_alpha_at_its_floor_is_a_bit_of_its_own():
+    """ALPHA_AT_FLOOR: a lobe whose width piles against the floor (the mode there, or near
+    it with the Laplace interval reaching it), always with AT_MODEL_BOUND; not the ceiling,
+    not a width inside the range, not a pixel without a lobe (F0 at 0: alpha says nothing)."""
+    _model, space = capture_model("ggx_rgb", channels=3, alpha_min=0.05)
+    f0 = np.array([0.2, 0.0, 0.2, 0.2, 0.2])
+    alpha = np.array([0.05, 0.05, 1.0, 0.2, 0.052])
+    theta = np.asarray(
+        space.from_natural(
+            {
+                "albedo": np.full((5, 3), 0.3),
+                "specular": np.repeat(f0[:, None], 3, 1),
+                "alpha": alpha,
+            }
+        )
+    )
+    std = np.full_like(theta, 0.05)
+    std[:, space.labels.index("alpha")] = [0.05, 0.05, 0.05, 0.05, 1.0]
+    both = int(ModelCheck.AT_MODEL_BOUND | ModelCheck.ALPHA_AT_FLOOR)
+    at = int(ModelCheck.AT_MODEL_BOUND)
+    assert bound_bits(space, theta, std).tolist() == [both, 0, at, 0, both]
+    assert bound_bits(space, theta).tolist() == [both, 0, at, 0, 0]  # the mode alone
+    nan = theta.copy()
+    nan[0, 0] = np.nan
+    assert bound_bits(space, nan, std)[0] == 0  # no estimate, no flag
 
 
 def test_held_out_intervals_cover_at_the_nominal_rate(fitted):

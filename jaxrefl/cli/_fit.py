@@ -210,12 +210,19 @@ def print_summary(report: dict) -> None:
     )
     flags = report["laplace_flag_counts"]
     print(f"Laplace uncertainty reliable on {flags['reliable']} of {report['pixels']} pixels")
-    bad = report.get("misspecified_counts", {}).get("misspecified")
+    counts = report.get("misspecified_counts", {})
+    bad = counts.get("misspecified")
     if bad:
         print(
             f"misspecified (the model cannot be right; intervals not calibrated): {bad} of "
             f"{report['pixels']} pixels (map 'misspecified')"
         )
+        floor = counts.get("ALPHA_AT_FLOOR")
+        if floor and report.get("alpha_min") is not None:
+            print(
+                f"  of them {floor} with alpha at its floor {report['alpha_min']:.3f}, the "
+                "narrowest lobe the photos resolve: the surface's may be narrower"
+            )
     if report.get("train_rmse") is not None:
         print(f"fit RMSE (linear radiance, fitted photos): {report['train_rmse']:.5f}")
     if "heldout_rmse" in report and report["heldout_rmse"] is not None:

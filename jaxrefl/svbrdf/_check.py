@@ -16,6 +16,11 @@ they are computed as if the model were right. Bits of :class:`ModelCheck`:
   :meth:`jaxrefl.fit.ParamSpace.at_bound`'s test (within 1e-3 of the range). An F0 fitted at
   0.249 with a std of 0.03 under the 0.25 cap is as misspecified as one at 0.25: a surface
   of F0 0.4 ends there.
+* ``ALPHA_AT_FLOOR`` (4, always with ``AT_MODEL_BOUND``): of those, the width piles against
+  its floor, the capture's resolvable width (:func:`jaxrefl.svbrdf.resolvable_alpha`, or
+  the job's ``alpha_min``). The floor is a limit of what the photos resolve, not of
+  physics: the lobe may be narrower than any width the model allows, and the pixel's alpha
+  and F0 intervals then describe the nearest lobe the model has, not the surface's.
 * ``PPC_FAILED`` (2): a posterior predictive check on the pixel's own training photos
   fails: T = sum over its uncensored training observations of r^2 / v, with r the residual
   at the optimum, exceeds the chi-square quantile of n - P degrees of freedom at
@@ -35,7 +40,7 @@ import jax.numpy as jnp
 import numpy as np
 from scipy import stats
 
-__all__ = ["NEAR", "PPC_ALPHA", "ModelCheck", "bound_check", "check_counts", "ppc_failed"]
+__all__ = ["NEAR", "PPC_ALPHA", "ModelCheck", "bound_bits", "check_counts", "ppc_failed"]
 
 # The posterior predictive check's false-alarm rate per pixel: of 65,536 well-modelled
 # pixels about 66 are flagged by chance.
@@ -52,12 +57,13 @@ class ModelCheck(enum.IntFlag):
 
     AT_MODEL_BOUND = 1
     PPC_FAILED = 2
+    ALPHA_AT_FLOOR = 4
 
 
-def bound_check(space, theta: np.ndarray, theta_std: np.ndarray | None = None) -> np.ndarray:
-    """(N,) bool: ``AT_MODEL_BOUND`` for theta (N, P) of ``space`` and its Laplace std in the
-    unconstrained space (N, P; None: the mode alone is tested) (module docstring); False
-    where a pixel has no estimate (NaN)."""
+def bound_bits(space, theta: np.ndarray, theta_std: np.ndarray | None = None) -> np.ndarray:
+    """(N,) :class:`ModelCheck` bits ``AT_MODEL_BOUND`` and ``ALPHA_AT_FLOOR`` for theta
+    (N, P) of ``space`` and its Laplace std in the unconstrained space (N, P; None: the mode
+    alone is tested) (module docstring); 0 where a pixel has no estimate (NaN)."""
     theta = np.asarray(theta)
     ok = np.all(np.isfinite(theta), -1)
     t = jnp.asarray(np.where(ok[:, None], theta, 0.0))
@@ -78,10 +84,13 @@ def bound_check(space, theta: np.ndarray, theta_std: np.ndarray | None = None) -
     spec = np.array([k == "specular" for k in kind])
     alpha = np.array([k == "alpha" for k in kind])
     flag = np.any(at & hi & refl, -1)
+    floor = np.zeros_like(flag)
     if alpha.any() and spec.any():
         lobe = ~np.all(at[:, spec] & ~hi[:, spec], -1)
         flag |= np.any(at[:, alpha], -1) & lobe
-    return flag & ok
+        floor = np.any(at[:, alpha] & ~hi[:, alpha], -1) & lobe
+    bits = np.where(flag & ok, int(ModelCheck.AT_MODEL_BOUND), 0)
+    return bits | np.where(floor & ok, int(ModelCheck.ALPHA_AT_FLOOR), 0)
 
 
 def ppc_failed(chi2: np.ndarray, dof: np.ndarray, alpha: float = PPC_ALPHA) -> np.ndarray:

@@ -57,7 +57,7 @@ from jaxrefl.fit import Distributed, Status, process_barrier, process_gather, pr
 from jaxrefl.io import corr_name, map_name, save_npz_atomic
 
 from ._auto import ModelChoice, choose_model
-from ._check import ModelCheck, bound_check, check_counts, ppc_failed
+from ._check import ModelCheck, bound_bits, check_counts, ppc_failed
 from ._data import pixel_block, resolvable_alpha
 from ._models import ALPHA_RANGE, TWO_STAGE, capture_model
 from ._pooled import PoolChoice, choose_pooled
@@ -906,8 +906,7 @@ def _model_check(fitter: _TileFitter, cat) -> np.ndarray:
     dn = np.abs(np.asarray(fitter.space.dnatural(jnp.asarray(np.where(ok[:, None], theta, 0.0)))))
     with np.errstate(divide="ignore", invalid="ignore"):
         theta_std = cat["std"] / dn  # the delta method reversed (laplace_theta_std)
-    bound = bound_check(fitter.space, theta, theta_std)
-    check = np.where(bound, int(ModelCheck.AT_MODEL_BOUND), 0)
+    check = bound_bits(fitter.space, theta, theta_std)
     if not isinstance(fitter.noise, fit.GaussianNoise):
         return check
     var = np.asarray(cat["noise_var"], np.float64)

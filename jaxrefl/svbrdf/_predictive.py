@@ -73,7 +73,7 @@ from scipy import stats
 
 from jaxrefl.io import corr_name
 
-from ._check import PPC_ALPHA, ModelCheck, bound_check, check_counts, ppc_failed
+from ._check import PPC_ALPHA, ModelCheck, bound_bits, check_counts, ppc_failed
 from ._data import pixel_block
 from ._job import CaptureFit, _TileFitter, map_name
 
@@ -332,9 +332,7 @@ def predictive(
         ok_t = np.all(np.isfinite(theta), -1)
         dn = np.asarray(space.dnatural(jnp.asarray(np.where(ok_t[:, None], theta, 0.0))))
         theta_std = std / np.abs(dn)  # the delta method reversed (laplace_theta_std)
-    bound = bound_check(space, theta, theta_std)
-    check = np.where(bound, int(ModelCheck.AT_MODEL_BOUND), 0)
-    check = check | np.where(fail, int(ModelCheck.PPC_FAILED), 0)
+    check = bound_bits(space, theta, theta_std) | np.where(fail, int(ModelCheck.PPC_FAILED), 0)
     return Predictive(
         mean=mean,
         param_var=np.where(formed[:, None, None], pvar, 0.0),
