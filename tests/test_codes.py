@@ -203,9 +203,13 @@ def test_same_residual_is_identity_or_equal_leaves():
 def test_model_check_bits_are_the_stored_ones_and_counted_per_bit():
     from jaxrefl.svbrdf import ModelCheck, check_counts
 
-    assert {b.name: int(b) for b in ModelCheck} == {"AT_MODEL_BOUND": 1, "PPC_FAILED": 2}
-    c = np.array([[0, 1, 3], [2, 2, 0]], np.uint32)
-    want = {"AT_MODEL_BOUND": 2, "PPC_FAILED": 3, "misspecified": 4}
+    assert {b.name: int(b) for b in ModelCheck} == {
+        "AT_MODEL_BOUND": 1,
+        "PPC_FAILED": 2,
+        "ALPHA_AT_FLOOR": 4,
+    }
+    c = np.array([[0, 1, 3], [2, 5, 0]], np.uint32)
+    want = {"AT_MODEL_BOUND": 3, "PPC_FAILED": 2, "ALPHA_AT_FLOOR": 1, "misspecified": 4}
     assert check_counts(c) == want
 
 
