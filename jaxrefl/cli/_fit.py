@@ -220,8 +220,9 @@ def print_summary(report: dict) -> None:
         floor = counts.get("ALPHA_AT_FLOOR")
         if floor and report.get("alpha_min") is not None:
             print(
-                f"  of them {floor} with alpha at its floor {report['alpha_min']:.3f}, the "
-                "narrowest lobe the photos resolve: the surface's may be narrower"
+                f"  of them {floor} with alpha at its floor {report['alpha_min']:.3f} (the "
+                "capture's resolvable width unless --alpha-min was given): the surface's lobe "
+                "may be narrower than the model allows"
             )
     if report.get("train_rmse") is not None:
         print(f"fit RMSE (linear radiance, fitted photos): {report['train_rmse']:.5f}")
