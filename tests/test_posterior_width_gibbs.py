@@ -159,7 +159,7 @@ def test_agrees_with_hmc_with_censoring_an_unknown_noise_scale_and_a_gaussian_pr
     and standard deviations (within 15%; HMC's chains twice as long as without the prior:
     with it, 500 draws leave the tails of a width the photos hardly see short by 10%). The
     same prior in absolute units is not conjugate with an unknown noise scale: it takes
-    the HMC path."""
+    the HMC path. The prior pulls F0 towards its mean."""
     _cap, cf, data, pick = ggx_fit
     sub = jax.tree.map(lambda x: x[pick], data)
     absolute = jp.MultivariateNormal((0.03,), ((0.02**2,),))
@@ -203,8 +203,11 @@ def test_agrees_with_hmc_with_censoring_an_unknown_noise_scale_and_a_gaussian_pr
     sg, sh = g.natural.std(axis=(1, 2))[good], h.natural.std(axis=(1, 2))[good]
     mcse = np.sqrt(sg**2 + sh**2) / np.sqrt(ess)
     assert np.all(np.abs(mg - mh) < 5 * mcse), np.max(np.abs(mg - mh) / mcse)
-
     np.testing.assert_allclose(sg, sh, rtol=0.15)
+    # the prior binds: the F0 draws sit nearer its mean than the fit's optimum
+    j = lp.labels.index("specular")
+    x_fit = np.asarray(space.natural_vector(jnp.asarray(cf.theta[pick])))[good][:, j]
+    assert np.mean(np.abs(mg[:, j] - 0.03)) < np.mean(np.abs(x_fit - 0.03))
 
 
 def test_which_posteriors_take_the_width_path(ggx_fit):
