@@ -230,16 +230,14 @@ def map_run(args, cap, name):
     t_fit = time.perf_counter() - t0
     rows = h_full if args.map_rows <= 0 else min(h_full, args.map_rows)
     n = rows * w
-    model, space = cf.model()
-    # the priors and Laplace marginals of svbrdf.uncertainty_maps: the lobe's priors from
+    # the posterior and Laplace marginals of svbrdf.uncertainty_maps: the lobe's priors from
     # the reliably fitted pixels, Student t marginals where the noise was estimated
-    priors, _ = svbrdf.population_priors(cf, space)
-    lp = jp.log_posterior(model, space, fit.GaussianNoise(None), priors=priors)
+    lp, _ = svbrdf.map_posterior(cf)
     dof = svbrdf.laplace_dof(cf)[:n]
-    theta = np.asarray(cf.theta, np.float64)[:n]
+    theta = svbrdf.fit_theta(cf, lp.space)[:n]
     noise0 = np.nan_to_num(cf.maps["noise_std"].reshape(-1)[:n], nan=1e-2)
     flag = cf.maps["laplace_flag"].reshape(-1)[:n]
-    theta_std = svbrdf.laplace_theta_std(cf, space)[:n]
+    theta_std = svbrdf.laplace_theta_std(cf, lp.space)[:n]
     data = svbrdf.pixel_block(cap, 0, n, dtype=np.float64)
 
     def posterior():

@@ -4,6 +4,8 @@ lobe no photo saw."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -13,7 +15,9 @@ from jaxrefl import fit, svbrdf
 from jaxrefl import posterior as jp
 from jaxrefl.cli._fit import print_summary
 from jaxrefl.demo import demo_scene, photograph_maps
+from jaxrefl.posterior._priors import resolve_priors
 from jaxrefl.svbrdf import _check, _population
+from jaxrefl.svbrdf._models import ALPHA_RANGE
 
 SIZE = 10
 SIGMA = 0.004
@@ -97,22 +101,70 @@ def test_population_priors_of_a_grey_capture(grey_capture, monkeypatch):
     assert none == {} and "no per-pixel lobe" in why["why"]
     with pytest.raises(ValueError, match="priors must be one of"):
         svbrdf.uncertainty_maps(cap, priors="uniform")
-    # what it changes on the flagged pixels
-    rows = np.flatnonzero(flag != 0)[:16]
+    # what it changes on the flagged pixels (those with alpha at its floor among them),
+    # sampled as uncertainty_maps samples them
+    floor = (cf.maps["misspecified"].reshape(-1) & svbrdf.ModelCheck.ALPHA_AT_FLOOR) != 0
+    rows = np.concatenate([np.flatnonzero(floor), np.flatnonzero((flag != 0) & ~floor)])[:16]
     block = svbrdf.pixel_block(cap, 0, SIZE * SIZE, dtype=np.float64)
     data = jax.tree.map(lambda a: a[rows], block)
     noise0 = np.nan_to_num(cf.maps["noise_std"].reshape(-1)[rows], nan=1e-2)
-    std = np.concatenate([svbrdf.laplace_theta_std(cf, space)[rows], np.ones((rows.size, 1))], 1)
+    lp_map, source = svbrdf.map_posterior(cf)
+    assert source == summary
+    want = resolve_priors(lp_map.space, priors)
+    assert repr(lp_map.priors) == repr(tuple(want[b.name] for b in lp_map.space.blocks))
+    post = lp_map.space
+    std = np.concatenate([svbrdf.laplace_theta_std(cf, post)[rows], np.ones((rows.size, 1))], 1)
+    theta = svbrdf.fit_theta(cf, post)[rows]
     opts = jp.HMCOptions(num_warmup=50, num_samples=200, num_chains=2, gibbs_sweeps=1)
-    spread, err = {}, {}
+    spread, err, alpha = {}, {}, {}
     for name, chosen in (("default", {}), ("population", priors)):
-        lp = jp.log_posterior(model, space, fit.GaussianNoise(None), priors=chosen)
-        th0 = lp.init_theta(jnp.asarray(cf.theta[rows]), noise_scale=np.maximum(noise0, 1e-3))
+        lp = jp.log_posterior(model, post, fit.GaussianNoise(None), priors=chosen)
+        th0 = lp.init_theta(jnp.asarray(theta), noise_scale=np.maximum(noise0, 1e-3))
         s = jp.sample_pixels(lp, data, th0, theta_std=std, options=opts, seed=2)
         assert s.method == "gibbs_mh"
         r, g = (s.natural[..., lp.labels.index(f"specular.{c}")] for c in "RG")
         spread[name] = float(np.median(np.std(r - g, axis=(1, 2))))
         f0_true = truth["specular"][..., 0].reshape(-1)[rows]
         err[name] = float(np.median(np.abs(np.median(r, axis=(1, 2)) - f0_true)))
+        alpha[name] = s.natural[..., lp.labels.index("alpha")]
     assert spread["population"] < spread["default"] / 3, spread
     assert err["population"] < err["default"], err
+    # Below the resolvable width: the posterior's floor is the microfacet one, so the draws
+    # of a floor pixel reach narrower lobes than the fit allowed, down to a truth there.
+    alpha_min = cf.report["alpha_min"]
+    q05 = np.quantile(alpha["population"], 0.05, axis=(1, 2))
+    n_floor = int(floor.sum())
+    assert n_floor and np.all(q05[:n_floor] < alpha_min), (q05[:n_floor], alpha_min)
+    a_true = truth["alpha"].reshape(-1)[rows[:n_floor]]
+    below = a_true < alpha_min
+    assert below.any() and np.all(q05[:n_floor][below] <= a_true[below]), (q05, a_true)
+
+
+def test_the_posterior_reaches_below_the_resolvable_width(grey_capture):
+    """The map's posterior space is the fit's with alpha's floor at the microfacet models'
+    1e-3 where the fit's was the capture's resolvable width; a floor the job gives is kept.
+    The fit's optimum and Laplace std carry over through natural units."""
+    _cap, cf, _truth = grey_capture
+    own = cf.model()[1]
+    _model, post = svbrdf.posterior_space(cf)
+    j = own.labels.index("alpha")
+    assert post.labels == own.labels and own.lower[j] == pytest.approx(cf.report["alpha_min"])
+    assert post.lower[j] == ALPHA_RANGE[0] and post.upper[j] == own.upper[j]
+    others = np.arange(own.size) != j
+    np.testing.assert_array_equal(post.lower[others], own.lower[others])
+    theta, theta_own = svbrdf.fit_theta(cf, post), svbrdf.fit_theta(cf)
+    ok = np.all(np.isfinite(theta_own), -1)
+    assert ok.any() and np.array_equal(np.all(np.isfinite(theta), -1), ok)
+    np.testing.assert_array_equal(theta[:, others], theta_own[:, others])
+    nat = np.asarray(post.natural_vector(jnp.asarray(theta[ok])))
+    nat_own = np.asarray(own.natural_vector(jnp.asarray(theta_own[ok])))
+    np.testing.assert_allclose(nat, nat_own, rtol=1e-9)
+    std = svbrdf.laplace_theta_std(cf, post)[ok] * np.abs(post.dnatural(jnp.asarray(theta[ok])))
+    std_map = cf.maps["alpha_std"].reshape(-1)[ok]
+    np.testing.assert_allclose(std[:, j], std_map, rtol=1e-9)
+    # the job's own floor is the user's: kept
+    given = replace(cf, job=replace(cf.job, alpha_min=cf.report["alpha_min"]))
+    assert svbrdf.posterior_space(given)[1].lower[j] == own.lower[j]
+    # another model's space is refused
+    with pytest.raises(ValueError, match="not the fit's"):
+        svbrdf.fit_theta(cf, svbrdf.capture_model("lambert")[1])

@@ -110,7 +110,8 @@ def test_draws_have_the_quadrature_marginals_of_alpha_and_f0(ggx_fit, f0_prior):
     """Known noise: the marginal CDFs of log alpha and of F0 from the draws match the
     posterior integrated on a grid (albedo in closed form) within a Kolmogorov distance of
     0.04 on each of 3 pixels, the flagged first; with F0's uniform prior and with a
-    Gaussian one (truncated to F0's box), which the sampler takes into its moves."""
+    Gaussian one (truncated to F0's box), which the sampler takes into its moves; from the
+    fit's start, and from a start more than a decade above a narrow lobe's posterior."""
     _cap, cf, data, pick = ggx_fit
     priors = None if f0_prior is None else {"specular": f0_prior}
     lp, space = _posterior(cf, fit.GaussianNoise(sigma=SIGMA), priors)
@@ -118,10 +119,8 @@ def test_draws_have_the_quadrature_marginals_of_alpha_and_f0(ggx_fit, f0_prior):
     assert qualifies_width(lp, sub) == (True, "")
     theta0 = jnp.asarray(cf.theta[pick[:3]])
     std = svbrdf.laplace_theta_std(cf, space)[pick[:3]]
-    run = functools.partial(
-        sample_width_gibbs, lp, sub, theta0, theta_std=std, num_chains=4, num_warmup=20
-    )
-    s = run(num_samples=2000, sweeps=1, seed=11)
+    run = functools.partial(sample_width_gibbs, lp, sub, num_chains=4, num_warmup=20)
+    s = run(theta0=theta0, theta_std=std, num_samples=2000, sweeps=1, seed=11)
     assert s.method == "gibbs_mh" and s.natural.shape == (3, 4, 2000, lp.size)
     assert np.all(np.isfinite(s.theta)) and np.all(np.isfinite(s.stats["lp"]))
     assert 0.2 < float(np.mean(s.stats["acceptance_rate"])) <= 1.0
@@ -129,26 +128,35 @@ def test_draws_have_the_quadrature_marginals_of_alpha_and_f0(ggx_fit, f0_prior):
     u_grid = np.linspace(np.log(lo), np.log(hi), 700)
     f0_grid = np.linspace(0.0, 0.25, 501)
     ia, i_f0 = lp.labels.index("alpha"), lp.labels.index("specular")
+    # A second run from alpha = 0.95 with a tiny Laplace std there (a fit stuck at a
+    # bound): the local cells sit at 0.95, the even ones start at 0.095, and only the
+    # coarse ones below propose the posterior of a narrower lobe (pixel 0's). The
+    # scans between draws are an argument of the compiled program, not a constant of it:
+    # twice as many (the second pass of a map, untuned_rerun) compile nothing new.
+    from jaxrefl.cli._compile import CompileClock
+
+    high = dict(space.to_natural(theta0))
+    high["alpha"] = jnp.full_like(high["alpha"], 0.95)
+    theta_high = space.from_natural(high)
+    std_high = np.where(np.arange(lp.size) == ia, 1e-6, std)
+    clock = CompileClock().start()
+    try:
+        s2 = run(num_samples=2000, sweeps=2, seed=12, theta0=theta_high, theta_std=std_high)
+    finally:
+        clock.stop()
+    assert clock.programs == 0 and s2.extra["sweeps"] == 2
+    assert np.all(np.isfinite(s2.theta)) and not np.array_equal(s2.theta, s.theta)
+    assert np.median(s.natural[0, ..., ia]) < 0.095
     for j in range(3):
         d = jax.tree.map(lambda x, j=j: x[j], sub)
         logp = _alpha_f0_marginals(lp, d, u_grid, f0_grid)
         top = logp.max()
         log_u = np.log(np.sum(np.exp(logp - top), axis=1))
         log_f0 = np.log(np.sum(np.exp(logp - top), axis=0))
-        ks_u = _ks(np.log(s.natural[j, ..., ia]).reshape(-1), u_grid, log_u)
-        ks_f = _ks(s.natural[j, ..., i_f0].reshape(-1), f0_grid, log_f0)
-        assert ks_u < 0.04 and ks_f < 0.04, (j, ks_u, ks_f)
-    # the scans between draws are an argument of the compiled program, not a constant of
-    # it: twice as many (the second pass of a map, untuned_rerun) compile nothing new
-    from jaxrefl.cli._compile import CompileClock
-
-    clock = CompileClock().start()
-    try:
-        s2 = run(num_samples=2000, sweeps=2, seed=12)
-    finally:
-        clock.stop()
-    assert clock.programs == 0 and s2.extra["sweeps"] == 2
-    assert np.all(np.isfinite(s2.theta)) and not np.array_equal(s2.theta, s.theta)
+        for name, draws in (("fit's start", s), ("alpha 0.95", s2)):
+            ks_u = _ks(np.log(draws.natural[j, ..., ia]).reshape(-1), u_grid, log_u)
+            ks_f = _ks(draws.natural[j, ..., i_f0].reshape(-1), f0_grid, log_f0)
+            assert ks_u < 0.04 and ks_f < 0.04, (name, j, ks_u, ks_f)
 
 
 def test_agrees_with_hmc_with_censoring_an_unknown_noise_scale_and_a_gaussian_prior(ggx_fit):

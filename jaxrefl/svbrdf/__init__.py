@@ -78,9 +78,12 @@ from ._predictive import estimate_discrepancy as estimate_discrepancy
 from ._predictive import model_check as model_check
 from ._predictive import predictive as predictive
 from ._uncertainty import CaptureUncertainty as CaptureUncertainty
+from ._uncertainty import fit_theta as fit_theta
 from ._uncertainty import laplace_dof as laplace_dof
 from ._uncertainty import laplace_interval as laplace_interval
 from ._uncertainty import laplace_theta_std as laplace_theta_std
+from ._uncertainty import map_posterior as map_posterior
+from ._uncertainty import posterior_space as posterior_space
 from ._uncertainty import uncertainty_maps as uncertainty_maps
 from ._uncertainty import write_uncertainty as write_uncertainty
 from ._uncertainty_plots import write_uncertainty_plots as write_uncertainty_plots

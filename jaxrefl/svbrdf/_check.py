@@ -19,8 +19,10 @@ they are computed as if the model were right. Bits of :class:`ModelCheck`:
 * ``ALPHA_AT_FLOOR`` (4, always with ``AT_MODEL_BOUND``): of those, the width piles against
   its floor, the capture's resolvable width (:func:`jaxrefl.svbrdf.resolvable_alpha`, or
   the job's ``alpha_min``). The floor is a limit of what the photos resolve, not of
-  physics: the lobe may be narrower than any width the model allows, and the pixel's alpha
-  and F0 intervals then describe the nearest lobe the model has, not the surface's.
+  physics: the lobe may be narrower than any width the model allows, and the pixel's
+  Laplace alpha and F0 intervals then describe the nearest lobe the model has, not the
+  surface's. The uncertainty maps sample such a pixel with alpha's floor at 1e-3 where the
+  job gave none (:func:`jaxrefl.svbrdf.posterior_space`).
 * ``PPC_FAILED`` (2): a posterior predictive check on the pixel's own training photos
   fails: T = sum over its uncensored training observations of r^2 / v, with r the residual
   at the optimum, exceeds the chi-square quantile of n - P degrees of freedom at

@@ -6,8 +6,10 @@ where Laplace is not to be trusted.
 1. :func:`fit_capture` with the job, in float64: per pixel the LM optimum theta*, the
    Laplace std of every parameter in natural units (the job's ``*_std`` maps, named by
    :func:`map_name`), the Laplace flags and the residual noise std.
-2. The Laplace std in the unconstrained space. The bijections x = g(theta) act entry by
-   entry, so the delta method std_x = |g'(theta*)| std_theta reverses exactly:
+2. The posterior's parameter space (:func:`posterior_space`: the fit's, with alpha's floor
+   at the microfacet models' 1e-3 where the fit's was the capture's resolvable width), the
+   optimum in its coordinates and the Laplace std there. The bijections x = g(theta) act
+   entry by entry, so the delta method std_x = |g'(theta*)| std_theta reverses exactly:
    std_theta = std_x / |g'(theta*)|.
 3. :func:`jaxrefl.posterior.adaptive_uncertainty` with the given
    :class:`~jaxrefl.posterior.AdaptiveOptions`: Laplace summaries where the flags call the
@@ -49,14 +51,18 @@ from jaxrefl.fit import PixelData
 
 from ._data import pixel_block
 from ._job import CaptureFit, FitJob, fit_capture, map_name
+from ._models import capture_model
 from ._population import population_priors
 from ._uncertainty_plots import write_uncertainty_plots
 
 __all__ = [
     "CaptureUncertainty",
+    "fit_theta",
     "laplace_dof",
     "laplace_interval",
     "laplace_theta_std",
+    "map_posterior",
+    "posterior_space",
     "uncertainty_maps",
     "write_uncertainty",
 ]
@@ -171,10 +177,55 @@ class CaptureUncertainty:
         }
 
 
-def laplace_theta_std(cf: CaptureFit, space: fit.ParamSpace) -> np.ndarray:
-    """(N, P) the Laplace std in ``space``'s unconstrained coordinates from the job's std
-    maps: std_x / |g'(theta*)| per entry (module docstring); NaN where the fit has none."""
+def posterior_space(cf: CaptureFit) -> tuple[Any, fit.ParamSpace]:
+    """(model, parameter space) of the posterior of a capture fit's pixels: the fit's,
+    except that where the fit's floor of the GGX width alpha was the capture's resolvable
+    width (:func:`jaxrefl.svbrdf.resolvable_alpha`; the job's ``alpha_min`` None), the
+    posterior's is the microfacet models' 1e-3 (:data:`jaxrefl.svbrdf._models.ALPHA_RANGE`).
+
+    The resolvable width regularises the point fit: a lobe narrower than the spacing of the
+    photos' half vectors is seen by at most one photo, and a least-squares optimum below it
+    extrapolates to a needle. It is not a property of the surface. Where a pixel's width
+    piles against it (``ModelCheck.ALPHA_AT_FLOOR``), the posterior bounded there holds
+    alpha at the floor and F0 at the value that lobe needs, and its intervals miss a
+    narrower truth. With the floor at 1e-3 the posterior says what the photos and the prior
+    on alpha (the population's log-normal, :func:`population_priors`) allow: a width at or
+    below the resolvable one, with the F0 that goes with it. Elsewhere the posterior is the
+    same density in natural units (the bound lies where it has no mass); only alpha's
+    unconstrained coordinate differs. A floor the job gives (``alpha_min``) is kept: it is
+    the user's statement about the surface."""
+    model, space = cf.model()
+    if cf.job.alpha_min is not None or "alpha" not in space.labels:
+        return model, space
+    return capture_model(cf.job.model, channels=space.channels, alpha_min=None)
+
+
+def fit_theta(cf: CaptureFit, space: fit.ParamSpace | None = None) -> np.ndarray:
+    """(N, P) the fit's optimum in ``space``'s unconstrained coordinates (None: the fit's
+    own space, whose coordinates ``cf.theta`` holds); NaN where the fit has none. Entries
+    whose bounds are the fit's are copied; the others go through natural units."""
     theta = np.asarray(cf.theta, np.float64)
+    if space is None:
+        return theta
+    own = cf.model()[1]
+    if own.labels != space.labels:
+        raise ValueError(f"space's parameters {space.labels} are not the fit's {own.labels}")
+    same = (own.lower == space.lower) & (own.upper == space.upper)
+    if np.all(same):
+        return theta
+    ok = np.all(np.isfinite(theta), -1)
+    t = jnp.asarray(np.where(ok[:, None], theta, 0.0))
+    moved = np.asarray(space.from_natural(own.to_natural(t), dtype=jnp.float64), np.float64)
+    out = np.where(same[None, :], theta, moved)
+    return np.where(ok[:, None], out, np.nan)
+
+
+def laplace_theta_std(cf: CaptureFit, space: fit.ParamSpace | None = None) -> np.ndarray:
+    """(N, P) the Laplace std in ``space``'s unconstrained coordinates (None: the fit's)
+    from the job's std maps: std_x / |g'(theta*)| per entry, theta* the optimum in those
+    coordinates (:func:`fit_theta`; module docstring); NaN where the fit has none."""
+    space = cf.model()[1] if space is None else space
+    theta = fit_theta(cf, space)
     std = np.stack([cf.maps[map_name(lab, "_std")].reshape(-1) for lab in space.labels], -1)
     ok = np.all(np.isfinite(theta), -1)
     dn = np.asarray(space.dnatural(jnp.asarray(np.where(ok[:, None], theta, 0.0))))
@@ -216,7 +267,7 @@ def laplace_interval(
     if not 0.0 < level < 1.0:
         raise ValueError(f"level must be in (0, 1), got {level}")
     space = cf.model()[1] if space is None else space
-    theta = np.asarray(cf.theta, np.float64)
+    theta = fit_theta(cf, space)
     s_t = laplace_theta_std(cf, space)
     dof = laplace_dof(cf)
     with np.errstate(invalid="ignore"):
@@ -233,6 +284,27 @@ def laplace_interval(
     hi = np.asarray(space.natural_vector(jnp.asarray(hi_t)), np.float64)
     lo, hi = np.where(ok, np.minimum(lo, hi), np.nan), np.where(ok, np.maximum(lo, hi), np.nan)
     return {lab: (lo[:, j], hi[:, j]) for j, lab in enumerate(space.labels)}
+
+
+def map_posterior(
+    cf: CaptureFit, priors: str | Mapping[str, jp.Prior] = "population"
+) -> tuple[jp.LogPosterior, dict[str, Any]]:
+    """(log-posterior, where its priors came from) of a capture fit's pixels, as
+    :func:`uncertainty_maps` samples it: the model and space of :func:`posterior_space`,
+    Gaussian noise of unknown scale per pixel, and ``priors`` as there (``"population"``,
+    ``"default"`` or a mapping by parameter name). Its starting points and Laplace std are
+    :func:`fit_theta` and :func:`laplace_theta_std` in ``lp.space``."""
+    if isinstance(priors, str) and priors not in PRIOR_SOURCES:
+        raise ValueError(f"priors must be one of {PRIOR_SOURCES} or a mapping, not {priors!r}")
+    model, space = posterior_space(cf)
+    if isinstance(priors, str):
+        # estimated in natural units from the fit's own coordinates
+        chosen, prior_summary = (
+            population_priors(cf) if priors == "population" else ({}, {"source": "default"})
+        )
+    else:
+        chosen, prior_summary = dict(priors), {"source": "given"}
+    return jp.log_posterior(model, space, fit.GaussianNoise(None), priors=chosen), prior_summary
 
 
 def uncertainty_maps(
@@ -297,27 +369,20 @@ def uncertainty_maps(
     fit_dir = None if out_dir is None else Path(out_dir) / "fit"
     cf = fit_capture(capture, job, fit_dir, progress=progress, distributed=distributed)
     t_fit = time.perf_counter() - t0
-    model, space = cf.model()
-    if isinstance(priors, str):
-        chosen, prior_summary = (
-            population_priors(cf, space) if priors == "population" else ({}, {"source": "default"})
-        )
-    else:
-        chosen, prior_summary = dict(priors), {"source": "given"}
-    lp = jp.log_posterior(model, space, fit.GaussianNoise(None), priors=chosen)
+    lp, prior_summary = map_posterior(cf, priors)
     # The job's held-out photos stay out of the posterior as they stayed out of the fit
     # (weight 0: still in the data, for posterior predictive draws of them).
     train = np.ones(capture.n_photos, bool)
     train[list(job.holdout)] = False
     data = pixel_block(capture, 0, h * w, photos=train, dtype=np.float64)
-    theta_std = laplace_theta_std(cf, space)
+    theta_std = laplace_theta_std(cf, lp.space)
     noise0 = cf.maps["noise_std"].reshape(-1)
     noise0 = np.where(np.isfinite(noise0) & (noise0 > 0), noise0, _NOISE_START)
     t1 = time.perf_counter()
     umap = jp.adaptive_uncertainty(
         lp,
         data,
-        np.asarray(cf.theta, np.float64),
+        fit_theta(cf, lp.space),
         theta_std,
         cf.maps["laplace_flag"].reshape(-1),
         options,
