@@ -67,7 +67,9 @@ def test_population_priors_of_a_grey_capture(grey_capture, monkeypatch):
     on the pixels Laplace flags (mostly lobes no photo saw), the default uniform prior on
     a coloured F0 lets each channel wander over [0, 1]: the draws' spread of F0.R - F0.G is
     that of independent channels. The population prior of this grey capture keeps them
-    together (spread at most a third) and its draws of F0 lie nearer the truth."""
+    together (spread at most a third) and its draws of F0 lie nearer the truth. The
+    posterior is the map's (``map_posterior``): where the fit's alpha sits at the
+    resolvable width, its draws reach below it, down to a narrower truth."""
     cap, cf, truth = grey_capture
     model, space = cf.model()
     priors, summary = svbrdf.population_priors(cf, space)

@@ -204,7 +204,8 @@ def test_cli_sample_capture_end_to_end(tmp_path):
         np.testing.assert_array_equal(im.channels[name], ch, err_msg=name)
     lib = jsonable(res.report())[0]  # as report.json holds it (NaN: null)
     assert set(rep) - {NULLS_KEY} == set(lib) | {"input", "kind", "crop", "downsample", "files"}
-    for key in ("model", "height", "width", "noise", "priors", "sampler", "second_pass"):
+    assert list(rep["bounds"]) == list(res.posterior.space.labels)
+    for key in ("model", "height", "width", "noise", "priors", "bounds", "sampler", "second_pass"):
         assert rep[key] == lib[key], key
     assert rep["fit_report"] == lib["fit_report"]
     mine, cli = lib["uncertainty"], rep["uncertainty"]

@@ -148,9 +148,9 @@ class CaptureUncertainty:
         return idata.assign_coords(row=("pixel", rows), col=("pixel", cols))
 
     def report(self) -> dict[str, Any]:
-        """JSON-ready summary: model and size, noise and priors, the sampler settings of
-        both passes, the fit's status and flag counts, :meth:`UncertaintyMap.report`,
-        timings."""
+        """JSON-ready summary: model and size, noise, priors and the parameters' bounds,
+        the sampler settings of both passes, the fit's status and flag counts,
+        :meth:`UncertaintyMap.report`, timings."""
         o = self.options
         lp = self.posterior
         # the second pass's settings, also where rerun_rhat turns it off; the first pass's
@@ -165,6 +165,12 @@ class CaptureUncertainty:
             "noise": NOISE,
             "priors": {b.name: repr(p) for b, p in zip(lp.space.blocks, lp.priors, strict=True)},
             "prior_source": dict(self.prior_summary),
+            # the posterior's box in natural units (posterior_space: alpha's floor may lie
+            # below the fit's)
+            "bounds": {
+                lab: [float(a), float(b)]
+                for lab, a, b in zip(lp.space.labels, lp.space.lower, lp.space.upper, strict=True)
+            },
             "sampler": {**vars(o.hmc)},
             "second_pass": {"rerun_rhat": o.rerun_rhat, "options": {**vars(second)}},
             # misspecified pixels (jaxrefl.svbrdf._check): their intervals are not calibrated
