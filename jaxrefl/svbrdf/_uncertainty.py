@@ -197,9 +197,10 @@ def posterior_space(cf: CaptureFit) -> tuple[Any, fit.ParamSpace]:
     narrower truth. With the floor at 1e-3 the posterior says what the photos and the prior
     on alpha (the population's log-normal, :func:`population_priors`) allow: a width at or
     below the resolvable one, with the F0 that goes with it. Elsewhere the posterior is the
-    same density in natural units (the bound lies where it has no mass); only alpha's
-    unconstrained coordinate differs. A floor the job gives (``alpha_min``) is kept: it is
-    the user's statement about the surface."""
+    same density in natural units, truncated lower: where the photos resolve the width, the
+    old floor lies where it has next to no mass. Alpha's unconstrained coordinate differs,
+    so the Laplace summaries of :func:`uncertainty_maps` are formed in the new one. A floor
+    the job gives (``alpha_min``) is kept: it is the user's statement about the surface."""
     model, space = cf.model()
     if cf.job.alpha_min is not None or "alpha" not in space.labels:
         return model, space
