@@ -54,21 +54,35 @@ def _pct(x: float) -> str:
     return "-" if not np.isfinite(x) else f"{100 * x:.1f}"
 
 
-def _photo_gain(pred, photo: int) -> tuple[float, dict[float, float]]:
+BLOCK = 32  # pixels on a side of the blocks whose median ratios measure the spread
+
+
+def _photo_gain(pred, photo: int, shape: tuple[int, int]) -> tuple[float, float, dict]:
     """(the held-out photo's median ratio of observed to predicted radiance over its
-    uncensored values, {level: coverage of the intervals scaled by that ratio}): a
-    photo-wide offset (flash power, exposure, light position) is shared by all of the
-    photo's pixels; the scaled coverage says how much of a miss it explains. A diagnostic
-    only: it uses the held-out photo itself."""
+    uncensored values, the interquartile range of that ratio's medians over BLOCK x BLOCK
+    blocks of the image, {level: coverage of the intervals scaled by the photo's ratio}).
+    A ratio far from 1 with a small spread is a photo-wide offset (flash power, exposure)
+    shared by all of the photo's pixels; a large spread is a misfit that varies over the
+    image. The scaled coverage says how much of a miss the offset explains: a diagnostic
+    only, it uses the held-out photo itself."""
     m, y = pred.mean[:, photo], pred.obs[:, photo]
     use = pred.value[:, photo] & np.isfinite(m) & (m > 0)
     gain = float(np.median(y[use] / m[use]))
+    h, w = shape
+    ratio = np.where(use, y / np.where(use, m, 1.0), np.nan).reshape(h, w, -1)
+    blocks = [
+        np.nanmedian(ratio[a : a + BLOCK, b : b + BLOCK])
+        for a in range(0, h, BLOCK)
+        for b in range(0, w, BLOCK)
+        if np.any(np.isfinite(ratio[a : a + BLOCK, b : b + BLOCK]))
+    ]
+    q25, q75 = np.percentile(blocks, [25, 75])
     cov = {}
     for lv in LEVELS:
         lo, hi = pred.interval(lv)
         inside = (y >= gain * lo[:, photo]) & (y <= gain * hi[:, photo])
         cov[lv] = float(np.mean(inside[use]))
-    return gain, cov
+    return gain, float(q75 - q25), cov
 
 
 def real_capture(name: str, size: int, model: str) -> None:
@@ -107,7 +121,7 @@ def real_capture(name: str, size: int, model: str) -> None:
                     tot[key][0] += c[f"{tag}{lv}"] * n
                     tot[key][1] += n
         med = float(np.nanmedian(pred.mean[:, i]))
-        gain, at_gain = _photo_gain(pred, i)
+        gain, spread, at_gain = _photo_gain(pred, i, cap.shape[1:3])
         rows.append(
             [
                 str(i),
@@ -124,6 +138,7 @@ def real_capture(name: str, size: int, model: str) -> None:
                 f"{np.sqrt(np.nanmedian(pred.noise_var[:, i])):.4f}",
                 f"{np.sqrt(np.nanmedian(pred.param_var[:, i])):.4f}",
                 f"{gain:.3f}",
+                f"{spread:.3f}",
                 _pct(at_gain[0.5]),
                 _pct(at_gain[0.9]),
                 str(n_all),
@@ -154,6 +169,7 @@ def real_capture(name: str, size: int, model: str) -> None:
             "",
             "",
             "",
+            "",
         ]
     )
     print(f"### {name}, {size} x {size}, model `{model}`, each of {k} photos held out in turn")
@@ -175,6 +191,7 @@ def real_capture(name: str, size: int, model: str) -> None:
                 "noise std",
                 "param std (median)",
                 "obs / pred",
+                "its spread",
                 "50% at its gain",
                 "90% at its gain",
                 "values",
@@ -191,10 +208,12 @@ def real_capture(name: str, size: int, model: str) -> None:
         "noise term (for `pooled`, whose default replaces its one noise scale by a variance "
         "function of the radiance measured on held-out training photos, the fit's own scale "
         "plus the discrepancy: `estimate_discrepancy(..., replace_noise=False)`); 'obs / pred': "
-        "the held-out photo's median ratio of observed to predicted radiance, a photo-wide "
-        "offset (flash power, exposure, light position) that all its pixels share, so that "
-        "no variance of the radiance alone can centre that photo's intervals; 'at its gain': "
-        "the coverage with the intervals scaled by that ratio (a diagnostic that uses the "
+        "the held-out photo's median ratio of observed to predicted radiance; 'its spread': the "
+        f"interquartile range of that ratio's medians over {BLOCK} x {BLOCK}-pixel blocks. A "
+        "ratio far from 1 with a small spread is a photo-wide offset (flash power, exposure) "
+        "that all the photo's pixels share, which no variance of the radiance alone can "
+        "centre; a large spread, a misfit that varies over the image. 'at its gain': the "
+        "coverage with the intervals scaled by the photo's ratio (a diagnostic that uses the "
         "held-out photo itself)."
     )
     print()
