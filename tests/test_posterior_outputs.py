@@ -523,8 +523,9 @@ def test_vectorised_diagnostics_match_arviz():
 
 def test_chunk_folder_resumes_without_sampling_again(lambert, monkeypatch, tmp_path):
     """With ``chunk_dir`` every chunk's draws (both passes) are written as they finish; a
-    rerun reads them and samples nothing, with the same map; another seed matches none of
-    them (stand-in sampler whose chains disagree on some pixels: a second pass runs)."""
+    rerun reads them and samples nothing, with the same map; another seed, or another box
+    of the parameters, matches none of them (stand-in sampler whose chains disagree on some
+    pixels: a second pass runs)."""
     from jaxrefl.posterior import _adaptive
 
     lp, data, r, lap = lambert
@@ -564,6 +565,13 @@ def test_chunk_folder_resumes_without_sampling_again(lambert, monkeypatch, tmp_p
     assert again.timings["mcmc_s"] == first.timings["mcmc_s"] == 2.0
     jp.adaptive_uncertainty(lp, data, th, sd, flag, replace(o, seed=8), chunk_dir=folder)
     assert len(calls) == 3  # another seed: other chunks
+    # another parameter box (theta's coordinates differ): other chunks
+    calls.clear()
+    m = lp.space.model
+    narrow = fit.ParamSpace(m, channels=3, bounds={"albedo": (0.0, 0.99)})
+    lp_narrow = jp.log_posterior(m, narrow, fit.GaussianNoise(SIGMA))
+    jp.adaptive_uncertainty(lp_narrow, data, th, sd, flag, o, chunk_dir=folder)
+    assert len(calls) == 3
 
 
 def test_second_pass_of_an_untuned_sampler_reuses_the_first_pass_program(lambert, monkeypatch):

@@ -548,12 +548,15 @@ class _Run:
         firsts = list(range(0, idx.size, size))
         many = jax.process_count() > 1
         mine = set(process_share(list(range(len(firsts)))))
-        # A chunk file belongs to these pixels, starts of this pass and sampler settings
-        # only: its name carries their fingerprint, so another run's chunks never match.
+        # A chunk file belongs to these pixels, starts of this pass, sampler settings and
+        # parameter box only (the draws' theta is in the box's unconstrained coordinates):
+        # its name carries their fingerprint, so another run's chunks never match.
         name = None
         if self.folder is not None:
             self.folder.mkdir(parents=True, exist_ok=True)
-            key = _fingerprint(tag, idx, opts, seed, size, self.lp.labels)
+            space = self.lp.space
+            box = (self.lp.labels, tuple(space.lower.tolist()), tuple(space.upper.tolist()))
+            key = _fingerprint(tag, idx, opts, seed, size, box)
             name = lambda ci: self.folder / f"{tag}_{key}_{ci:05d}.npz"  # noqa: E731
         bar = None
         if self.progress and jax.process_index() == 0:
@@ -604,8 +607,8 @@ class _Run:
         return _take(smp, real.size), smp.run_s
 
 
-def _fingerprint(tag, idx, opts: HMCOptions, seed: int, size: int, labels) -> str:
-    h = hashlib.sha1(f"{tag} {opts!r} {seed} {size} {labels}".encode())
+def _fingerprint(tag, idx, opts: HMCOptions, seed: int, size: int, box) -> str:
+    h = hashlib.sha1(f"{tag} {opts!r} {seed} {size} {box}".encode())
     h.update(np.ascontiguousarray(idx, np.int64).tobytes())
     return h.hexdigest()[:12]
 
