@@ -103,10 +103,9 @@ WIDTH = "alpha"
 # _COARSE_CELLS even ones below that, and _LOCAL_CELLS over +-_LOCAL_SD Laplace standard
 # deviations around the optimum. Over a capture's resolvable range [0.05, 1] the even cells
 # are about 0.1 wide in log alpha; spread over the microfacet floor's [1e-3, 1] they would
-# be 0.2. Where the local cells miss the posterior (a width at the fit's bound), the even
-# ones are the proposal, and at 0.2 fewer of a demo map's flagged pixels reached R-hat 1.05
-# in one pass (86% against 94% of 300). A posterior a decade narrower than its fit's
-# optimum is rare, and the coarse cells still propose it.
+# be twice as wide. Where the local cells miss the posterior (a width at the fit's bound),
+# the even ones are the proposal, and cells that coarse mix more slowly. A posterior a
+# decade narrower than its fit's optimum is rare, and the coarse cells still propose it.
 _GLOBAL_CELLS = 32
 _COARSE_CELLS = 6
 _DENSE_BELOW = math.log(10.0)
