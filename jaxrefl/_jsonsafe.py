@@ -30,6 +30,8 @@ from typing import Any
 
 import numpy as np
 
+from jaxrefl._errors import JaxreflError
+
 __all__ = ["NULLS_KEY", "jsonable", "report_json"]
 
 NULLS_KEY = "nulls"
@@ -110,7 +112,7 @@ def report_json(
     would hide it), :class:`TypeError` for a value without a JSON form (see ``default``).
     """
     if NULLS_KEY in report:
-        raise ValueError(f"a report must not have a {NULLS_KEY!r} member: it records nulls")
+        raise JaxreflError(f"a report must not have a {NULLS_KEY!r} member: it records nulls")
     clean, nulls = jsonable(report, default)
     if nulls:
         clean[NULLS_KEY] = nulls

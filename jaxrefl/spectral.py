@@ -31,6 +31,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from jaxrefl._errors import JaxreflError
+
 __all__ = [
     "IOR",
     "cie_xyz_cmf",
@@ -91,17 +93,17 @@ def _illuminant(name: str, lam: np.ndarray) -> np.ndarray:
         return np.ones_like(lam)
     if name == "D65":
         if lam.min() < _D65_NM[0] or lam.max() > _D65_NM[-1]:
-            raise ValueError(
+            raise JaxreflError(
                 f"illuminant D65 is tabulated on 380..780 nm; wavelengths span "
                 f"{lam.min():g}..{lam.max():g} nm (use illuminant='E' or crop the spectrum)"
             )
         return np.interp(lam, _D65_NM, _D65)
-    raise ValueError(f"unknown illuminant {name!r}; choose 'E' or 'D65'")
+    raise JaxreflError(f"unknown illuminant {name!r}; choose 'E' or 'D65'")
 
 
 def _trapezoid_weights(lam: np.ndarray) -> np.ndarray:
     if lam.ndim != 1 or lam.size < 2 or not np.all(np.diff(lam) > 0):
-        raise ValueError("wavelengths must be a 1-D, strictly increasing array of >= 2 values")
+        raise JaxreflError("wavelengths must be a 1-D, strictly increasing array of >= 2 values")
     dl = np.diff(lam)
     w = np.zeros_like(lam)
     w[:-1] += 0.5 * dl
@@ -117,7 +119,7 @@ def _rgb_weights(lam: np.ndarray, illuminant: str) -> np.ndarray:
     rgb_w = xyz_w @ _XYZ_TO_SRGB.T  # (L, 3), linear in the spectrum
     white = rgb_w.sum(axis=0)  # RGB of the constant spectrum 1
     if np.any(white <= 0):
-        raise ValueError(f"wavelengths {lam.min():g}..{lam.max():g} nm miss a colour channel")
+        raise JaxreflError(f"wavelengths {lam.min():g}..{lam.max():g} nm miss a colour channel")
     return rgb_w / white
 
 
@@ -136,7 +138,7 @@ def spectrum_to_rgb(
     W = _rgb_weights(lam, illuminant)
     v = jnp.asarray(values)
     if v.shape[-1:] != lam.shape:
-        raise ValueError(f"values must end in an axis of {lam.size} bands; got {v.shape}")
+        raise JaxreflError(f"values must end in an axis of {lam.size} bands; got {v.shape}")
     if not jnp.issubdtype(v.dtype, jnp.floating):
         v = v.astype(jnp.float32)
     return jnp.einsum("...l,lc->...c", v, jnp.asarray(W, dtype=v.dtype))
@@ -168,7 +170,7 @@ class IOR:
         lam = np.asarray(wavelengths, dtype=np.float64)
         lo, hi = self.wavelengths[0], self.wavelengths[-1]
         if not clamp and (np.any(lam < lo) or np.any(lam > hi)):
-            raise ValueError(
+            raise JaxreflError(
                 f"{self.name}: wavelengths {lam.min():g}..{lam.max():g} nm leave the measured "
                 f"range {lo:g}..{hi:g} nm; pass clamp=True to hold the end values"
             )
@@ -194,7 +196,7 @@ class IOR:
             eta, k = self.at(np.asarray(_CIE_RGB_PRIMARIES_NM))
             return eta, k
         if method != "cie":
-            raise ValueError(f"unknown method {method!r}; choose 'cie' or 'primaries'")
+            raise JaxreflError(f"unknown method {method!r}; choose 'cie' or 'primaries'")
         lo = max(380.0, float(self.wavelengths[0]))
         hi = min(780.0, float(self.wavelengths[-1]))
         lam = np.arange(np.ceil(lo), np.floor(hi) + 0.5, 1.0)
@@ -211,7 +213,7 @@ def _read_spd(path: Path) -> tuple[np.ndarray, np.ndarray, list[str]]:
     try:
         text = path.read_text(encoding="utf-8")
     except UnicodeDecodeError as err:
-        raise ValueError(f"{path}: not a text spectrum file ({err})") from None
+        raise JaxreflError(f"{path}: not a text spectrum file ({err})") from None
     header: list[str] = []
     rows: list[tuple[float, float]] = []
     for lineno, raw in enumerate(text.splitlines(), start=1):
@@ -221,36 +223,34 @@ def _read_spd(path: Path) -> tuple[np.ndarray, np.ndarray, list[str]]:
             continue
         fields = [f for f in _ROW.split(line) if f]
         try:
-            if len(fields) != 2:
-                raise ValueError
-            w_nm, v = float(fields[0]), float(fields[1])
+            w_nm, v = (float(f) for f in fields)  # unpacking refuses a count other than two
         except ValueError:
-            raise ValueError(
+            raise JaxreflError(
                 f"{path}:{lineno}: expected two numbers 'wavelength value', got {raw!r} "
                 f"(corrupt or truncated file?)"
             ) from None
         if not (np.isfinite(w_nm) and np.isfinite(v)):
-            raise ValueError(f"{path}:{lineno}: non-finite number in {raw!r}")
+            raise JaxreflError(f"{path}:{lineno}: non-finite number in {raw!r}")
         rows.append((w_nm, v))
     if len(rows) < 2:
-        raise ValueError(f"{path}: needs at least two data rows, found {len(rows)}")
+        raise JaxreflError(f"{path}: needs at least two data rows, found {len(rows)}")
     data = np.asarray(rows, dtype=np.float64)
     lam, val = data[:, 0], data[:, 1]
     bad = np.nonzero(np.diff(lam) <= 0)[0]
     if bad.size:
-        raise ValueError(
+        raise JaxreflError(
             f"{path}: wavelengths must increase strictly; {lam[bad[0]]:g} is followed by "
             f"{lam[bad[0] + 1]:g} (data row {bad[0] + 2})"
         )
     if np.any(val < 0):
-        raise ValueError(f"{path}: optical constants must be >= 0; found {val.min():g}")
+        raise JaxreflError(f"{path}: optical constants must be >= 0; found {val.min():g}")
     # Units: luxpop headers say "Lambda (A)" but the numbers are nm (298..886); convert only
     # when an Angstrom header comes with numbers that cannot be nm for optical data.
     says_angstrom = any(re.search(r"\(A\)|angstrom", h, re.IGNORECASE) for h in header)
     if says_angstrom and lam[0] >= 1000.0:
         lam = lam / 10.0
     if lam[0] < 100.0 or lam[-1] > 100_000.0:
-        raise ValueError(f"{path}: wavelengths {lam[0]:g}..{lam[-1]:g} do not look like nm")
+        raise JaxreflError(f"{path}: wavelengths {lam[0]:g}..{lam[-1]:g} do not look like nm")
     return lam, val, header
 
 
@@ -292,7 +292,7 @@ def load_ior(name_or_path: str | os.PathLike, data_dir: str | os.PathLike | None
     lam_e, eta, head = _read_spd(files[0])
     lam_k, k, _ = _read_spd(files[1])
     if lam_e.shape != lam_k.shape or not np.allclose(lam_e, lam_k, rtol=1e-9, atol=0.0):
-        raise ValueError(
+        raise JaxreflError(
             f"{files[0]} and {files[1]} use different wavelength grids "
             f"({lam_e.size} vs {lam_k.size} rows); resample one onto the other"
         )

@@ -33,6 +33,7 @@ import re
 import shutil
 import struct
 import zlib
+from pathlib import Path
 from dataclasses import replace
 
 import numpy as np
@@ -41,7 +42,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from PIL import Image
 
-from jaxrefl import brdf, fit, ps
+from jaxrefl import JaxreflError, brdf, fit, ps
 from jaxrefl.io import MeasuredDataError, read_cornell
 from jaxrefl.io._capture import Capture, CaptureError
 from jaxrefl.io._capture_layouts import load_capture, save_generic_capture
@@ -623,7 +624,7 @@ def test_fit_job_refuses_bad_numbers(kw, name):
         job = {k: v for k, v in kw.items() if k not in cfg}
         return FitJob(**job, config=fit.FitConfig(**cfg))
 
-    with pytest.raises(ValueError, match=name):
+    with pytest.raises(JaxreflError, match=name):
         make()
 
 
@@ -644,3 +645,44 @@ def test_every_input_error_is_a_jaxrefl_error():
 
     for cls in (CaptureError, ExrFormatError, MeasuredDataError, PNGError, PSInputError):
         assert issubclass(cls, JaxreflError) and issubclass(cls, ValueError), cls
+
+
+def test_no_builtin_value_error_is_raised():
+    """Every argument or input check raises a JaxreflError: `except JaxreflError` sees them all."""
+    import re
+
+    import jaxrefl
+
+    root = Path(jaxrefl.__file__).parent
+    found = [
+        f"{p.relative_to(root)}:{i}"
+        for p in sorted(root.rglob("*.py"))
+        for i, line in enumerate(p.read_text().splitlines(), start=1)
+        if re.search(r"\braise ValueError\b", line)
+    ]
+    assert not found, found
+
+
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda fit: fit.GaussianNoise(sigma=-1.0),
+        lambda fit: fit.Huber(delta=0.0),
+        lambda fit: fit.LMOptions(max_iters=0),
+    ],
+)
+def test_option_objects_raise_jaxrefl_errors(make):
+    from jaxrefl import fit
+
+    with pytest.raises(JaxreflError):
+        make(fit)
+
+
+def test_fit_pixels_fixed_nan_is_a_jaxrefl_error():
+    from jaxrefl import brdf, fit
+
+    m = brdf.get("cook_torrance", distribution="ggx", fresnel="schlick", diffuse="lambert")
+    wi = np.tile(np.array([0.0, 0.0, 1.0]), (2, 4, 1))
+    data = fit.pixel_data(np.full((2, 4, 3), 0.1), wi, wi)
+    with pytest.raises(JaxreflError, match="alpha"):
+        fit.fit_pixels(m, data, fixed={"alpha": float("nan")})

@@ -42,6 +42,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from jaxrefl._errors import JaxreflError
+
 from ._frame import cos_theta, upper_hemisphere
 
 __all__ = ["BRDF", "Param", "Params", "check_directions", "set_validation"]
@@ -71,7 +73,7 @@ def check_directions(wi: ArrayLike, wo: ArrayLike) -> None:
         off = np.where(np.isfinite(norm), np.abs(norm - 1.0), 0.0)
         if off.size and np.max(off) > _UNIT_TOL:
             i = np.unravel_index(int(np.argmax(off)), off.shape)
-            raise ValueError(
+            raise JaxreflError(
                 f"{name} must be unit vectors (|{name}| = 1 within {_UNIT_TOL:g}); the worst, "
                 f"at index {tuple(int(j) for j in i)}, has length {float(norm[i]):.6g}"
             )
@@ -160,12 +162,12 @@ class BRDF(eqx.Module):
                 continue
             v = np.asarray(v, np.float64)
             if not np.all(np.isfinite(v)):
-                raise ValueError(
+                raise JaxreflError(
                     f"{type(self).__name__} parameter {q.name!r} = {v.tolist()} is not finite; "
                     f"give a value in [{q.lower:g}, {q.upper:g}]"
                 )
             if q.kind != "lobes" and (np.any(v < q.lower) or np.any(v > q.upper)):
-                raise ValueError(
+                raise JaxreflError(
                     f"{type(self).__name__} parameter {q.name!r} = {v.tolist()} is outside its "
                     f"range [{q.lower:g}, {q.upper:g}] ({q.doc})"
                 )
@@ -193,7 +195,7 @@ class BRDF(eqx.Module):
             wi = wi.astype(jnp.float32)
         wo = wo.astype(wi.dtype)
         if wi.shape[-1:] != (3,) or wo.shape[-1:] != (3,):
-            raise ValueError(
+            raise JaxreflError(
                 f"wi and wo must have a trailing axis of length 3, got {wi.shape} and {wo.shape}"
             )
         if _VALIDATE[0] and _concrete(wi, wo, *jax.tree.leaves(dict(params))):
@@ -238,7 +240,7 @@ class BRDF(eqx.Module):
             if q.kind == "color" and v.ndim == 0:
                 v = v[None]
             if q.kind == "lobes" and (v.ndim < 2 or v.shape[-1] != 4):
-                raise ValueError(
+                raise JaxreflError(
                     f"parameter {q.name!r} must have shape (..., L, 4) rows (Cx, Cy, Cz, n); "
                     f"got {v.shape}"
                 )

@@ -44,6 +44,8 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from jaxrefl._errors import JaxreflError
+
 from ._base import BRDF, Param
 from ._frame import half_vector
 from ._fresnel import ConductorFresnel, DielectricFresnel, FresnelPart, NoFresnel, SchlickFresnel
@@ -79,7 +81,7 @@ def _pick(kind: str, table: dict, value, *args):
         try:
             return table[value](*args)
         except KeyError:
-            raise ValueError(f"unknown {kind} {value!r}; choose one of {tuple(table)}") from None
+            raise JaxreflError(f"unknown {kind} {value!r}; choose one of {tuple(table)}") from None
     return value
 
 
@@ -138,7 +140,7 @@ class CookTorrance(BRDF):
         self.shadowing = _pick("shadowing", _SHADOWING, shadowing)
         self.fresnel = _pick("fresnel", _FRESNEL, fresnel)
         if diffuse not in (None, "lambert"):
-            raise ValueError(f"unknown diffuse {diffuse!r}; choose None or 'lambert'")
+            raise JaxreflError(f"unknown diffuse {diffuse!r}; choose None or 'lambert'")
         self.diffuse = diffuse
 
     @property

@@ -36,6 +36,8 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from jaxrefl._errors import JaxreflError
+
 from ._base import BRDF, Param
 from ._lambert import ALBEDO, broadcast_inputs
 from ._phong import positive_power
@@ -66,7 +68,7 @@ class Lafortune(BRDF):
 
     def __check_init__(self):
         if self.num_lobes < 1:
-            raise ValueError(f"num_lobes must be >= 1, got {self.num_lobes}")
+            raise JaxreflError(f"num_lobes must be >= 1, got {self.num_lobes}")
 
     @property
     def params(self) -> tuple[Param, ...]:

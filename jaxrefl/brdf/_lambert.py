@@ -66,6 +66,8 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from jaxrefl._errors import JaxreflError
+
 from ._base import BRDF, Param
 from ._frame import cos_phi, cos_theta, safe_sqrt, sin2_theta, sin_phi
 
@@ -157,7 +159,7 @@ class OrenNayar(BRDF):
 
     def __init__(self, variant: Literal["qualitative", "full"] = "qualitative"):
         if variant not in ("qualitative", "full"):
-            raise ValueError(f"variant must be 'qualitative' or 'full', got {variant!r}")
+            raise JaxreflError(f"variant must be 'qualitative' or 'full', got {variant!r}")
         self.variant = variant
 
     @property

@@ -36,6 +36,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from jaxrefl._errors import JaxreflError
+
 from ._base import BRDF, Param, Params
 from ._frame import safe_sqrt, upper_hemisphere
 from ._rusinkiewicz import from_half_diff, to_half_diff
@@ -81,11 +83,11 @@ class MERL(BRDF):
     def __init__(self, table: Float[ArrayLike, "3 90 90 180"], interpolation: str = "nearest"):
         table = jnp.asarray(table)
         if table.shape != MERL_SHAPE:
-            raise ValueError(f"MERL table must have shape {MERL_SHAPE}, got {table.shape}")
+            raise JaxreflError(f"MERL table must have shape {MERL_SHAPE}, got {table.shape}")
         if not jnp.issubdtype(table.dtype, jnp.floating):
             table = table.astype(jnp.result_type(float))
         if interpolation not in ("nearest", "trilinear"):
-            raise ValueError(
+            raise JaxreflError(
                 f"interpolation must be 'nearest' or 'trilinear', got {interpolation!r}"
             )
         self.table = table

@@ -9,6 +9,8 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
+from jaxrefl._errors import JaxreflError
+
 from ._base import BRDF
 
 __all__ = ["available", "get"]
@@ -35,5 +37,5 @@ def get(name: str, **options: Any) -> BRDF:
     try:
         module, cls = _MODELS[name]
     except KeyError:
-        raise ValueError(f"unknown BRDF model {name!r}; choose one of {available()}") from None
+        raise JaxreflError(f"unknown BRDF model {name!r}; choose one of {available()}") from None
     return getattr(importlib.import_module(module), cls)(**options)

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 from jaxtyping import Array, Float
 
+from jaxrefl._errors import JaxreflError
+
 from ._base import BRDF, Param
 
 __all__ = ["Sum"]
@@ -21,12 +23,12 @@ class Sum(BRDF):
 
     def __init__(self, *parts: BRDF):
         if not parts:
-            raise ValueError("Sum needs at least one component")
+            raise JaxreflError("Sum needs at least one component")
         names: list[str] = []
         for part in parts:
             for n in part.param_names:
                 if n in names:
-                    raise ValueError(f"parameter name {n!r} appears in two components of Sum")
+                    raise JaxreflError(f"parameter name {n!r} appears in two components of Sum")
                 names.append(n)
         self.parts = tuple(parts)
 

@@ -29,6 +29,8 @@ from __future__ import annotations
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from jaxrefl._errors import JaxreflError
+
 from ._base import BRDF, Param
 
 __all__ = ["NormalTilt", "tilt_frame", "tilt_normal"]
@@ -66,7 +68,7 @@ class NormalTilt(BRDF):
     def __check_init__(self):
         clash = {"tilt_x", "tilt_y"} & set(self.base.param_names)
         if clash:
-            raise ValueError(f"the base model already has parameters {sorted(clash)}")
+            raise JaxreflError(f"the base model already has parameters {sorted(clash)}")
 
     @property
     def params(self) -> tuple[Param, ...]:

@@ -58,6 +58,8 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from jaxrefl._errors import JaxreflError
+
 from ._base import BRDF, Param
 from ._lambert import ALBEDO, broadcast_inputs
 from ._phong import SPECULAR
@@ -90,7 +92,7 @@ class Ward(BRDF):
 
     def __check_init__(self):
         if self.normalization not in _NORMALIZATIONS:
-            raise ValueError(
+            raise JaxreflError(
                 f"normalization must be one of {_NORMALIZATIONS}, got {self.normalization!r}"
             )
 

@@ -11,6 +11,8 @@ from __future__ import annotations
 import argparse
 from typing import TYPE_CHECKING
 
+from jaxrefl._errors import JaxreflError
+
 from ._main import positive_int
 
 if TYPE_CHECKING:
@@ -46,7 +48,7 @@ def distributed_from_args(args: argparse.Namespace) -> Distributed | None:
     named = [args.coordinator, args.num_processes, args.process_id]
     if not args.distributed:
         if any(v is not None for v in named):
-            raise ValueError(
+            raise JaxreflError(
                 "--coordinator, --num-processes and --process-id go with --distributed"
             )
         return None

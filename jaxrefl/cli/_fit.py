@@ -25,6 +25,7 @@ import argparse
 import shutil
 from pathlib import Path
 
+from jaxrefl._errors import JaxreflError
 from jaxrefl._names import CAPTURE_MODELS, canonical
 
 from ._distributed import add_distributed_arguments, distributed_from_args
@@ -150,7 +151,7 @@ def run(args: argparse.Namespace) -> int:
     dist = distributed_from_args(args)
     if dist is not None:
         if args.holdout == "all":
-            raise ValueError("--holdout all runs in one process: drop --distributed")
+            raise JaxreflError("--holdout all runs in one process: drop --distributed")
         dist.initialize()  # before any JAX computation
     if args.dtype == "float64":
         import jax

@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from jaxrefl._errors import JaxreflError
 from jaxrefl._names import MEASURED_MODELS, canonical
 
 from ._main import check_out_dir, finite_float, non_negative_int, positive_int
@@ -151,7 +152,7 @@ def _model_names(raw: list[str] | None) -> list[str] | None:
     names = [canonical(n) for item in raw for n in item.split(",") if n.strip()]
     unknown = [n for n in names if n not in MEASURED_MODELS]
     if unknown:
-        raise ValueError(
+        raise JaxreflError(
             f"--models: unknown model(s) {', '.join(unknown)}; choose from "
             f"{', '.join(MEASURED_MODELS)}"
         )
@@ -179,7 +180,7 @@ def run(args: argparse.Namespace) -> int:
     names = _with_fresnel(_model_names(args.models), args.fresnel)
     check_out_dir(args.out)
     if args.starts < 0:
-        raise ValueError(f"--starts must be >= 0, got {args.starts}")
+        raise JaxreflError(f"--starts must be >= 0, got {args.starts}")
     starts = None if args.single_start else jm.MultiStart(n_random=args.starts)
     m = jm.load_measured(
         args.path,

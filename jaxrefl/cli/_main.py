@@ -42,6 +42,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from jaxrefl._errors import JaxreflError
+
 __all__ = [
     "COMMANDS",
     "EXIT_PROCESS_STOPPED",
@@ -280,9 +282,9 @@ def check_out_dir(path: Path, flag: str = "--out") -> Path:
             continue
         if not part.is_dir():
             what = "exists" if part == path else f"is inside {part}, which exists"
-            raise ValueError(f"{flag} {path}: {what} and is not a folder; name a folder")
+            raise JaxreflError(f"{flag} {path}: {what} and is not a folder; name a folder")
         if not os.access(part, os.W_OK | os.X_OK):
-            raise ValueError(f"{flag} {path}: {part} is not writable")
+            raise JaxreflError(f"{flag} {path}: {part} is not writable")
         break
     return path
 

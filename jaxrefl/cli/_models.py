@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 
+from jaxrefl._errors import JaxreflError
 from jaxrefl._names import (
     ALIASES,
     CAPTURE_MODELS,
@@ -81,7 +82,7 @@ def run(args: argparse.Namespace) -> int:
     name = canonical(args.name)
     lines = describe(name)
     if not lines:
-        raise ValueError(f"unknown model {args.name!r}; choose from {', '.join(all_names())}")
+        raise JaxreflError(f"unknown model {args.name!r}; choose from {', '.join(all_names())}")
     shown = name if name == args.name else f"{name} (given as {args.name})"
     print(shown)
     for line in lines:

@@ -15,6 +15,8 @@ from __future__ import annotations
 import dataclasses
 from typing import TYPE_CHECKING
 
+from jaxrefl._errors import JaxreflError
+
 if TYPE_CHECKING:
     from jaxrefl import fit
 
@@ -54,7 +56,7 @@ def solver_from_flags(backend: str, max_iters: int | None = None) -> fit.Solver:
 
     package = OPTIONAL_BACKENDS.get(backend)
     if package is not None and importlib.util.find_spec(package) is None:
-        raise ValueError(
+        raise JaxreflError(
             f"--backend {backend} needs the {package} package: pip install 'jaxrefl[backends]'"
         )
 

@@ -51,6 +51,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from jaxrefl._errors import JaxreflError
 from jaxrefl._names import CAPTURE_MODELS, MEASURED_MODELS, PRIOR_SOURCES, canonical
 
 from ._distributed import add_distributed_arguments, distributed_from_args
@@ -207,7 +208,7 @@ def run(args: argparse.Namespace) -> int:
     dist = distributed_from_args(args)
     if dist is not None:
         if brdf_file:
-            raise ValueError("--distributed splits a capture's tiles and chunks, not a BRDF file")
+            raise JaxreflError("--distributed splits a capture's tiles and chunks, not a BRDF file")
         dist.initialize()  # before any JAX computation
     args.out.mkdir(parents=True, exist_ok=True)
     opts = _options(args)
@@ -274,7 +275,7 @@ def _run_capture(args, path: Path, opts, dist) -> dict:
         r0, r1, c0, c1 = args.pixels
         _k, h, w, _c = cap.shape
         if r1 > h or c1 > w:
-            raise ValueError(f"--pixels {r0}:{r1},{c0}:{c1} exceeds the {h} x {w} capture")
+            raise JaxreflError(f"--pixels {r0}:{r1},{c0}:{c1} exceeds the {h} x {w} capture")
         cap = cap.crop(r0, r1, c0, c1)
     res = svbrdf.uncertainty_maps(
         cap,

@@ -38,6 +38,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
+from jaxrefl._errors import JaxreflError
+
 from ._lm import LMOptions, _linearise, batched_lm
 from ._options import Option
 from ._status import Status, classify, default_cond_max, severity
@@ -66,7 +68,7 @@ class _LibraryLM(Option):
 
     def __check_init__(self):
         if self.max_iters < 1:
-            raise ValueError(f"{type(self).__name__} needs max_iters >= 1, got {self.max_iters}")
+            raise JaxreflError(f"{type(self).__name__} needs max_iters >= 1, got {self.max_iters}")
 
     def tolerances(self, dtype) -> tuple[float, float, float]:
         """(rtol, atol, cond_max) for ``dtype``."""
@@ -257,7 +259,7 @@ def solve(
     """
     theta0 = jnp.asarray(theta0)
     if theta0.ndim != 2:
-        raise ValueError(f"theta0 must have shape (N, P), got {theta0.shape}")
+        raise JaxreflError(f"theta0 must have shape (N, P), got {theta0.shape}")
     n = theta0.shape[0]
     nu = jnp.full((n,), jnp.iinfo(jnp.int32).max, jnp.int32) if n_usable is None else n_usable
     if isinstance(solver, LMOptions):

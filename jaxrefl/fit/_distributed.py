@@ -45,6 +45,8 @@ from typing import Any, NoReturn, TypeVar
 import jax
 import numpy as np
 
+from jaxrefl._errors import JaxreflError
+
 __all__ = [
     "Distributed",
     "ProcessGroupError",
@@ -104,21 +106,21 @@ class Distributed:
         if self.coordinator is not None:
             host, sep, port = self.coordinator.rpartition(":")
             if not (sep and host and port.isdigit()):
-                raise ValueError(
+                raise JaxreflError(
                     f"coordinator must be HOST:PORT (e.g. node01:12345), not {self.coordinator!r}"
                 )
         if self.num_processes is not None and self.num_processes < 1:
-            raise ValueError(f"num_processes must be >= 1, got {self.num_processes}")
+            raise JaxreflError(f"num_processes must be >= 1, got {self.num_processes}")
         if self.process_id is not None and (
             self.process_id < 0
             or (self.num_processes is not None and self.process_id >= self.num_processes)
         ):
-            raise ValueError(
+            raise JaxreflError(
                 f"process_id must be in 0 .. num_processes - 1 ({self.num_processes}), "
                 f"got {self.process_id}"
             )
         if self.heartbeat_timeout_s < 1:
-            raise ValueError(f"heartbeat_timeout_s must be >= 1, got {self.heartbeat_timeout_s}")
+            raise JaxreflError(f"heartbeat_timeout_s must be >= 1, got {self.heartbeat_timeout_s}")
 
     @property
     def is_main(self) -> bool:

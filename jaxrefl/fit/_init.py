@@ -66,6 +66,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from jaxrefl._errors import JaxreflError
 from jaxrefl.brdf import BRDF
 
 from ._residual import L2, PixelData, Residual
@@ -602,11 +603,11 @@ def initial_theta(
     from ._shard import device_count, map_sharded
 
     if data.obs.ndim != 3:
-        raise ValueError(f"initial_theta expects batched data (N, K, C), got {data.obs.shape}")
+        raise JaxreflError(f"initial_theta expects batched data (N, K, C), got {data.obs.shape}")
     how, lin, names, grid = _plan(res, int(grid_size))  # eager: checks affinity numerically
     plan = (how, lin, names, tuple(float(v) for v in grid))
     if int(refine) < 0:
-        raise ValueError(f"refine must be >= 0, got {refine}")
+        raise JaxreflError(f"refine must be >= 0, got {refine}")
     ex = float(exclude_brightest)
     run = lambda d: _initial_theta_jit(res, d, plan, ex, int(refine))  # noqa: E731
     n = data.obs.shape[0]

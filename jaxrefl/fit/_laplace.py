@@ -68,6 +68,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
+from jaxrefl._errors import JaxreflError
+
 from ._lm import _linearise as lm_linearise
 from ._lm import cho_solve_unrolled, cholesky_unrolled
 from ._residual import PixelData, Residual
@@ -248,11 +250,11 @@ def laplace(
 
     theta = jnp.asarray(fit.theta)
     if theta.ndim != 2:
-        raise ValueError(f"laplace expects a batch fit with theta (N, P); got {theta.shape}")
+        raise JaxreflError(f"laplace expects a batch fit with theta (N, P); got {theta.shape}")
     if cond_max is None:
         cond_max = 1e7 if jnp.finfo(theta.dtype).bits <= 32 else 1e10
     if noise not in ("estimate", "known"):
-        raise ValueError(f"noise must be 'estimate' or 'known', not {noise!r}")
+        raise JaxreflError(f"noise must be 'estimate' or 'known', not {noise!r}")
     lin = getattr(fit, "linearisation", None)
     if lin is not None and (residual is None or same_residual(residual, lin.residual)):
         # The fit's own J^T J at theta: no Jacobian to compute here.
@@ -264,7 +266,7 @@ def laplace(
         cost = jnp.zeros(theta.shape[:1], theta.dtype)  # recomputed from ``res``
         rest = (data.astype(theta.dtype),)
         if data.obs.shape[0] != theta.shape[0]:
-            raise ValueError(f"data has {data.obs.shape[0]} pixels, the fit {theta.shape[0]}")
+            raise JaxreflError(f"data has {data.obs.shape[0]} pixels, the fit {theta.shape[0]}")
 
     def run(theta, cost, status, *rest):
         return _laplace_jit(

@@ -63,6 +63,7 @@ The final status per pixel (``_status.Status``) is computed by ``_status.classif
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Callable
 from typing import Any, ClassVar
 
@@ -73,7 +74,9 @@ import numpy as np
 from jax import lax
 from jaxtyping import Array, Bool, Float, Int
 
-from ._options import Option
+from jaxrefl._errors import JaxreflError
+
+from ._options import Option, check_number
 from ._status import classify, default_cond_max
 from ._transform import ParamSpace
 
@@ -170,6 +173,25 @@ class LMOptions(Option):
     host_loop: bool = eqx.field(default=True, static=True)
     host_round: int = eqx.field(default=2, static=True)
     host_fused: bool = eqx.field(default=False, static=True)
+
+    def __check_init__(self):
+        for name in ("max_iters", "chunk", "host_round"):
+            v = getattr(self, name)
+            if not isinstance(v, numbers.Integral) or v < 1:
+                raise JaxreflError(f"LMOptions needs an integer {name} >= 1, got {v!r}")
+        for name in ("unroll_max", "compact_after"):
+            v = getattr(self, name)
+            if not isinstance(v, numbers.Integral) or v < 0:
+                raise JaxreflError(f"LMOptions needs an integer {name} >= 0, got {v!r}")
+        for name in ("lam0", "lam_min", "lam_max", "bound_rtol", "max_step"):
+            check_number("LMOptions", name, getattr(self, name), positive=True)
+        for name in ("xtol", "ftol", "cond_max"):
+            if getattr(self, name) is not None:
+                check_number("LMOptions", name, getattr(self, name), positive=True)
+        if self.lam_min >= self.lam_max:
+            raise JaxreflError(
+                f"LMOptions needs lam_min < lam_max, got {self.lam_min} and {self.lam_max}"
+            )
 
     def tolerances(self, dtype) -> tuple[float, float, float]:
         """(xtol, ftol, cond_max) for ``dtype``."""

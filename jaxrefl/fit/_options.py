@@ -20,6 +20,8 @@ from typing import Any, ClassVar
 import equinox as eqx
 import numpy as np
 
+from jaxrefl._errors import JaxreflError
+
 __all__ = ["Option", "check_number", "option_json"]
 
 
@@ -54,7 +56,7 @@ def check_number(
     if not ok:
         rel = "> 0" if positive else ">= 0"
         note = f" ({why})" if why else ""
-        raise ValueError(f"{owner} needs a finite {name} {rel}{note}, got {value}")
+        raise JaxreflError(f"{owner} needs a finite {name} {rel}{note}, got {value}")
 
 
 class Option(eqx.Module):

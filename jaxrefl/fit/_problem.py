@@ -33,6 +33,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 from numpy.typing import DTypeLike
 
+from jaxrefl._errors import JaxreflError
 from jaxrefl.brdf import BRDF
 
 from ._backends import Solver, solve
@@ -100,7 +101,7 @@ class FitConfig(Option):
 
     def __check_init__(self):
         if self.dtype is not None and not np.issubdtype(self.dtype, np.floating):
-            raise ValueError(f"FitConfig needs a floating dtype, got {self.dtype}")
+            raise JaxreflError(f"FitConfig needs a floating dtype, got {self.dtype}")
 
     def replace(self, **changes: Any) -> FitConfig:
         """A copy with ``changes`` (field names as keywords)."""
@@ -170,13 +171,13 @@ def _theta0(res, data: PixelData, init: Any, dtype) -> Array:
             return initial_theta(res, data)
         if init == "defaults":
             return jnp.broadcast_to(space.default_theta(dtype), (n, space.size))
-        raise ValueError(f"init must be 'auto', 'defaults', an array or a dict, not {init!r}")
+        raise JaxreflError(f"init must be 'auto', 'defaults', an array or a dict, not {init!r}")
     if isinstance(init, Mapping):
         t = space.from_natural(init, dtype=dtype)
     else:
         t = jnp.asarray(init, dtype=dtype)
     if t.shape[-1:] != (space.size,):
-        raise ValueError(f"init theta must end in P = {space.size} {space.labels}; got {t.shape}")
+        raise JaxreflError(f"init theta must end in P = {space.size} {space.labels}; got {t.shape}")
     return jnp.broadcast_to(t, (n, space.size))
 
 
@@ -241,16 +242,16 @@ def fit_pixels(
     if not isinstance(config, FitConfig):
         raise TypeError(f"config must be a fit.FitConfig, not {type(config).__name__}")
     if data.obs.ndim != 3:
-        raise ValueError(f"fit_pixels expects data of shape (N, K, C); got {data.obs.shape}")
+        raise JaxreflError(f"fit_pixels expects data of shape (N, K, C); got {data.obs.shape}")
     if config.dtype is not None:
         data = data.astype(config.dtype)
     c = data.obs.shape[-1]
     if space is None:
         space = ParamSpace(model, channels=c, bounds=bounds, fixed=fixed)
     elif bounds is not None or fixed is not None:
-        raise ValueError("give bounds/fixed through the ParamSpace when passing space")
+        raise JaxreflError("give bounds/fixed through the ParamSpace when passing space")
     if space.channels != c:
-        raise ValueError(f"space has {space.channels} channels, data has {c}")
+        raise JaxreflError(f"space has {space.channels} channels, data has {c}")
     theta, status, cost, iters, n_used, lin = _run(model, data, space, config, init, devices, prior)
     kind = config.solver.kind
     return FitResult(
@@ -348,7 +349,7 @@ def fit_samples(
         )
         n_ch, ch_names = 1, None
     else:
-        raise ValueError(f"channels must be 'joint' or 'separate', not {channels!r}")
+        raise JaxreflError(f"channels must be 'joint' or 'separate', not {channels!r}")
     if space is None:
         if ch_names is not None and len(ch_names) != n_ch:
             ch_names = None

@@ -36,6 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from jaxrefl._errors import JaxreflError
 from jaxrefl.brdf import BRDF
 
 from ._options import Option, check_number
@@ -126,18 +127,18 @@ def pixel_data(
         dtype = obs.dtype if jnp.issubdtype(obs.dtype, jnp.floating) else jnp.float32
     obs = obs.astype(dtype)
     if obs.ndim < 2:
-        raise ValueError(f"obs must have shape (*n, K, C), got {obs.shape}")
+        raise JaxreflError(f"obs must have shape (*n, K, C), got {obs.shape}")
     lead = obs.shape[:-1]
 
     def lift(v, shape, name):
         if v.ndim > len(shape):
-            raise ValueError(
+            raise JaxreflError(
                 f"{name} has shape {v.shape}, more axes than {shape} (obs is (*n, K, C))"
             )
         try:
             return jnp.broadcast_to(v.reshape((1,) * (len(shape) - v.ndim) + v.shape), shape)
         except ValueError:
-            raise ValueError(
+            raise JaxreflError(
                 f"{name} has shape {v.shape}, which does not broadcast to {shape} "
                 "(obs is (*n, K, C))"
             ) from None
@@ -148,7 +149,7 @@ def pixel_data(
     def direction(w, name):
         w = jnp.asarray(w, dtype=dtype)
         if w.shape[-1:] != (3,):
-            raise ValueError(f"{name} must have a trailing axis of 3, got {w.shape}")
+            raise JaxreflError(f"{name} must have a trailing axis of 3, got {w.shape}")
         return lift(w, (*lead, 3), name)
 
     cens = jnp.zeros(obs.shape, jnp.int8) if censored is None else jnp.asarray(censored)
@@ -157,7 +158,7 @@ def pixel_data(
     wo_b = wi_b if colocated else direction(wo, "wo")
     scale_b, weight_b = full(scale, 1.0, "scale"), full(weight, 1.0, "weight")
     if _concrete(scale_b) and not bool(jnp.all(jnp.isfinite(scale_b))):
-        raise ValueError(
+        raise JaxreflError(
             "scale holds a non-finite value; give finite scales (weight 0 drops an observation)"
         )
     for name, w in (("wi", wi_b), ("wo", None if colocated else wo_b)):
@@ -183,7 +184,7 @@ def _check_unit(name: str, w: Array, weight: Array) -> None:
     off = np.where(used & np.isfinite(norm), np.abs(norm - 1.0), 0.0)
     if off.size and np.max(off) > _UNIT_TOL:
         i = np.unravel_index(int(np.argmax(off)), off.shape)
-        raise ValueError(
+        raise JaxreflError(
             f"{name} must be unit vectors (|{name}| = 1 within {_UNIT_TOL:g}); the worst, at "
             f"index {tuple(int(j) for j in i)}, has length {norm[i]:.6g}"
         )
@@ -357,7 +358,7 @@ def gaussian_prior(space: ParamSpace, priors: dict[str, tuple[float, float]]) ->
         raise KeyError(f"no free parameters {bad} in the space; it has {labels}")
     for k, (_, sd) in priors.items():
         if not sd > 0:
-            raise ValueError(f"prior std of {k!r} must be > 0, got {sd}")
+            raise JaxreflError(f"prior std of {k!r} must be > 0, got {sd}")
     keys = list(priors)
     return GaussianPrior(
         tuple(labels.index(k) for k in keys),

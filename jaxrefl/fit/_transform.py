@@ -44,6 +44,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
+from jaxrefl._errors import JaxreflError
 from jaxrefl.brdf import BRDF, Param
 
 __all__ = [
@@ -158,9 +159,9 @@ class ScaledSigmoid(Bijection):
 
     def __check_init__(self):
         if not (math.isfinite(self.lower) and math.isfinite(self.upper)):
-            raise ValueError(f"ScaledSigmoid needs finite bounds, got {self.lower, self.upper}")
+            raise JaxreflError(f"ScaledSigmoid needs finite bounds, got {self.lower, self.upper}")
         if not self.upper > self.lower:
-            raise ValueError(f"ScaledSigmoid needs upper > lower, got {self.lower, self.upper}")
+            raise JaxreflError(f"ScaledSigmoid needs upper > lower, got {self.lower, self.upper}")
 
     @property
     def range(self):
@@ -209,7 +210,7 @@ class UnitVector(Bijection):
         return self.forward(x)
 
     def dforward(self, u):
-        raise ValueError("UnitVector is not elementwise; use UnitVector.jacobian(u) (3 x 3)")
+        raise JaxreflError("UnitVector is not elementwise; use UnitVector.jacobian(u) (3 x 3)")
 
     def jacobian(self, u: Float[Array, "*b 3"]) -> Float[Array, "*b 3 3"]:
         x = self.forward(u)
@@ -308,7 +309,7 @@ class ParamSpace(eqx.Module):
         if channel_names is None:
             channel_names = _channel_labels(channels)
         if len(channel_names) != channels:
-            raise ValueError(f"{channels} channels but channel_names {channel_names}")
+            raise JaxreflError(f"{channels} channels but channel_names {channel_names}")
         self.model = model
         self.channels = int(channels)
         self.channel_names = tuple(str(c) for c in channel_names)
@@ -322,12 +323,12 @@ class ParamSpace(eqx.Module):
             n = 1 if is_grey else int(np.prod(shape, dtype=int))
             lo, hi = (float(v) for v in bounds.get(q.name, (q.lower, q.upper)))
             if not hi > lo:
-                raise ValueError(f"bounds for {q.name!r} must satisfy lower < upper: {lo, hi}")
+                raise JaxreflError(f"bounds for {q.name!r} must satisfy lower < upper: {lo, hi}")
             runs = []
             if q.name in transforms:
                 bij = transforms[q.name]
                 if not bij.elementwise and n != 3:
-                    raise ValueError(f"{type(bij).__name__} needs a 3-entry parameter: {q.name}")
+                    raise JaxreflError(f"{type(bij).__name__} needs a 3-entry parameter: {q.name}")
                 b_lo, b_hi = bij.range
                 runs.append(_Run(start, start + n, bij, max(lo, b_lo), min(hi, b_hi)))
             elif q.kind == "lobes":
@@ -353,7 +354,7 @@ class ParamSpace(eqx.Module):
                     v = v.astype(jnp.float32)
                 # A fixed value is used as given: it must be a finite number.
                 if not isinstance(v, jax.core.Tracer) and not bool(jnp.all(jnp.isfinite(v))):
-                    raise ValueError(
+                    raise JaxreflError(
                         f"fixed[{q.name!r}] = {np.asarray(v).tolist()} is not finite; give a "
                         f"finite value in [{q.lower}, {q.upper}]"
                     )
@@ -415,7 +416,7 @@ class ParamSpace(eqx.Module):
         """
         self._check(theta)
         if not self.elementwise:
-            raise ValueError("ParamSpace holds a non-elementwise bijection; use jacobian_natural")
+            raise JaxreflError("ParamSpace holds a non-elementwise bijection; use jacobian_natural")
         runs = [r for b in self.blocks for r in b.runs]
         parts = [r.bijection.dforward(theta[..., r.start : r.stop]) for r in runs]
         return jnp.concatenate(parts, axis=-1) if parts else theta
@@ -517,7 +518,7 @@ class ParamSpace(eqx.Module):
 
     def _check(self, theta) -> None:
         if theta.shape[-1:] != (self.size,):
-            raise ValueError(
+            raise JaxreflError(
                 f"theta must have a trailing axis of length P = {self.size} {self.labels}, "
                 f"got shape {theta.shape}"
             )

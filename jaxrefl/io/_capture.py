@@ -152,7 +152,7 @@ def geometry_status(
         elif light_dir is not None:
             lz = light_dir[k, 2]
         else:
-            raise ValueError("geometry_status needs light_pos or light_dir")
+            raise JaxreflError("geometry_status needs light_pos or light_dir")
         below_l = np.broadcast_to(np.asarray(lz) <= 0.0, z.shape)
         below_v = camera_pos[k, 2] - z <= 0.0
         for code, below in (
@@ -223,13 +223,13 @@ class Capture:
         images = np.asarray(self.images, dtype=np.float32)
         status = np.asarray(self.status, dtype=np.uint8)
         if images.ndim != 4 or status.shape != images.shape:
-            raise ValueError(
+            raise JaxreflError(
                 f"images must be (K, H, W, C) and status the same shape, got {images.shape} "
                 f"and {status.shape}"
             )
         k, h, w, c = images.shape
         if (self.light_pos is None) == (self.light_dir is None):
-            raise ValueError("give exactly one of light_pos (point) and light_dir (directional)")
+            raise JaxreflError("give exactly one of light_pos (point) and light_dir (directional)")
         lp = None if self.light_pos is None else np.asarray(self.light_pos, np.float64)
         ld = None if self.light_dir is None else np.asarray(self.light_dir, np.float64)
         cp = np.asarray(self.camera_pos, np.float64)
@@ -237,7 +237,7 @@ class Capture:
         try:  # a number, one per channel (C,), one per photo (K, 1), or (K, C)
             pw = np.broadcast_to(pw, (k, c))
         except ValueError:
-            raise ValueError(
+            raise JaxreflError(
                 f"light_power of shape {pw.shape} does not broadcast to (K, C) = ({k}, {c}); "
                 "give one value per photo as shape (K, 1)"
             ) from None
@@ -249,7 +249,7 @@ class Capture:
             ("points", pts, (h, w, 3)),
         ):
             if a is not None and a.shape != shape:
-                raise ValueError(f"{name} must have shape {shape}, got {a.shape}")
+                raise JaxreflError(f"{name} must have shape {shape}, got {a.shape}")
         # Geometry must be finite: a NaN direction or position has no safe fallback, and a
         # light direction must have a length to be normalised.
         for name, a in (
@@ -344,7 +344,7 @@ class Capture:
         idx = np.arange(self.n_photos)[np.asarray(indices)]
         idx = np.atleast_1d(idx)
         if idx.size == 0:
-            raise ValueError("select needs at least one photo")
+            raise JaxreflError("select needs at least one photo")
         return replace(
             self,
             images=self.images[idx],
@@ -361,7 +361,7 @@ class Capture:
         """Rows r0:r1 and columns c0:c1 (half-open) of every photo, points and status."""
         _, h, w, _ = self.shape
         if not (0 <= r0 < r1 <= h and 0 <= c0 < c1 <= w):
-            raise ValueError(f"crop [{r0}:{r1}, {c0}:{c1}] is not inside the {h}x{w} photos")
+            raise JaxreflError(f"crop [{r0}:{r1}, {c0}:{c1}] is not inside the {h}x{w} photos")
         return replace(
             self,
             images=self.images[:, r0:r1, c0:c1],
@@ -381,7 +381,7 @@ class Capture:
         f = int(factor)
         k, h, w, c = self.shape
         if f < 1 or h % f or w % f:
-            raise ValueError(f"downsample factor {factor} must be >= 1 and divide {h}x{w}")
+            raise JaxreflError(f"downsample factor {factor} must be >= 1 and divide {h}x{w}")
         if f == 1:
             return self
         blocks = (k, h // f, f, w // f, f, c)
@@ -409,7 +409,7 @@ class Capture:
         try:
             drop = np.broadcast_to(~keep, self.shape)
         except ValueError:
-            raise ValueError(
+            raise JaxreflError(
                 f"mask of shape {keep.shape} does not fit photos {self.shape}"
             ) from None
         st = self.status.copy()

@@ -69,6 +69,8 @@ from typing import Any
 
 import numpy as np
 
+from jaxrefl._errors import JaxreflError
+
 from ._capture import Capture, CaptureError, geometry_status
 from ._photos import Photos, read_pixels, response_for, write_png, x64
 
@@ -522,7 +524,7 @@ def load_capture(
     if layout == "auto":
         layout, where = _detect(path)
     elif layout not in _LAYOUTS:
-        raise ValueError(f"unknown layout {layout!r}; use 'auto' or one of {_LAYOUTS}")
+        raise JaxreflError(f"unknown layout {layout!r}; use 'auto' or one of {_LAYOUTS}")
     else:
         where = path
         if layout == "generic" and path.is_dir():
@@ -530,7 +532,7 @@ def load_capture(
         elif layout != "generic" and path.is_file():
             where = path.parent
     if max_photos is not None and max_photos < 1:
-        raise ValueError(f"max_photos must be >= 1, got {max_photos}")
+        raise JaxreflError(f"max_photos must be >= 1, got {max_photos}")
     if resolution is not None and not (isinstance(resolution, int) and resolution >= 1):
         raise CaptureError(
             path,
@@ -586,10 +588,10 @@ def save_generic_capture(
     folder.mkdir(parents=True, exist_ok=True)
     img = np.asarray(images, np.float64)
     if img.ndim != 4:
-        raise ValueError(f"images must be (K, H, W, C), got {img.shape}")
+        raise JaxreflError(f"images must be (K, H, W, C), got {img.shape}")
     k, h, w, c = img.shape
     if (light_pos is None) == (light_dir is None):
-        raise ValueError("give exactly one of light_pos and light_dir")
+        raise JaxreflError("give exactly one of light_pos and light_dir")
     geo = np.broadcast_to(np.asarray(light_pos if light_dir is None else light_dir, float), (k, 3))
     power = np.asarray(light_power, float)
     if power.ndim == 1 and power.size == k and k != c:  # one value per photo
@@ -609,12 +611,12 @@ def save_generic_capture(
             elif c == 1:
                 write_exr(folder / name, {"Y": img[i, ..., 0].astype(np.float32)})
             else:
-                raise ValueError(f"EXR photos need 1 or 3 channels, got {c}")
+                raise JaxreflError(f"EXR photos need 1 or 3 channels, got {c}")
         elif fmt in ("png8", "png16"):
             import jax.numpy as jnp
 
             if not np.all(np.isfinite(img[i])):
-                raise ValueError(f"photo {i} holds NaN/Inf, which a PNG cannot store")
+                raise JaxreflError(f"photo {i} holds NaN/Inf, which a PNG cannot store")
             top = 255 if fmt == "png8" else 65535
             with x64():
                 enc = np.asarray(response.apply(jnp.asarray(img[i], jnp.float64)))
@@ -622,7 +624,7 @@ def save_generic_capture(
             name = f"{i:02d}.png"
             write_png(folder / name, q)
         else:
-            raise ValueError(f"file_format must be 'exr', 'png8' or 'png16', got {file_format!r}")
+            raise JaxreflError(f"file_format must be 'exr', 'png8' or 'png16', got {file_format!r}")
         names.append(name)
     if light_dir is None:
         lights = [
@@ -645,7 +647,7 @@ def save_generic_capture(
     if mask is not None:
         m = np.asarray(mask, bool)
         if m.shape != (h, w):
-            raise ValueError(f"mask must be (H, W) = ({h}, {w}), got {m.shape}")
+            raise JaxreflError(f"mask must be (H, W) = ({h}, {w}), got {m.shape}")
         write_png(folder / "mask.png", m.astype(np.uint8) * 255)
         spec["mask"] = "mask.png"
     if saturation is not None:

@@ -34,6 +34,8 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import TypeVar
 
+from jaxrefl._errors import JaxreflError
+
 __all__ = [
     "SCALAR_CHANNEL",
     "corr_name",
@@ -53,7 +55,7 @@ def map_name(label: str, suffix: str = "") -> str:
     or a statistic (suffix ``"_std"``, ``"_mean"``, ``"_q05"``, ``"_q95"``): ``albedo_std.R``,
     ``alpha_std``. A suffix must start with ``_`` (a dot would start a channel)."""
     if suffix and not suffix.startswith("_"):
-        raise ValueError(f"a map suffix starts with '_' (e.g. '_std'), got {suffix!r}")
+        raise JaxreflError(f"a map suffix starts with '_' (e.g. '_std'), got {suffix!r}")
     base, dot, ch = label.rpartition(".")
     return f"{base}{suffix}.{ch}" if dot else f"{label}{suffix}"
 

@@ -45,6 +45,8 @@ from typing import overload
 
 import numpy as np
 
+from jaxrefl._errors import JaxreflError
+
 from ._measured import MeasuredBRDF, MeasuredDataError, directions_from_angles
 
 __all__ = ["read_curet", "read_curet_geometry"]
@@ -172,7 +174,7 @@ def read_curet(
         [Path(abrdf_path)] if isinstance(abrdf_path, (str, Path)) else [Path(p) for p in abrdf_path]
     )
     if not paths:
-        raise ValueError("read_curet needs at least one value file")
+        raise JaxreflError("read_curet needs at least one value file")
     wi, wo, angles = read_curet_geometry(table_path)
     n_geom = wi.shape[0]
     if n_geom != N_GEOMETRIES:
@@ -193,7 +195,7 @@ def read_curet(
         else tuple(_CHANNEL_NAMES.get(p.stem.lower(), p.stem) for p in paths)
     )
     if len(names) != len(paths):
-        raise ValueError(f"{len(paths)} value files but {len(names)} channel names")
+        raise JaxreflError(f"{len(paths)} value files but {len(names)} channel names")
 
     def build(k: int) -> MeasuredBRDF:
         values = np.stack([t[k] for t in tables], axis=-1)

@@ -123,7 +123,9 @@ class MeasuredBRDF:
         if not isinstance(index, slice):
             index = np.asarray(index)
             if index.dtype == bool and index.shape != (len(self),):
-                raise ValueError(f"boolean mask must have shape ({len(self)},), got {index.shape}")
+                raise JaxreflError(
+                    f"boolean mask must have shape ({len(self)},), got {index.shape}"
+                )
         return replace(
             self,
             wi=self.wi[index],

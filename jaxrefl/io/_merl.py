@@ -19,6 +19,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Float
 
+from jaxrefl._errors import JaxreflError
+
 from ..brdf import MERL, MERL_SCALE, MERL_SHAPE
 from ._measured import MeasuredBRDF, MeasuredDataError
 
@@ -72,7 +74,7 @@ def write_merl(path: str | Path, table: MERL | Float[ArrayLike, "3 90 90 180"]) 
     """
     t = np.asarray(table.table if isinstance(table, MERL) else table, dtype=np.float64)
     if t.shape != MERL_SHAPE:
-        raise ValueError(f"MERL table must have shape {MERL_SHAPE}, got {t.shape}")
+        raise JaxreflError(f"MERL table must have shape {MERL_SHAPE}, got {t.shape}")
     raw = t / _SCALE
     with Path(path).open("wb") as f:
         f.write(np.asarray(_DIMS, dtype="<i4").tobytes())
@@ -97,7 +99,7 @@ def merl_to_measured(
     Directions are computed in JAX's default dtype, then stored as float64.
     """
     if n is not None and (isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1):
-        raise ValueError(f"n (merl_samples) must be a whole number >= 1 or None (all), got {n!r}")
+        raise JaxreflError(f"n (merl_samples) must be a whole number >= 1 or None (all), got {n!r}")
     table = np.asarray(merl.table, dtype=np.float64)
     wi_cells, wo_cells = MERL.cell_directions()
     wi = np.asarray(wi_cells, dtype=np.float64)
@@ -106,7 +108,7 @@ def merl_to_measured(
     cells = np.argwhere(ok)
     if n is not None:
         if n > len(cells):
-            raise ValueError(f"asked for {n} samples but the table has {len(cells)} valid cells")
+            raise JaxreflError(f"asked for {n} samples but the table has {len(cells)} valid cells")
         pick = np.random.default_rng(seed).choice(len(cells), size=n, replace=False)
         cells = cells[np.sort(pick)]
     i, j, k = cells.T

@@ -261,13 +261,13 @@ def write_png(path: str | Path, image: np.ndarray, filters=(0, 1, 2, 3, 4)) -> N
     if a.ndim == 2:
         a = a[..., None]
     if a.ndim != 3 or a.shape[-1] not in (1, 2, 3, 4):
-        raise ValueError(f"write_png needs (H, W) or (H, W, C<=4) samples, got {a.shape}")
+        raise JaxreflError(f"write_png needs (H, W) or (H, W, C<=4) samples, got {a.shape}")
     if a.dtype == np.uint8:
         depth, raw = 8, a
     elif a.dtype == np.uint16:
         depth, raw = 16, a.astype(">u2").view(np.uint8)
     else:
-        raise ValueError(f"write_png needs uint8 or uint16 samples, got {a.dtype}")
+        raise JaxreflError(f"write_png needs uint8 or uint16 samples, got {a.dtype}")
     h, w, c = a.shape
     ctype = {1: 0, 2: 4, 3: 2, 4: 6}[c]
     bpp = c * depth // 8

@@ -30,6 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxrefl._errors import JaxreflError
 from jaxrefl.fit import FitResult, PixelData, Status
 
 __all__ = ["REASONS", "Compacted", "compact"]
@@ -113,7 +114,7 @@ def compact(
     """
     obs = np.asarray(data.obs)
     if obs.ndim != 3:
-        raise ValueError(f"compact expects data of shape (N, K, C); got {obs.shape}")
+        raise JaxreflError(f"compact expects data of shape (N, K, C); got {obs.shape}")
     n, k, _ = obs.shape
     scale = np.asarray(data.scale)
     weight = np.asarray(data.weight)

@@ -53,6 +53,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from jaxrefl._errors import JaxreflError
 from jaxrefl.brdf import BRDF, CookTorrance, Lambert, Param, Sum
 from jaxrefl.fit import Bijection, Exp, FitConfig, FitResult, ParamSpace, PixelData, fit_pixels
 
@@ -100,7 +101,7 @@ class RetroLobe(BRDF):
 
     def __check_init__(self):
         if not self.exponent >= 1.0:
-            raise ValueError(f"RetroLobe exponent must be >= 1, got {self.exponent}")
+            raise JaxreflError(f"RetroLobe exponent must be >= 1, got {self.exponent}")
 
     @property
     def params(self) -> tuple[Param, ...]:
@@ -159,13 +160,13 @@ class Components:
 
     def __post_init__(self):
         if self.lobe is not None and self.lobe not in _LOBES:
-            raise ValueError(f"lobe must be None or one of {_LOBES}, not {self.lobe!r}")
+            raise JaxreflError(f"lobe must be None or one of {_LOBES}, not {self.lobe!r}")
         if self.lobe is None:
             on = [s for s in _NEEDS_LOBE if getattr(self, s)]
             if on:
-                raise ValueError(f"{', '.join(on)} refine the specular lobe; switch on lobe=")
+                raise JaxreflError(f"{', '.join(on)} refine the specular lobe; switch on lobe=")
         if not self.active:
-            raise ValueError("a model needs at least one component (diffuse, lobe or retro)")
+            raise JaxreflError("a model needs at least one component (diffuse, lobe or retro)")
 
     @property
     def active(self) -> tuple[str, ...]:
@@ -181,7 +182,7 @@ class Components:
         """The same assembly with component ``name`` off (``"lobe"`` takes its refinements
         with it)."""
         if name not in self.active:
-            raise ValueError(f"{name!r} is not switched on in {self.label}")
+            raise JaxreflError(f"{name!r} is not switched on in {self.label}")
         if name == "lobe":
             return dataclasses.replace(
                 self, lobe=None, fresnel=False, anisotropic=False, second_lobe=False

@@ -20,6 +20,7 @@ from typing import Literal
 
 import numpy as np
 
+from jaxrefl._errors import JaxreflError
 from jaxrefl.io import (
     MeasuredBRDF,
     merl_to_measured,
@@ -53,7 +54,7 @@ def detect_format(path: str | Path) -> Format:
         head = fh.read(4096)
     if b"VARS" in head or b"NUM_POINTS" in head:
         return "cornell"
-    raise ValueError(
+    raise JaxreflError(
         f"{p}: cannot tell the format from the name; expected a Cornell .astm file, a CURET "
         ".dat value file (with table.txt) or a MERL .binary file"
     )
@@ -90,7 +91,7 @@ def load_measured(
     if not table.is_file():
         raise FileNotFoundError(f"{table}: CURET geometry table not found (give curet_table)")
     if curet_sample is None:
-        raise ValueError(f"{path}: a CURET file holds 61 samples; choose one (curet_sample)")
+        raise JaxreflError(f"{path}: a CURET file holds 61 samples; choose one (curet_sample)")
     return read_curet(path, table, sample=int(curet_sample))
 
 
@@ -98,7 +99,7 @@ def to_rgb(measured: MeasuredBRDF, illuminant: Literal["D65", "E"] = "D65") -> M
     """Spectral samples as linear sRGB f_r (1/sr) under ``illuminant`` (module docstring).
     Non-finite values stay non-finite (the affected samples are dropped later)."""
     if measured.wavelengths_nm is None:
-        raise ValueError(f"{measured.source}: not spectral data (no wavelengths)")
+        raise JaxreflError(f"{measured.source}: not spectral data (no wavelengths)")
     v = np.asarray(measured.values)
     finite = np.all(np.isfinite(v), axis=-1, keepdims=True)
     rgb = np.asarray(

@@ -35,6 +35,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxrefl._errors import JaxreflError
 from jaxrefl.brdf import BRDF
 from jaxrefl.fit import FitConfig, FitResult, Status, fit_samples
 from jaxrefl.io import MeasuredBRDF
@@ -58,7 +59,7 @@ def _check_dtype(config: FitConfig) -> np.dtype:
     """The config's dtype (None: float32), refusing any other than float32 or float64."""
     dt = _FLOAT32 if config.dtype is None else np.dtype(config.dtype)
     if dt not in (_FLOAT32, _FLOAT64):
-        raise ValueError(f"dtype must be float32 or float64, not {dt}")
+        raise JaxreflError(f"dtype must be float32 or float64, not {dt}")
     return dt
 
 
@@ -248,7 +249,7 @@ def fit_model(
     data = measured.select(ok)
     w = None if weight is None else np.asarray(weight, dtype=np.float64)[ok]
     if len(data) == 0:
-        raise ValueError(f"{measured.source}: no usable samples within {max_theta_deg} degrees")
+        raise JaxreflError(f"{measured.source}: no usable samples within {max_theta_deg} degrees")
     f = np.asarray(data.values)
     cos_i = data.wi[:, 2]
 
@@ -457,12 +458,12 @@ def fit_brdf(
         elif spectral == "bands":
             channels = "separate"
         else:
-            raise ValueError(f"spectral must be 'rgb' or 'bands', not {spectral!r}")
+            raise JaxreflError(f"spectral must be 'rgb' or 'bands', not {spectral!r}")
     ok = usable_samples(data.wi, data.wo, data.values, max_theta_deg)
     prepared = restrict(data, max_theta_deg)
     weight = weight_all[ok]
     if len(prepared) == 0:
-        raise ValueError(f"{measured.source}: no usable samples within {max_theta_deg} degrees")
+        raise JaxreflError(f"{measured.source}: no usable samples within {max_theta_deg} degrees")
     fits: dict[str, ModelFit] = {}
     # A model that contains another (Lafortune with L - 1 lobes for L) starts from its fit:
     # fit the smaller ones first, report in the order asked.

@@ -49,6 +49,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from jaxrefl._errors import JaxreflError
+
 __all__ = [
     "METRICS",
     "cosine_weighted_l2",
@@ -71,12 +73,12 @@ def _prepare(measured, fitted, cos_i, weight):
     if f.ndim == 1:
         f, g = f[:, None], g.reshape(-1, 1)
     if g.shape != f.shape:
-        raise ValueError(f"measured {f.shape} and fitted {g.shape} values differ in shape")
+        raise JaxreflError(f"measured {f.shape} and fitted {g.shape} values differ in shape")
     k = f.shape[0]
     c = jnp.broadcast_to(jnp.asarray(cos_i, dtype=dtype).reshape(-1), (k,))
     w = jnp.ones((k,), dtype) if weight is None else jnp.asarray(weight, dtype).reshape(-1)
     if w.shape != (k,):
-        raise ValueError(f"weight must have one entry per sample ({k}), got {w.shape}")
+        raise JaxreflError(f"weight must have one entry per sample ({k}), got {w.shape}")
     ok = jnp.all(jnp.isfinite(f) & jnp.isfinite(g), axis=-1) & jnp.isfinite(c) & (w > 0)
     # Gradient-safe: masked samples become exact zeros before any arithmetic.
     f = jnp.where(ok[:, None], f, 0.0)

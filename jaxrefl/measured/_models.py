@@ -33,6 +33,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Mapping
 
+from jaxrefl._errors import JaxreflError
 from jaxrefl._names import MEASURED_MODELS, canonical
 from jaxrefl.brdf import (
     BRDF,
@@ -95,7 +96,9 @@ def build_model(name: str) -> BRDF:
     try:
         return _BUILDERS[canonical(name)]()
     except KeyError:
-        raise ValueError(f"unknown model {name!r}; choose from {', '.join(MODEL_NAMES)}") from None
+        raise JaxreflError(
+            f"unknown model {name!r}; choose from {', '.join(MODEL_NAMES)}"
+        ) from None
 
 
 _FRESNEL_NAMES = {
@@ -117,7 +120,7 @@ def fresnel_variant(name: str, fresnel: str) -> str:
     """The name of model ``name`` with Fresnel term ``fresnel`` (one of
     :data:`FRESNEL_CHOICES`); a model without a Fresnel variant keeps its name."""
     if fresnel not in FRESNEL_CHOICES:
-        raise ValueError(f"fresnel must be one of {', '.join(FRESNEL_CHOICES)}, not {fresnel!r}")
+        raise JaxreflError(f"fresnel must be one of {', '.join(FRESNEL_CHOICES)}, not {fresnel!r}")
     base = canonical(name).removesuffix(_DIELECTRIC)
     if base + _DIELECTRIC not in _BUILDERS:
         return canonical(name)
@@ -134,5 +137,5 @@ def resolve_models(models: Iterable[str] | Mapping[str, BRDF] | None) -> dict[st
         models = [models]
     out = {canonical(n): build_model(n) for n in models}
     if not out:
-        raise ValueError("no models to fit")
+        raise JaxreflError("no models to fit")
     return out

@@ -34,6 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from jaxrefl._errors import JaxreflError
 from jaxrefl.brdf import BRDF
 from jaxrefl.fit import ParamSpace
 
@@ -143,7 +144,7 @@ def rank_candidates(
     a = _prior(space, prior_precision)
     if measured_wi is not None:
         if measured_wo is None:
-            raise ValueError("give measured_wo together with measured_wi")
+            raise JaxreflError("give measured_wo together with measured_wi")
         info = information(model, space, theta, measured_wi, measured_wo, scale=scale, sigma=sigma)
         a = a + info.sum(axis=0)
     ic = information(model, space, theta, cand_wi, cand_wo, scale=cand_scale, sigma=sigma)

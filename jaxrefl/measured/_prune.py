@@ -51,6 +51,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxrefl._errors import JaxreflError
 from jaxrefl.fit import (
     FitConfig,
     FitResult,
@@ -343,14 +344,14 @@ def prune(
     The compaction options are those of :func:`~jaxrefl.measured._compact.compact`.
     """
     if criterion not in CRITERIA:
-        raise ValueError(f"criterion must be one of {CRITERIA}, not {criterion!r}")
+        raise JaxreflError(f"criterion must be one of {CRITERIA}, not {criterion!r}")
     c = data.obs.shape[-1]
     p_rich = param_space(rich.build(), c).size
     comp = compact(data, mask, min_obs=p_rich + 1, saturation=saturation, noise_floor=noise_floor)
     d = comp.data
     n = d.obs.shape[0]
     if n == 0:
-        raise ValueError(f"no pixel left to fit: {comp.counts}")
+        raise JaxreflError(f"no pixel left to fit: {comp.counts}")
     fits = dict(cache or {})
     if rich.label in fits:
         rich_fit, var = fits[rich.label][1], fits[rich.label][2]["noise_var"]
@@ -378,13 +379,13 @@ def prune(
         elif groups == "kmeans":
             labels = kmeans(_cluster_features(d), n_clusters, seed=seed)
         else:
-            raise ValueError(f"groups must be 'pixel', 'all', 'kmeans' or labels, not {groups!r}")
+            raise JaxreflError(f"groups must be 'pixel', 'all', 'kmeans' or labels, not {groups!r}")
     else:
         labels = np.asarray(groups).reshape(-1)
         if labels.shape[0] == comp.n_in:
             labels = labels[comp.index]
         elif labels.shape[0] != n:
-            raise ValueError(f"groups has {labels.shape[0]} labels for {comp.n_in} pixels")
+            raise JaxreflError(f"groups has {labels.shape[0]} labels for {comp.n_in} pixels")
     out = []
     for g in np.unique(labels):
         members = np.flatnonzero(labels == g)

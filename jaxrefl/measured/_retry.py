@@ -40,6 +40,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxrefl._errors import JaxreflError
 from jaxrefl.brdf import BRDF
 from jaxrefl.fit import (
     FitConfig,
@@ -239,7 +240,7 @@ def fit_pixels_retry(
     are float32, then float64).
     """
     if config.dtype is not None:
-        raise ValueError("fit_pixels_retry chooses the dtypes itself (float32, then float64)")
+        raise JaxreflError("fit_pixels_retry chooses the dtypes itself (float32, then float64)")
     r32 = fit_pixels(model, data, config=config.replace(dtype=np.float32), space=space)
     retried = retry_mask(r32, data)
     kept = np.zeros_like(retried)

@@ -85,6 +85,7 @@ import jax.numpy as jnp
 import numpy as np
 from scipy.stats import qmc
 
+from jaxrefl._errors import JaxreflError
 from jaxrefl.brdf import BRDF, Lafortune
 from jaxrefl.fit import (
     L2,
@@ -175,21 +176,21 @@ class MultiStart(Option):
 
     def __check_init__(self):
         if not isinstance(self.n_random, int) or self.n_random < 0:
-            raise ValueError(f"MultiStart needs an integer n_random >= 0, got {self.n_random}")
+            raise JaxreflError(f"MultiStart needs an integer n_random >= 0, got {self.n_random}")
         if not isinstance(self.rounds, int) or self.rounds < 0:
-            raise ValueError(f"MultiStart needs an integer rounds >= 0, got {self.rounds}")
+            raise JaxreflError(f"MultiStart needs an integer rounds >= 0, got {self.rounds}")
         if not isinstance(self.generations, int) or self.generations < 0:
-            raise ValueError(
+            raise JaxreflError(
                 f"MultiStart needs an integer generations >= 0, got {self.generations}"
             )
         if not isinstance(self.polish, int) or self.polish < 1:
-            raise ValueError(f"MultiStart needs an integer polish >= 1, got {self.polish}")
+            raise JaxreflError(f"MultiStart needs an integer polish >= 1, got {self.polish}")
         if self.n_random == 0 and not self.data:
-            raise ValueError("MultiStart needs at least one start: n_random > 0 or data=True")
+            raise JaxreflError("MultiStart needs at least one start: n_random > 0 or data=True")
         if not (math.isfinite(self.agree_rtol) and self.agree_rtol >= 0):
-            raise ValueError(f"MultiStart needs a finite agree_rtol >= 0, got {self.agree_rtol}")
+            raise JaxreflError(f"MultiStart needs a finite agree_rtol >= 0, got {self.agree_rtol}")
         if not (0.0 <= self.min_share <= 1.0):
-            raise ValueError(f"MultiStart needs min_share in [0, 1], got {self.min_share}")
+            raise JaxreflError(f"MultiStart needs min_share in [0, 1], got {self.min_share}")
 
 
 _DEFAULT_STARTS = MultiStart()
@@ -427,7 +428,7 @@ def nested_thetas(
     (module docstring): ``smaller_params`` are the natural parameters of ``smaller``'s fit
     to the same problem (colours with ``space.channels`` entries), ``values`` (K, C) f_r."""
     if not _is_nested(space.model, smaller):
-        raise ValueError(
+        raise JaxreflError(
             f"nested starts need the fit of {type(space.model).__name__}'s nested model "
             f"(nested_model), not of {type(smaller).__name__}"
         )
@@ -591,7 +592,7 @@ def _nested_starts(
     (theta (P',) for one problem, (N, P') for N)."""
     theta = np.asarray(nested.theta, np.float64)
     if theta.size != n * nested.space.size:
-        raise ValueError(
+        raise JaxreflError(
             f"the nested fit has {theta.size // max(nested.space.size, 1)} problems, "
             f"this fit {n}: fit both with the same channels"
         )

@@ -108,6 +108,7 @@ import jax.numpy as jnp
 import numpy as np
 from scipy import stats
 
+from jaxrefl._errors import JaxreflError
 from jaxrefl.fit import LaplaceFlag, PixelData, process_barrier, process_share
 
 from ._batched import HMCOptions, Samples, sample_pixels
@@ -216,22 +217,24 @@ class AdaptiveOptions:
             object.__setattr__(self, "mcmc", MCMCPixels(self.mcmc))
         except ValueError:
             names = ", ".join(repr(m.value) for m in MCMCPixels)
-            raise ValueError(f"mcmc must be one of {names}, not {self.mcmc!r}") from None
+            raise JaxreflError(f"mcmc must be one of {names}, not {self.mcmc!r}") from None
         if not 0.0 <= self.audit <= 1.0:
-            raise ValueError(f"audit must be a fraction in [0, 1], got {self.audit}")
+            raise JaxreflError(f"audit must be a fraction in [0, 1], got {self.audit}")
         if self.rerun_rhat is not None and not (
             math.isfinite(self.rerun_rhat) and self.rerun_rhat > 0
         ):
-            raise ValueError(f"rerun_rhat must be a positive number or None, got {self.rerun_rhat}")
+            raise JaxreflError(
+                f"rerun_rhat must be a positive number or None, got {self.rerun_rhat}"
+            )
         if self.chunk < 1:
-            raise ValueError(f"chunk must be >= 1, got {self.chunk}")
+            raise JaxreflError(f"chunk must be >= 1, got {self.chunk}")
         if self.workers is not None and self.workers < 1:
-            raise ValueError(f"workers must be >= 1 or None, got {self.workers}")
+            raise JaxreflError(f"workers must be >= 1 or None, got {self.workers}")
         second = self.rerun_hmc
         if second is not None and (
             second.num_chains != self.hmc.num_chains or second.num_samples != self.hmc.num_samples
         ):
-            raise ValueError(
+            raise JaxreflError(
                 "rerun_hmc must keep the first pass's num_chains and num_samples (the "
                 "draws replace the first pass's); lengthen it with num_warmup and thin"
             )
@@ -398,7 +401,7 @@ def adaptive_uncertainty(
     """
     o = AdaptiveOptions() if options is None else options
     if chunk_dir is None and jax.process_count() > 1:
-        raise ValueError(
+        raise JaxreflError(
             "adaptive_uncertainty in a job of several processes needs chunk_dir: a folder "
             "every process can read and write (the processes exchange their chunks there)"
         )

@@ -50,6 +50,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from jaxrefl._errors import JaxreflError
 from jaxrefl.fit import PixelData, device_count, map_sharded
 
 from ._bind import bind_once
@@ -109,12 +110,12 @@ class HMCOptions:
 
     def __post_init__(self):
         if self.reparam not in ("auto", "albedo", "none"):
-            raise ValueError(f"reparam must be 'auto', 'albedo' or 'none', not {self.reparam!r}")
+            raise JaxreflError(f"reparam must be 'auto', 'albedo' or 'none', not {self.reparam!r}")
         if not 0.15 < self.metric_window_end <= 1.0:
             w = self.metric_window_end
-            raise ValueError(f"metric_window_end must be in (0.15, 1], got {w}")
+            raise JaxreflError(f"metric_window_end must be in (0.15, 1], got {w}")
         if self.kernel not in ("hmc", "nuts"):
-            raise ValueError(f"kernel must be 'hmc' or 'nuts', not {self.kernel!r}")
+            raise JaxreflError(f"kernel must be 'hmc' or 'nuts', not {self.kernel!r}")
         for k in (
             "num_warmup",
             "num_samples",
@@ -124,14 +125,14 @@ class HMCOptions:
             "thin",
         ):
             if getattr(self, k) < 1:
-                raise ValueError(f"{k} must be >= 1, got {getattr(self, k)}")
+                raise JaxreflError(f"{k} must be >= 1, got {getattr(self, k)}")
         if self.gibbs_sweeps < 0:
-            raise ValueError(f"gibbs_sweeps must be >= 0, got {self.gibbs_sweeps}")
+            raise JaxreflError(f"gibbs_sweeps must be >= 0, got {self.gibbs_sweeps}")
         if self.width_scans is not None and self.width_scans < 1:
-            raise ValueError(f"width_scans must be >= 1 or None, got {self.width_scans}")
+            raise JaxreflError(f"width_scans must be >= 1 or None, got {self.width_scans}")
         if not 0.0 < self.gibbs_warmup_fraction <= 1.0:
             f = self.gibbs_warmup_fraction
-            raise ValueError(f"gibbs_warmup_fraction must be in (0, 1], got {f}")
+            raise JaxreflError(f"gibbs_warmup_fraction must be in (0, 1], got {f}")
 
     @property
     def gibbs_warmup(self) -> int:
@@ -367,7 +368,7 @@ def sample_pixels(
     dtype = data.obs.dtype
     t0_arr = jnp.asarray(theta0, dtype)
     if t0_arr.shape[-1] != lp.size:
-        raise ValueError(f"theta0 must end in D = {lp.size} {lp.labels}; got {t0_arr.shape}")
+        raise JaxreflError(f"theta0 must end in D = {lp.size} {lp.labels}; got {t0_arr.shape}")
     if opts.gibbs_sweeps > 0 and qualifies(lp, data)[0]:
         s = sample_gibbs(
             lp,

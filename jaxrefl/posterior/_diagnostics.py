@@ -35,6 +35,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxrefl._errors import JaxreflError
 from jaxrefl.fit import L2, PixelData
 
 from ._batched import Samples
@@ -171,7 +172,7 @@ def to_inference_data(
             dims[key] = obs_dims
     if log_likelihood is not None:
         if data is None:
-            raise ValueError("log_likelihood needs the data it was computed on (data=)")
+            raise JaxreflError("log_likelihood needs the data it was computed on (data=)")
         # (N, chains, draws, K, C) -> (chains, draws, N, K, C)
         ll = {"obs": np.moveaxis(np.asarray(log_likelihood), 0, 2)}
     if predictive is not None:

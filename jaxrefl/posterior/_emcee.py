@@ -33,6 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Float
 
+from jaxrefl._errors import JaxreflError
 from jaxrefl.fit import PixelData
 
 from ._batched import Samples
@@ -69,21 +70,21 @@ class EmceeOptions:
 
     def __post_init__(self) -> None:
         if self.n_walkers is not None and self.n_walkers < 2:
-            raise ValueError(f"n_walkers must be >= 2, got {self.n_walkers}")
+            raise JaxreflError(f"n_walkers must be >= 2, got {self.n_walkers}")
         if self.max_steps < 1:
-            raise ValueError(f"max_steps must be >= 1, got {self.max_steps}")
+            raise JaxreflError(f"max_steps must be >= 1, got {self.max_steps}")
         if self.check_every < 1:
-            raise ValueError(f"check_every must be >= 1, got {self.check_every}")
+            raise JaxreflError(f"check_every must be >= 1, got {self.check_every}")
         if not self.n_tau > 0:
-            raise ValueError(f"n_tau must be positive, got {self.n_tau}")
+            raise JaxreflError(f"n_tau must be positive, got {self.n_tau}")
         if not self.max_rhat >= 1:
-            raise ValueError(f"max_rhat must be >= 1, got {self.max_rhat}")
+            raise JaxreflError(f"max_rhat must be >= 1, got {self.max_rhat}")
         if not self.min_ess >= 0:
-            raise ValueError(f"min_ess must be >= 0, got {self.min_ess}")
+            raise JaxreflError(f"min_ess must be >= 0, got {self.min_ess}")
         if not self.scale > 0:
-            raise ValueError(f"scale must be positive, got {self.scale}")
+            raise JaxreflError(f"scale must be positive, got {self.scale}")
         if not self.burn_factor >= 0:
-            raise ValueError(f"burn_factor must be >= 0, got {self.burn_factor}")
+            raise JaxreflError(f"burn_factor must be >= 0, got {self.burn_factor}")
 
 
 @dataclass(frozen=True)
@@ -126,7 +127,7 @@ def autocorr_check(
     (``emcee.autocorr.integrated_time(chain, tol=n_tau)``, which refuses shorter chains)."""
     x = np.asarray(chain, dtype=np.float64)
     if x.ndim != 3:
-        raise ValueError(f"chain must be (steps, walkers, D), got shape {x.shape}")
+        raise JaxreflError(f"chain must be (steps, walkers, D), got shape {x.shape}")
     try:
         return np.asarray(emcee.autocorr.integrated_time(x, tol=n_tau)), True
     except emcee.autocorr.AutocorrError as err:  # shorter than n_tau * tau: tau in err.tau

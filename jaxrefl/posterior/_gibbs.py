@@ -55,6 +55,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from jaxrefl._errors import JaxreflError
 from jaxrefl.fit import L2, PixelData, ScaledSigmoid
 
 from ._logpost import LogPosterior
@@ -142,7 +143,7 @@ def linear_terms(lp: LogPosterior, data: PixelData):
     prediction at a second interior point agrees to :data:`_LINEAR_RTOL`."""
     box = _box(lp)
     if box is None:
-        raise ValueError("linear_terms needs every parameter in a finite box (ScaledSigmoid)")
+        raise JaxreflError("linear_terms needs every parameter in a finite box (ScaledSigmoid)")
     lo, hi = (jnp.asarray(v, data.obs.dtype) for v in box)
     return _linear_terms(lp, data, lo, hi)
 

@@ -54,6 +54,7 @@ import numpy as np
 from jax.scipy.special import log_ndtr
 from jaxtyping import Array, Float
 
+from jaxrefl._errors import JaxreflError
 from jaxrefl.brdf import BRDF
 from jaxrefl.fit import (
     Bijection,
@@ -178,7 +179,7 @@ class LogPosterior(eqx.Module):
         if u is None or self.light is None:
             return self.residual.predict(tb, data, replace)
         if normals is None:
-            raise ValueError("a posterior over the light direction needs normals (K, 3)")
+            raise JaxreflError("a posterior over the light direction needs normals (K, 3)")
         dtype = theta.dtype
         n = jnp.asarray(normals, dtype)
         l = self.light.direction(u)
@@ -297,11 +298,13 @@ def log_posterior(
     """
     res = make_residual(model, space, noise, loss)
     if not res.space.elementwise:
-        raise ValueError("log_posterior needs elementwise bijections; sample directions via light=")
+        raise JaxreflError(
+            "log_posterior needs elementwise bijections; sample directions via light="
+        )
     pri = resolve_priors(res.space, priors)
     if isinstance(noise_scale, str):
         if noise_scale != "auto":
-            raise ValueError(f"noise_scale must be a Prior, None or 'auto', not {noise_scale!r}")
+            raise JaxreflError(f"noise_scale must be a Prior, None or 'auto', not {noise_scale!r}")
         unknown = isinstance(res.noise, GaussianNoise) and res.noise.sigma is None
         noise_scale = Jeffreys() if unknown else None
     return LogPosterior(res, tuple(pri[b.name] for b in res.space.blocks), light, noise_scale)
@@ -320,7 +323,7 @@ class SharedLight(eqx.Module):
 
     def __check_init__(self):
         if self.pixel.light is None:
-            raise ValueError("SharedLight needs a pixel posterior with light= set")
+            raise JaxreflError("SharedLight needs a pixel posterior with light= set")
 
     @property
     def per_pixel(self) -> int:

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxrefl._errors import JaxreflError
 from jaxrefl.io import exr_channels, map_name
 
 from ._adaptive import METHODS, UncertaintyMap
@@ -36,7 +37,7 @@ def _channel(label: str, stat: str) -> str:
 def uncertainty_channels(umap: UncertaintyMap, height: int, width: int) -> dict[str, np.ndarray]:
     """name -> (height, width) array (module docstring); pixels in row-major order."""
     if umap.method.size != height * width:
-        raise ValueError(f"{umap.method.size} pixels do not fill {height} x {width}")
+        raise JaxreflError(f"{umap.method.size} pixels do not fill {height} x {width}")
 
     def img(v):
         return np.asarray(v).reshape(height, width)

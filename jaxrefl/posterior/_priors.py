@@ -41,6 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from jaxrefl._errors import JaxreflError
 from jaxrefl.fit import ParamSpace
 
 __all__ = [
@@ -129,11 +130,11 @@ class MultivariateNormal(Prior):
         c = np.asarray(self.cov, np.float64)
         k = len(self.mean)
         if c.shape != (k, k) or not np.allclose(c, c.T):
-            raise ValueError(f"MultivariateNormal needs a symmetric ({k}, {k}) cov, got {c}")
+            raise JaxreflError(f"MultivariateNormal needs a symmetric ({k}, {k}) cov, got {c}")
         if not np.all(np.linalg.eigvalsh(c) > 0):
-            raise ValueError(f"MultivariateNormal needs a positive definite cov, got {c}")
+            raise JaxreflError(f"MultivariateNormal needs a positive definite cov, got {c}")
         if self.noise_ref is not None and not self.noise_ref > 0:
-            raise ValueError(f"noise_ref must be a positive noise scale, got {self.noise_ref}")
+            raise JaxreflError(f"noise_ref must be a positive noise scale, got {self.noise_ref}")
 
     @property
     def precision(self) -> np.ndarray:
@@ -202,7 +203,7 @@ class Jeffreys(Prior):
         return jnp.where(ok, -jnp.log(jnp.where(ok, x, 1.0)), -jnp.inf)
 
     def sample(self, rng, shape):
-        raise ValueError("the Jeffreys prior is improper: it has no draws (give a proper prior)")
+        raise JaxreflError("the Jeffreys prior is improper: it has no draws (give a proper prior)")
 
 
 class VonMisesFisher(Prior):
@@ -220,9 +221,9 @@ class VonMisesFisher(Prior):
 
     def __check_init__(self):
         if not self.kappa >= 0:
-            raise ValueError(f"VonMisesFisher needs kappa >= 0, got {self.kappa}")
+            raise JaxreflError(f"VonMisesFisher needs kappa >= 0, got {self.kappa}")
         if not np.linalg.norm(self.mean) > 0:
-            raise ValueError("VonMisesFisher needs a non-zero mean direction")
+            raise JaxreflError("VonMisesFisher needs a non-zero mean direction")
 
     @property
     def mu(self) -> np.ndarray:
@@ -304,4 +305,4 @@ def sample_truncated(
         out = np.concatenate([out, x[(x >= lower) & (x <= upper)]])
         if out.size >= n:
             return out[:n].reshape(shape)
-    raise ValueError(f"{prior} puts almost no mass on [{lower}, {upper}]: cannot sample it")
+    raise JaxreflError(f"{prior} puts almost no mass on [{lower}, {upper}]: cannot sample it")

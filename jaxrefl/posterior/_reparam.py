@@ -50,6 +50,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from jaxrefl._errors import JaxreflError
 from jaxrefl.fit import PixelData, ScaledSigmoid
 
 from ._logpost import LogPosterior
@@ -163,15 +164,15 @@ def conditional_albedo(lp: LogPosterior, name: str = "albedo") -> ConditionalAlb
     prediction is not affine in ``name`` (checked numerically on a few directions).
     """
     if not isinstance(lp, LogPosterior):
-        raise ValueError(f"conditional_albedo needs a LogPosterior, got {type(lp).__name__}")
+        raise JaxreflError(f"conditional_albedo needs a LogPosterior, got {type(lp).__name__}")
     blocks = {b.name: b for b in lp.space.blocks}
     if name not in blocks:
-        raise ValueError(f"no free parameter {name!r} to non-centre (free: {tuple(blocks)})")
+        raise JaxreflError(f"no free parameter {name!r} to non-centre (free: {tuple(blocks)})")
     blk = blocks[name]
     bijs = {r.bijection for r in blk.runs}
     bij = next(iter(bijs), None)
     if len(bijs) != 1 or not isinstance(bij, ScaledSigmoid):
-        raise ValueError(f"{name!r} needs one bounded (scaled-logistic) bijection, got {bijs}")
+        raise JaxreflError(f"{name!r} needs one bounded (scaled-logistic) bijection, got {bijs}")
     _check_affine(lp, name)
     return ConditionalAlbedo(
         lp, name, blk.start, blk.stop, blk.grey, float(bij.lower), float(bij.upper)
@@ -199,7 +200,7 @@ def _check_affine(lp: LogPosterior, name: str) -> None:
     mid = ev(0.5)
     tol = 1e3 * float(jnp.finfo(dtype).eps) * max(1.0, float(np.max(np.abs(mid))))
     if not np.all(np.abs(mid - 0.5 * (lo + hi)) <= tol):
-        raise ValueError(
+        raise JaxreflError(
             f"the model's prediction is not affine in {name!r}: the conditional "
             "non-centring does not apply (sample in the fit's coordinates, reparam='none')"
         )

@@ -31,6 +31,8 @@ from dataclasses import dataclass
 import numpy as np
 from jax.scipy.special import gammaincc
 
+from jaxrefl._errors import JaxreflError
+
 __all__ = ["SBCResult", "coverage", "pit", "ranks", "sbc_summary", "thin", "uniformity"]
 
 
@@ -164,7 +166,7 @@ def sbc_summary(
         u = (ranks(truth, draws) + 0.5) / (m + 1)
     else:
         if mean is None or std is None:
-            raise ValueError("give draws, or mean and std of a Gaussian")
+            raise JaxreflError("give draws, or mean and std of a Gaussian")
         u = pit(truth, mean, std)
     for lv in levels:
         cov[lv] = coverage(np.abs(u - 0.5), np.zeros_like(u), np.full_like(u, lv / 2))

@@ -40,6 +40,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from jaxrefl import fit as jf
+from jaxrefl._errors import JaxreflError
 from jaxrefl.brdf import BRDF
 from jaxrefl.brdf import get as get_brdf
 from jaxrefl.brdf import tilt_normal as tilt_slopes
@@ -215,7 +216,7 @@ def _fit_batch(obs, lights, e, w, sat, *, model, space, config, shadow, init, se
     elif init == "diffuse":
         x0 = space.from_natural({"albedo": albedo_start(start, s, has)}, dtype=dt)
     else:
-        raise ValueError(f"init must be 'grid' or 'diffuse', not {init!r}")
+        raise JaxreflError(f"init must be 'grid' or 'diffuse', not {init!r}")
     theta0 = jnp.concatenate([jnp.zeros((n, 2), dt), x0], axis=-1)
     n_usable = jnp.sum(w_fit > 0, axis=(1, 2)).astype(jnp.int32)
     theta, info = jf.solve(residual, theta0, data, config.solver, n_usable=n_usable)

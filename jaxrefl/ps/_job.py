@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxrefl._errors import JaxreflError
 from jaxrefl._jsonsafe import report_json
 from jaxrefl.fit import Status, describe, has_estimate
 
@@ -96,9 +97,9 @@ def run_ps(
 
     _check_method(method)
     if reference not in (None, "sphere"):
-        raise ValueError(f"reference must be 'sphere' or None, not {reference!r}")
+        raise JaxreflError(f"reference must be 'sphere' or None, not {reference!r}")
     if downsample < 1:
-        raise ValueError(f"downsample must be >= 1, got {downsample}")
+        raise JaxreflError(f"downsample must be >= 1, got {downsample}")
     t0 = time.perf_counter()
     timings: dict[str, float] = {}
     cap = load_capture(capture_dir).downsample(downsample)

@@ -23,6 +23,7 @@ from typing import Any
 from jaxtyping import ArrayLike, Float
 
 from jaxrefl import fit as jf
+from jaxrefl._errors import JaxreflError
 from jaxrefl.brdf import BRDF
 
 from ._brdf import fit_normal_brdf
@@ -73,7 +74,7 @@ class Robust(PSMethod):
         for name in ("shadow", "scale_floor", "trim"):
             jf.check_number("Robust", name, getattr(self, name))
         if self.iters < 0:
-            raise ValueError(f"Robust needs iters >= 0, got {self.iters}")
+            raise JaxreflError(f"Robust needs iters >= 0, got {self.iters}")
 
     def solve(self, obs, lights, intensities, weight, saturated) -> PSResult:
         return robust(
@@ -103,10 +104,10 @@ class NormalBRDF(PSMethod):
 
     def __check_init__(self) -> None:
         if self.init not in ("diffuse", "grid"):
-            raise ValueError(f"NormalBRDF init must be 'diffuse' or 'grid', not {self.init!r}")
+            raise JaxreflError(f"NormalBRDF init must be 'diffuse' or 'grid', not {self.init!r}")
         jf.check_number("NormalBRDF", "shadow", self.shadow)
         if self.batch < 1:
-            raise ValueError(f"NormalBRDF needs batch >= 1, got {self.batch}")
+            raise JaxreflError(f"NormalBRDF needs batch >= 1, got {self.batch}")
 
     def solve(self, obs, lights, intensities, weight, saturated) -> PSResult:
         return fit_normal_brdf(

@@ -40,6 +40,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from jaxrefl._errors import JaxreflError
+
 from ._capture import PSInputError
 
 __all__ = [
@@ -55,7 +57,7 @@ __all__ = [
 def gbr_matrix(mu: float, nu: float, lam: float) -> np.ndarray:
     """G of the module docstring (lambda != 0)."""
     if lam == 0:
-        raise ValueError("a GBR transformation needs lambda != 0")
+        raise JaxreflError("a GBR transformation needs lambda != 0")
     return np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [mu, nu, lam]])
 
 

@@ -31,6 +31,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from jaxrefl._errors import JaxreflError
+
 from ..brdf import safe_normalize
 from ._geometry import _as_float
 
@@ -92,7 +94,7 @@ class PinholeCamera(Camera):
     def __init__(self, position, look_at=None, axis=None):
         self.position = _as_float(position)
         if axis is not None and look_at is not None:
-            raise ValueError("give either look_at or axis, not both")
+            raise JaxreflError("give either look_at or axis, not both")
         if axis is None:
             target = jnp.zeros(3) if look_at is None else _as_float(look_at)
             axis = target.astype(self.position.dtype) - self.position
@@ -246,14 +248,14 @@ class TabulatedResponse(Response):
         xs = np.asarray(x, dtype=np.float64)
         ys = np.asarray(y, dtype=np.float64)
         if xs.ndim != 1 or xs.shape != ys.shape or xs.size < 2:
-            raise ValueError(
+            raise JaxreflError(
                 f"x and y must be 1-D of the same length >= 2, got {xs.shape} and {ys.shape}"
             )
         for name, v in (("x", xs), ("y", ys)):
             bad = np.flatnonzero(~(np.diff(v) > 0))
             if bad.size:
                 k = int(bad[0])
-                raise ValueError(
+                raise JaxreflError(
                     f"TabulatedResponse needs strictly increasing {name}; "
                     f"{name}[{k}] = {float(v[k])} >= {name}[{k + 1}] = {float(v[k + 1])}"
                 )

@@ -28,6 +28,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from jaxrefl._errors import JaxreflError
+
 from ..brdf import safe_normalize
 from ._geometry import _as_float
 
@@ -133,7 +135,7 @@ def _nodes_1d(n: int, rule: str) -> tuple[np.ndarray, np.ndarray]:
         return x / 2.0, w / 2.0
     if rule == "midpoint":
         return (np.arange(n) + 0.5) / n - 0.5, np.full(n, 1.0 / n)
-    raise ValueError(f"unknown quadrature rule {rule!r}; use 'gauss' or 'midpoint'")
+    raise JaxreflError(f"unknown quadrature rule {rule!r}; use 'gauss' or 'midpoint'")
 
 
 class AreaLight(Light):
@@ -165,7 +167,7 @@ class AreaLight(Light):
         self.edge_v = _as_float(edge_v)
         self.radiance = _color(radiance)
         if n < 1:
-            raise ValueError(f"AreaLight needs n >= 1 quadrature nodes per edge, got {n}")
+            raise JaxreflError(f"AreaLight needs n >= 1 quadrature nodes per edge, got {n}")
         _nodes_1d(1, rule)  # validates the rule name
         self.n = int(n)
         self.rule = rule
@@ -222,10 +224,10 @@ class EnvironmentMap(Light):
         if r.ndim == 2:
             r = r[..., None]
         if r.ndim != 3:
-            raise ValueError(f"environment map must have shape (H, W, C), got {r.shape}")
+            raise JaxreflError(f"environment map must have shape (H, W, C), got {r.shape}")
         h, w = r.shape[:2]
         if subsample < 1 or h % subsample or w % subsample:
-            raise ValueError(
+            raise JaxreflError(
                 f"subsample={subsample} must be >= 1 and divide the map size {h} x {w}"
             )
         self.radiance = r

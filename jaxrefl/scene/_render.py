@@ -38,6 +38,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
+from jaxrefl._errors import JaxreflError
+
 from ..brdf import BRDF
 from ._camera import Camera, Response
 from ._geometry import _as_float, planar_points, shading_frame, to_local
@@ -66,7 +68,7 @@ def _per_pixel_params(
         else:
             trailing = ()
         if v.ndim not in (len(trailing), len(image) + len(trailing)):
-            raise ValueError(
+            raise JaxreflError(
                 f"{q.kind} parameter {q.name!r} must have shape {trailing} or "
                 f"(*{image}, *{trailing}) (a trailing channel axis for colours), got {v.shape}"
             )
@@ -164,10 +166,10 @@ def render(
     light_list = [lights] if isinstance(lights, Light) else list(lights)
     k = len(light_list)
     if k == 0:
-        raise ValueError("render needs at least one light")
+        raise JaxreflError("render needs at least one light")
     cams = [camera] * k if isinstance(camera, Camera) else list(camera)
     if len(cams) != k:
-        raise ValueError(f"got {k} lights but {len(cams)} cameras; give one camera or K")
+        raise JaxreflError(f"got {k} lights but {len(cams)} cameras; give one camera or K")
 
     nrm = jnp.asarray([0.0, 0.0, 1.0], dt) if normals is None else jnp.asarray(normals, dt)
     nrm = jnp.broadcast_to(nrm, pts.shape)
@@ -180,7 +182,7 @@ def render(
     if shadow is not None:
         vis = jnp.asarray(shadow).astype(dt)
         if vis.shape[: 1 + len(image)] != (k, *image) or vis.ndim > len(image) + 2:
-            raise ValueError(
+            raise JaxreflError(
                 f"shadow must have shape (K, *P) or (K, *P, S) = ({k}, {image}[, S]), "
                 f"got {vis.shape}"
             )

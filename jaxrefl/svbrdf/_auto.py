@@ -43,6 +43,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxrefl._errors import JaxreflError
+
 from ._pooled import PoolChoice
 
 if TYPE_CHECKING:
@@ -152,7 +154,7 @@ def choose_model(
     from ._pooled import _subsample
 
     if not candidates or "auto" in candidates:
-        raise ValueError("candidates must name one or more models other than 'auto'")
+        raise JaxreflError("candidates must name one or more models other than 'auto'")
     k = capture.n_photos
     train = [i for i in range(k) if i not in job.holdout]
     if len(train) < 2:

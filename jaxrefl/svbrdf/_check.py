@@ -42,6 +42,8 @@ import jax.numpy as jnp
 import numpy as np
 from scipy import stats
 
+from jaxrefl._errors import JaxreflError
+
 __all__ = ["NEAR", "PPC_ALPHA", "ModelCheck", "bound_bits", "check_counts", "ppc_failed"]
 
 # The posterior predictive check's false-alarm rate per pixel: of 65,536 well-modelled
@@ -99,7 +101,7 @@ def ppc_failed(chi2: np.ndarray, dof: np.ndarray, alpha: float = PPC_ALPHA) -> n
     """(N,) bool: T = ``chi2`` above the chi-square(``dof``) quantile at 1 - ``alpha``
     (never where dof <= 0 or T is not finite)."""
     if not 0.0 < alpha < 1.0:
-        raise ValueError(f"the check's false-alarm rate must be in (0, 1), got {alpha}")
+        raise JaxreflError(f"the check's false-alarm rate must be in (0, 1), got {alpha}")
     dof = np.asarray(dof)
     q = stats.chi2.isf(alpha, np.maximum(dof, 1))
     return (dof > 0) & np.isfinite(chi2) & (chi2 > q)

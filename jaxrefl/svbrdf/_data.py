@@ -29,6 +29,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from jaxrefl._errors import JaxreflError
 from jaxrefl.fit import PixelData, pixel_data
 from jaxrefl.io import ObsStatus
 
@@ -102,7 +103,7 @@ def pixel_block(
     n = stop - start
     size = n if size is None else int(size)
     if not 0 <= start < stop <= h * w or size < n:
-        raise ValueError(f"pixel block [{start}, {stop}) of {h * w} pixels, size {size}")
+        raise JaxreflError(f"pixel block [{start}, {stop}) of {h * w} pixels, size {size}")
     r0, r1 = _rows_for(start, stop, w)
     sub = capture.crop(r0, r1, 0, w)
     geo = sub.per_pixel_geometry(dtype=np.float64)
@@ -158,7 +159,7 @@ def pixel_take(capture, pixels: np.ndarray, *, dtype=np.float32) -> PixelData:
     _k, h, w, _ = capture.shape
     idx = np.asarray(pixels, np.int64).ravel()
     if idx.size == 0 or idx.min() < 0 or idx.max() >= h * w:
-        raise ValueError(f"pixel indices must be in [0, {h * w}) and not empty")
+        raise JaxreflError(f"pixel indices must be in [0, {h * w}) and not empty")
     rows, cols = np.divmod(idx, w)
     # The picked pixels as a capture one row high: every per-pixel array gathered alike.
     line = replace(

@@ -60,6 +60,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxrefl import brdf
+from jaxrefl._errors import JaxreflError
 from jaxrefl.io import map_key
 
 __all__ = [
@@ -92,7 +93,7 @@ def read_maps(fit_dir: str | Path) -> tuple[dict[str, np.ndarray], dict[str, Any
         raise FileNotFoundError(2, f"no maps.exr at {path}: give a `jaxrefl fit` output folder")
     exr = read_exr(path)
     if "status.Y" not in exr.channels:
-        raise ValueError(
+        raise JaxreflError(
             f"{path}: no channel status.Y; not a maps.exr of this jaxrefl version (refit it)"
         )
     return {map_key(k): v for k, v in exr.channels.items()}, exr.metadata
@@ -127,7 +128,7 @@ def _rgb(maps: Mapping[str, np.ndarray], name: str) -> np.ndarray:
         return np.stack([maps[f"{name}.{c}"] for c in "RGB"], -1)
     if name in maps:
         return np.repeat(np.asarray(maps[name])[..., None], 3, -1)
-    raise ValueError(f"the maps have no {name!r} (channels {name}.R/G/B or {name}.Y)")
+    raise JaxreflError(f"the maps have no {name!r} (channels {name}.R/G/B or {name}.Y)")
 
 
 def renderer_maps(maps: Mapping[str, np.ndarray]) -> RendererMaps:
@@ -207,7 +208,7 @@ def write_textures(
     from jaxrefl.scene import SRGBResponse
 
     if bits not in (8, 16):
-        raise ValueError(f"PNG textures are 8 or 16 bit, not {bits}")
+        raise JaxreflError(f"PNG textures are 8 or 16 bit, not {bits}")
     if isinstance(fit, str | Path):
         fit = read_maps(fit)[0]
     rm = fit if isinstance(fit, RendererMaps) else renderer_maps(fit)
@@ -262,7 +263,7 @@ class FlashView:
     def __post_init__(self) -> None:
         for name in ("side", "distance", "intensity", "width", "height", "spp"):
             if not getattr(self, name) > 0:
-                raise ValueError(f"FlashView.{name} must be positive, got {getattr(self, name)}")
+                raise JaxreflError(f"FlashView.{name} must be positive, got {getattr(self, name)}")
 
     @property
     def fov(self) -> float:

@@ -32,6 +32,8 @@ from typing import Any
 
 import numpy as np
 
+from jaxrefl._errors import JaxreflError
+
 from ._job import COMPACT_MIN_PIXELS, CaptureFit, FitJob, fit_capture
 
 __all__ = ["LeaveOneOut", "leave_one_out"]
@@ -125,7 +127,7 @@ def leave_one_out(
     (module docstring). ``job.holdout`` is ignored. ``progress`` receives one line a fold."""
     job = FitJob() if job is None else job
     if capture.n_photos < 2:
-        raise ValueError("leave-one-out needs at least two photos")
+        raise JaxreflError("leave-one-out needs at least two photos")
     per, pix, secs, comp, choices, autos, counts = _run(capture, job, progress)
     base_job = replace(job, model=baseline)
     b_per, b_pix, b_secs, b_comp, _, _, _ = _run(capture, base_job, progress)

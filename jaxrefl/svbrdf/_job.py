@@ -53,6 +53,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxrefl import brdf, fit
+from jaxrefl._errors import JaxreflError
 from jaxrefl.fit import Distributed, Status, process_barrier, process_gather, process_share
 from jaxrefl.io import corr_name, map_name, save_npz_atomic
 
@@ -135,18 +136,18 @@ class FitJob:
         if cfg.dtype is None:
             cfg = cfg.replace(dtype=np.float32)
         if cfg.dtype not in _DTYPES:
-            raise ValueError(f"dtype must be float32 or float64, not {cfg.dtype}")
+            raise JaxreflError(f"dtype must be float32 or float64, not {cfg.dtype}")
         # ``auto`` leaves the loss to the model it chooses (None stays None until then).
         if cfg.loss is None and self.model != "auto":
             cfg = cfg.replace(loss=DEFAULT_LOSS.get(self.model, fit.L2()))
         object.__setattr__(self, "config", cfg)
         if self.tile_pixels < 1:
-            raise ValueError(f"tile_pixels must be positive, got {self.tile_pixels}")
+            raise JaxreflError(f"tile_pixels must be positive, got {self.tile_pixels}")
         if not self.tilt_std > 0:
-            raise ValueError(f"tilt_std must be positive, got {self.tilt_std}")
+            raise JaxreflError(f"tilt_std must be positive, got {self.tilt_std}")
         lo, hi = ALPHA_RANGE
         if self.alpha_min is not None and not lo <= self.alpha_min <= hi:
-            raise ValueError(f"alpha_min must be in [{lo:g}, {hi:g}], got {self.alpha_min}")
+            raise JaxreflError(f"alpha_min must be in [{lo:g}, {hi:g}], got {self.alpha_min}")
         object.__setattr__(self, "holdout", tuple(sorted({int(i) for i in self.holdout})))
 
     @property
@@ -286,9 +287,9 @@ class _TileFitter:
         k = capture.n_photos
         bad = [i for i in job.holdout if not 0 <= i < k]
         if bad:
-            raise ValueError(f"--holdout photo(s) {bad} out of range: the capture has {k} photos")
+            raise JaxreflError(f"--holdout photo(s) {bad} out of range: the capture has {k} photos")
         if len(job.holdout) >= k:
-            raise ValueError("every photo is held out: nothing left to fit")
+            raise JaxreflError("every photo is held out: nothing left to fit")
         self.train = np.ones(k, bool)
         self.train[list(job.holdout)] = False
         self.alpha_min = resolvable_alpha(capture) if job.alpha_min is None else job.alpha_min
@@ -593,14 +594,14 @@ def _check_manifest(mpath: Path, manifest: dict[str, Any]) -> bool:
     try:
         old = json.loads(mpath.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError, OSError) as e:
-        raise ValueError(
+        raise JaxreflError(
             f"{mpath}: unreadable resume manifest ({e}); the tiles beside it cannot be "
             "matched to this fit: use --restart (or another --out folder)"
         ) from None
     new = json.loads(json.dumps(manifest))  # as it reads back (tuples become lists)
     same = isinstance(old, dict) and all(old.get(k) == new[k] for k in ("job", "capture"))
     if not same:
-        raise ValueError(
+        raise JaxreflError(
             f"{mpath}: the tiles in {tiles} belong to a different fit (another model, "
             "holdout, tile size, fit configuration or capture); use another --out "
             "folder or --restart"
@@ -673,13 +674,13 @@ def fit_capture(
     job = FitJob() if job is None else job
     if distributed is not None:
         if out_dir is None:
-            raise ValueError(
+            raise JaxreflError(
                 "a distributed fit needs out_dir: a folder every process can read and write "
                 "(the processes exchange their tiles there)"
             )
         distributed.initialize()
     if out_dir is None and jax.process_count() > 1:
-        raise ValueError(
+        raise JaxreflError(
             "fit_capture in a job of several processes needs out_dir: a folder every process "
             "can read and write (the processes exchange their tiles there)"
         )

@@ -26,6 +26,7 @@ name            model (``jaxrefl.brdf``) and free parameters per pixel
 from __future__ import annotations
 
 from jaxrefl import brdf
+from jaxrefl._errors import JaxreflError
 from jaxrefl._names import CAPTURE_MODELS, canonical
 from jaxrefl.fit import ParamSpace
 
@@ -80,4 +81,4 @@ def capture_model(
             return m, ParamSpace(m, channels=channels, bounds={"alpha": alpha_range})
         bounds = {"specular": DIELECTRIC_F0, "alpha": alpha_range}
         return m, ParamSpace(m, channels=channels, grey=("specular",), bounds=bounds)
-    raise ValueError(f"unknown capture model {name!r}; choose from {', '.join(CAPTURE_MODELS)}")
+    raise JaxreflError(f"unknown capture model {name!r}; choose from {', '.join(CAPTURE_MODELS)}")

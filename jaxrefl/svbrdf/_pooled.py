@@ -51,6 +51,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxrefl import brdf
+from jaxrefl._errors import JaxreflError
 
 from ._data import pixel_take
 
@@ -236,7 +237,7 @@ def choose_pooled(
     defaults bracket alpha to a few percent: the held-out error is flat near its optimum)."""
     train = np.asarray(train, bool)
     if train.sum() < 2:
-        raise ValueError("pooling needs at least two training photos to score by held-out error")
+        raise JaxreflError("pooling needs at least two training photos to score by held-out error")
     data = _subsample(capture, n_pixels, seed, dtype)
     tr = jnp.asarray(train)
 

@@ -71,6 +71,7 @@ import jax.numpy as jnp
 import numpy as np
 from scipy import stats
 
+from jaxrefl._errors import JaxreflError
 from jaxrefl.io import corr_name
 
 from ._check import PPC_ALPHA, ModelCheck, bound_bits, check_counts, ppc_failed
@@ -168,13 +169,13 @@ class Predictive:
         parts = {"param": self.param_var, "noise": self.noise_var, "disc": self.disc_var}
         bad = [t for t in terms if t not in parts]
         if bad:
-            raise ValueError(f"unknown variance terms {bad}; choose from {sorted(parts)}")
+            raise JaxreflError(f"unknown variance terms {bad}; choose from {sorted(parts)}")
         return np.sqrt(sum((parts[t] for t in terms), np.zeros_like(self.mean)))
 
     def interval(self, level: float, terms=("param", "noise", "disc")):
         """(lower, upper), each (N, K, C): the central Gaussian interval of ``level``."""
         if not 0.0 < level < 1.0:
-            raise ValueError(f"level must be in (0, 1), got {level}")
+            raise JaxreflError(f"level must be in (0, 1), got {level}")
         z = float(stats.norm.ppf(0.5 + 0.5 * level))
         s = self.std(terms)
         return self.mean - z * s, self.mean + z * s
@@ -279,7 +280,7 @@ def predictive(
     disc = Discrepancy.zero() if discrepancy is None else discrepancy
     _k, h, w, _c = capture.shape
     if cf.theta.shape[0] != h * w:
-        raise ValueError(
+        raise JaxreflError(
             f"the fit has {cf.theta.shape[0]} pixels and the capture {h * w}: predict the "
             "capture the fit was made of"
         )
@@ -420,7 +421,7 @@ def estimate_discrepancy(
     from ._pooled import _subsample
 
     if bins < 1:
-        raise ValueError(f"bins must be >= 1, got {bins}")
+        raise JaxreflError(f"bins must be >= 1, got {bins}")
     k = capture.n_photos
     train = [i for i in range(k) if i not in cf.job.holdout]
     if len(train) < 2:

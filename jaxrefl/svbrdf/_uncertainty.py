@@ -46,6 +46,7 @@ import numpy as np
 
 from jaxrefl import fit
 from jaxrefl import posterior as jp
+from jaxrefl._errors import JaxreflError
 from jaxrefl._names import PRIOR_SOURCES
 from jaxrefl.fit import PixelData
 
@@ -216,7 +217,7 @@ def fit_theta(cf: CaptureFit, space: fit.ParamSpace | None = None) -> np.ndarray
         return theta
     own = cf.model()[1]
     if own.labels != space.labels:
-        raise ValueError(f"space's parameters {space.labels} are not the fit's {own.labels}")
+        raise JaxreflError(f"space's parameters {space.labels} are not the fit's {own.labels}")
     same = (own.lower == space.lower) & (own.upper == space.upper)
     if np.all(same):
         return theta
@@ -272,7 +273,7 @@ def laplace_interval(
     from scipy import stats
 
     if not 0.0 < level < 1.0:
-        raise ValueError(f"level must be in (0, 1), got {level}")
+        raise JaxreflError(f"level must be in (0, 1), got {level}")
     space = cf.model()[1] if space is None else space
     theta = fit_theta(cf, space)
     s_t = laplace_theta_std(cf, space)
@@ -302,7 +303,7 @@ def map_posterior(
     ``"default"`` or a mapping by parameter name). Its starting points and Laplace std are
     :func:`fit_theta` and :func:`laplace_theta_std` in ``lp.space``."""
     if isinstance(priors, str) and priors not in PRIOR_SOURCES:
-        raise ValueError(f"priors must be one of {PRIOR_SOURCES} or a mapping, not {priors!r}")
+        raise JaxreflError(f"priors must be one of {PRIOR_SOURCES} or a mapping, not {priors!r}")
     model, space = posterior_space(cf)
     if isinstance(priors, str):
         # estimated in natural units from the fit's own coordinates
@@ -349,19 +350,19 @@ def uncertainty_maps(
               returns the whole result (process 0 writes it: :func:`write_uncertainty`)
     """
     if jnp.asarray(0.0).dtype != jnp.float64:  # jax_enable_x64 is off
-        raise ValueError(
+        raise JaxreflError(
             "uncertainty_maps computes posteriors in float64: enable it first with "
             'jax.config.update("jax_enable_x64", True)'
         )
     job = FitJob(config=fit.FitConfig(dtype=np.float64)) if job is None else job
     if job.dtype != np.float64:
-        raise ValueError(f"uncertainty_maps needs a float64 FitJob, not {job.dtype}")
+        raise JaxreflError(f"uncertainty_maps needs a float64 FitJob, not {job.dtype}")
     options = jp.AdaptiveOptions() if options is None else options
     if isinstance(priors, str) and priors not in PRIOR_SOURCES:
-        raise ValueError(f"priors must be one of {PRIOR_SOURCES} or a mapping, not {priors!r}")
+        raise JaxreflError(f"priors must be one of {PRIOR_SOURCES} or a mapping, not {priors!r}")
     if distributed is not None:
         if out_dir is None:
-            raise ValueError(
+            raise JaxreflError(
                 "distributed uncertainty maps need out_dir: a folder every process can read "
                 "and write (the processes exchange their tiles and chunks there)"
             )
