@@ -44,6 +44,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
 from _common import flash_capture, run_and_record, table  # noqa: E402
+from capture_family import demo_rig_capture  # noqa: E402
 
 LEVELS = (0.5, 0.9)
 SYN_SIGMA = 0.004
@@ -219,21 +220,6 @@ def real_capture(name: str, size: int, model: str) -> None:
     print()
 
 
-def _synthetic(size: int, seed: int = 0):
-    """(capture, truth): the demo rig, GGX + Lambert, grey F0 up to 0.5."""
-    from jaxrefl.demo import demo_scene, photograph_maps
-
-    scene = demo_scene(size=size)
-    rng = np.random.default_rng(seed)
-    f0 = rng.uniform(0.0, 0.5, (size, size))
-    truth = {
-        "albedo": rng.uniform(0.05, 0.8, (size, size, 3)),
-        "specular": np.repeat(f0[..., None], 3, -1),
-        "alpha": rng.uniform(0.2, 0.8, (size, size)) ** 2,
-    }
-    return photograph_maps(scene, truth, SYN_SIGMA, rng), truth
-
-
 # The synthetic capture's models: the dielectric one whose grey F0 stops at 0.25, and the
 # coloured-specular one whose F0 reaches 1 (the material model of the real captures).
 SYN_MODELS = {"ggx": 0.25, "ggx_rgb": 1.0}
@@ -243,7 +229,7 @@ def synthetic(size: int, model: str) -> None:
     from jaxrefl.svbrdf import FitJob, estimate_discrepancy, fit_capture, laplace_interval
     from jaxrefl.svbrdf import predictive as predict
 
-    cap, truth = _synthetic(size)
+    cap, truth = demo_rig_capture(size, SYN_SIGMA)
     t0 = time.perf_counter()
     cf = fit_capture(cap, FitJob(model=model, holdout=(SYN_HELD,)))
     pred = predict(cap, cf, estimate_discrepancy(cap, cf))
@@ -330,7 +316,7 @@ def synthetic_map(size: int, model: str) -> None:
     from jaxrefl.posterior import MCMC_METHODS
     from jaxrefl.svbrdf import FitJob, predictive, uncertainty_maps
 
-    cap, truth = _synthetic(size)
+    cap, truth = demo_rig_capture(size, SYN_SIGMA)
     t0 = time.perf_counter()
     job = FitJob(model=model, holdout=(SYN_HELD,), config=fit.FitConfig(dtype=np.float64))
     # the sampler settings of `jaxrefl sample`'s defaults (4 chains of 500 draws; the Gibbs
