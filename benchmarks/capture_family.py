@@ -30,9 +30,11 @@ What varies between members (:class:`FamilyMember`):
 ``grey_gloss``         the capture of issue 45: alpha 0.2-0.7 (roughness 0.45-0.84),
                        grey F0 0.04-0.5, flash 1 cm away, 1% noise, 9 photos, 256 px
 ``gold_foil``          a coloured metal everywhere (RGB F0 up to 0.9, albedo 0.03),
-                       alpha 0.05-0.3, flash 1 cm away, 0.5% noise, 12 photos, 128 px
+                       alpha 0.05-0.3, flash 1 cm away, 0.5% noise, 12 photos, 128 px,
+                       power 300 (exposed for the highlights, as a user would)
 ``copper_inlay``       copper on half of a tiled dielectric (4 x 4 patches plus smooth
-                       variation), alpha 0.1-0.5, flash 0.8 cm, 2% noise, 16 photos, 128 px
+                       variation), alpha 0.1-0.5, flash 0.8 cm, 2% noise, 16 photos, 128 px,
+                       power 600
 ``dim_many``           a dark, underexposed capture (power 500): alpha 0.1-0.6, F0
                        0.02-0.08, dark albedo, flash 1.2 cm, 3% noise, 16 photos, 64 px
 ``colocated_tiles``    the demo's kind of sample (4 x 4 tiles, alpha 0.09-0.56, F0
