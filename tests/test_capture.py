@@ -18,7 +18,7 @@ import pytest
 from PIL import Image
 
 from jaxrefl import brdf
-from jaxrefl.io._capture import OBS_STATUS, Capture, CaptureError, ObsStatus
+from jaxrefl.io._capture import OBS_STATUS, Capture, CaptureError, ObsStatus, geometry_status
 from jaxrefl.io._capture_layouts import load_capture, save_generic_capture
 from jaxrefl.io._photos import read_png, unfilter, write_png
 from jaxrefl.scene import PinholeCamera, PointLight, planar_points, render
@@ -314,16 +314,26 @@ def test_yellow_box_loads_from_optim_json(shared_data):
 
 
 def test_generic_round_trip_exr(tmp_path):
-    """Linear EXR: NaN/Inf/negative pixels, a saturation level and a light under the plane."""
+    """Linear EXR: NaN/Inf/negative pixels, a saturation level; a light under the plane is
+    refused, naming its entry."""
     rng = np.random.default_rng(0)
     k, h, w = 3, 8, 6
     img = rng.uniform(0.0, 1.5, (k, h, w, 3)).astype(np.float32)
     img[0, 1, 1, 0], img[1, 2, 2, 1], img[2, 3, 3, 2] = np.nan, np.inf, -0.25
     lp = np.array([[1.0, 2.0, 20.0], [-3.0, 0.0, 25.0], [0.0, 1.0, -1.0]])
-    cj = save_generic_capture(
-        tmp_path / "exr", img, side=5.0, light_pos=lp, light_power=[[100.0], [200.0], [300.0]],
-        camera_pos=[0.0, 0.0, 30.0], saturation=1.25,
-    )  # fmt: skip
+
+    def save(lp):
+        return save_generic_capture(
+            tmp_path / "exr", img, side=5.0, light_pos=lp,
+            light_power=[[100.0], [200.0], [300.0]], camera_pos=[0.0, 0.0, 30.0],
+            saturation=1.25,
+        )  # fmt: skip
+
+    with pytest.raises(CaptureError, match=r"z = -1 cm, not above the sample plane") as e:
+        load_capture(save(lp).parent)
+    assert e.value.field == "lights[2].position" and e.value.path.name == "capture.json"
+    lp[2, 2] = 40.0
+    cj = save(lp)
     cap = load_capture(cj.parent)
     assert (cap.layout, cap.transfer, cap.bit_depth) == ("generic", "linear", 32)
     assert [f.suffix for f in cap.files] == [".exr"] * 3
@@ -334,13 +344,11 @@ def test_generic_round_trip_exr(tmp_path):
     assert cap.status[1, 2, 2, 1] == ObsStatus.NONFINITE
     assert cap.status[2, 3, 3, 2] == ObsStatus.NEGATIVE
     np.testing.assert_array_equal(cap.status[0] == 1, finite[0] & (img[0] >= 1.25))
-    # The third light is below the plane: status 6 except where the value itself is bad.
-    assert np.sum(cap.status[2] == ObsStatus.LIGHT_BELOW_HORIZON) == h * w * 3 - 1
     np.testing.assert_array_equal(cap.light_power, [[100.0] * 3, [200.0] * 3, [300.0] * 3])
     np.testing.assert_array_equal(cap.camera_pos, np.tile([0.0, 0.0, 30.0], (3, 1)))
     geo = cap.per_pixel_geometry()
     assert all(np.all(np.isfinite(v)) for v in geo.values())
-    assert np.all(geo["cos_i"][2] == 0) and np.all(geo["cos_i"][:2] > 0)
+    assert np.all(geo["cos_i"] > 0)
     r2 = np.sum((lp[1] - cap.points) ** 2, axis=-1)
     np.testing.assert_allclose(geo["irradiance"][1, ..., 0], 200.0 / r2, rtol=1e-6)
 
@@ -353,18 +361,25 @@ def test_generic_round_trip_png_transfers(tmp_path):
     ldir = np.array([[0.0, 0.6, 0.8], [0.3, 0.0, -0.1]])  # the second one below the plane
     mask = np.ones((5, 7), bool)
     mask[4, 6] = False
-    cj = save_generic_capture(
-        tmp_path / "p16", img, side=3.0, light_dir=ldir, light_power=2.5,
-        camera_pos=[[0.0, 0.0, 9.0], [1.0, 0.0, 9.0]], transfer="srgb", mask=mask,
-    )  # fmt: skip
+
+    def save(ldir):
+        return save_generic_capture(
+            tmp_path / "p16", img, side=3.0, light_dir=ldir, light_power=2.5,
+            camera_pos=[[0.0, 0.0, 9.0], [1.0, 0.0, 9.0]], transfer="srgb", mask=mask,
+        )  # fmt: skip
+
+    with pytest.raises(CaptureError, match=r"points from below the sample plane") as e:
+        load_capture(save(ldir))
+    assert e.value.field == "lights[1].direction"
+    ldir[1, 2] = 0.9
+    cj = save(ldir)
     cap = load_capture(cj)
     assert (cap.transfer, cap.bit_depth) == ("srgb", 16)
     assert read_png(cap.files[0])[0].dtype == np.uint16
     assert np.all(cap.status[0, 0, 0] == ObsStatus.SATURATED)
     assert np.all(cap.status[0, 4, 6] == ObsStatus.MASKED)
-    assert np.all(np.isin(cap.status[1], [ObsStatus.LIGHT_BELOW_HORIZON, ObsStatus.MASKED]))
     ok = cap.valid
-    assert ok.sum() == 5 * 7 * 3 - 3 - 3  # photo 0 minus the clipped and the masked pixel
+    assert ok.sum() == 2 * (5 * 7 * 3 - 3 - 3)  # each photo minus the clipped and masked pixel
     # d(linear)/d(encoded) <= 2.4/1.055 on [0, 1] (IEC 61966-2-1), times half a 16-bit step.
     np.testing.assert_allclose(cap.images[ok], img[ok], atol=2.4 / 1.055 * 0.5 / 65535)
     geo = cap.per_pixel_geometry(np.float64)
@@ -484,9 +499,20 @@ def test_bad_generic_json(tmp_path):
         tmp_path, img, side=2.0, light_pos=[0.0, 0.0, 0.0], light_power=1.0,
         camera_pos=[0.0, 0.0, 5.0], transfer="gamma2.2", file_format="png8",
     )  # fmt: skip
-    # A point light exactly on the plane, at the sample centre: status 6, finite geometry
-    # (+z on the light itself, where the irradiance is 0).
-    cap = load_capture(cj)
+    # A point light exactly on the plane, at the sample centre, is refused at load ...
+    with pytest.raises(CaptureError, match=r"the light is at z = 0 cm") as e:
+        load_capture(cj)
+    assert e.value.field == "lights[0].position"
+    # ... and built in Python it is status 6 with finite geometry (+z on the light itself,
+    # where the irradiance is 0).
+    ok_json = save_generic_capture(
+        tmp_path / "ok", img, side=2.0, light_pos=[0.0, 0.0, 5.0], light_power=1.0,
+        camera_pos=[0.0, 0.0, 5.0], transfer="gamma2.2", file_format="png8",
+    )  # fmt: skip
+    ok = load_capture(ok_json)
+    cap = replace(ok, light_pos=np.zeros((2, 3)))
+    status = geometry_status(cap.status, cap.points, cap.light_pos, None, cap.camera_pos)
+    cap = replace(cap, status=status)
     assert np.all(cap.status == ObsStatus.LIGHT_BELOW_HORIZON)
     geo = cap.per_pixel_geometry()
     assert all(np.all(np.isfinite(v)) for v in geo.values())

@@ -10,6 +10,7 @@ from ._capture import OBS_STATUS as OBS_STATUS
 from ._capture import Capture as Capture
 from ._capture import CaptureError as CaptureError
 from ._capture import ObsStatus as ObsStatus
+from ._capture_checks import CaptureWarning as CaptureWarning
 from ._capture_layouts import load_capture as load_capture
 from ._capture_layouts import save_generic_capture as save_generic_capture
 from ._channels import corr_name as corr_name

@@ -42,8 +42,10 @@ code  name                  meaning
 4     negative              a negative value in a float image (kept as recorded)
 5     masked                excluded by a user mask or a zero alpha
 6     light_below_horizon   the light is at or below the sample plane at this pixel
-                            (geometry stays finite; cos_i = 0 there)
-7     view_below_horizon    the camera is at or below the sample plane at this pixel
+                            (geometry stays finite; cos_i = 0 there). A file with such a
+                            light is refused (:mod:`jaxrefl.io._capture_checks`); a
+                            capture built in Python may hold one
+7     view_below_horizon    the camera is at or below the sample plane at this pixel (as 6)
 8     censored_mixed        after :meth:`Capture.downsample`: the block mixes saturated
                             and dark observations, so its mean bounds nothing
 ====  ====================  ===========================================================
@@ -228,6 +230,8 @@ class Capture:
                 f"and {status.shape}"
             )
         k, h, w, c = images.shape
+        if k < 1:
+            raise CaptureError(self.source, "holds no photo; give at least one", "images")
         if (self.light_pos is None) == (self.light_dir is None):
             raise JaxreflError("give exactly one of light_pos (point) and light_dir (directional)")
         lp = None if self.light_pos is None else np.asarray(self.light_pos, np.float64)
@@ -266,6 +270,18 @@ class Capture:
                     self.source,
                     f"holds a non-finite value at index {tuple(int(i) for i in idx)}; "
                     "geometry and light power must be finite numbers",
+                    name,
+                )
+        for name, a in (("light_pos", lp), ("camera_pos", cp), ("points", pts)):
+            # A distance whose square overflows has no direction or irradiance in float64.
+            with np.errstate(over="ignore"):
+                far = None if a is None else ~np.isfinite(np.sum(a * a, axis=-1))
+            if far is not None and np.any(far):
+                idx = tuple(int(i) for i in np.argwhere(far)[0])
+                raise CaptureError(
+                    self.source,
+                    f"the position at index {idx} is so far from the sample that its squared "
+                    "distance overflows; give positions in the capture's unit",
                     name,
                 )
         if np.any(pw < 0):

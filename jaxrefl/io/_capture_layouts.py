@@ -57,7 +57,10 @@ MaterialGAN convention, Guo et al. 2020), decoded here as value^2.2, lengths in 
 Pixels (:mod:`jaxrefl.io._photos`): 8- and 16-bit PNGs are read at full depth, grey images
 give C = 1, an alpha channel becomes a mask (alpha = 0 -> status ``masked``); the codes of
 every observation are listed in :mod:`jaxrefl.io._capture`. Errors are
-:class:`CaptureError` naming the file and the field.
+:class:`CaptureError` naming the file and the field. What is read is then checked for
+physical sense (:mod:`jaxrefl.io._capture_checks`): cameras and lights above the sample at a
+sane distance, light powers > 0, photos that measured something; what is merely odd is a
+:class:`~jaxrefl.io.CaptureWarning`.
 """
 
 from __future__ import annotations
@@ -72,6 +75,7 @@ import numpy as np
 from jaxrefl._errors import JaxreflError
 
 from ._capture import Capture, CaptureError, geometry_status
+from ._capture_checks import Fields, check_geometry, check_photos
 from ._photos import Photos, read_pixels, response_for, write_png, x64
 
 __all__ = ["load_capture", "save_generic_capture"]
@@ -178,14 +182,18 @@ def _finish(
     side: float,
     camera_pos: np.ndarray,
     light_power: np.ndarray,
+    fields: Fields,
     light_pos=None,
     light_dir=None,
     unit: str = "cm",
     meta=None,
     mask: np.ndarray | None = None,
 ) -> Capture:
+    """The capture, after the physical checks (:mod:`jaxrefl.io._capture_checks`) of its
+    geometry (before any is computed) and of its photos (after the mask)."""
     from ..scene import planar_points
 
+    check_geometry(camera_pos, light_pos, light_dir, light_power, side, fields, unit)
     _, h, w, _ = photos.images.shape
     with x64():
         points = np.asarray(planar_points(h, w, side, dtype=np.float64), np.float64)
@@ -209,7 +217,9 @@ def _finish(
         saturation_level=photos.saturation_level,
         meta=dict(meta or {}),
     )
-    return cap if mask is None else cap.apply_mask(mask)
+    cap = cap if mask is None else cap.apply_mask(mask)
+    check_photos(cap, fields)
+    return cap
 
 
 # ----------------------------------------------------------------------------- layouts
@@ -297,6 +307,12 @@ def _load_svbrdf(folder: Path, resolution, max_photos, file: str = "parameters.j
     c = photos.images.shape[-1]
     power = _light_power(_get(data, "light_pow", pj), len(cams), idx, c, pj, "light_pow")
     meta = {"idx": [int(i) for i in idx], "resolution_folder": n, "parameters_file": file}
+    fields = Fields(
+        camera=(pj, [f"camera_pos[{i}]" for i in idx]),
+        light=(pj, [f"light_pos[{i}]" for i in idx]),
+        power=(pj, ["light_pow"] * idx.size),
+        phone=True,
+    )
     return _finish(
         photos,
         files,
@@ -306,6 +322,7 @@ def _load_svbrdf(folder: Path, resolution, max_photos, file: str = "parameters.j
         camera_pos=cams[idx],
         light_pos=lights[idx],
         light_power=power,
+        fields=fields,
         meta=meta,
     )
 
@@ -369,6 +386,13 @@ def _load_materialgan(folder: Path, resolution, max_photos) -> Capture:
     if pw.shape[0] not in (1, n):
         raise CaptureError(pw_file, f"has {pw.shape[0]} lines; expected 1 or {n} (one per photo)")
     power = _light_power(pw, n, rows, c, pw_file, "light_power")
+    lines = [f"line {r + 1}" for r in rows]
+    fields = Fields(
+        camera=(folder / "camera_pos.txt", lines),
+        light=(lp_file if lp_file.exists() else folder / "camera_pos.txt", lines),
+        power=(pw_file, lines if pw.shape[0] == n else ["line 1"] * rows.size),
+        phone=True,
+    )
     return _finish(
         photos,
         files,
@@ -378,6 +402,7 @@ def _load_materialgan(folder: Path, resolution, max_photos) -> Capture:
         camera_pos=cams[rows],
         light_pos=lights[rows],
         light_power=power,
+        fields=fields,
         meta=meta,
     )
 
@@ -391,6 +416,14 @@ def _per_photo(value, k: int, path: Path, field: str) -> list[dict]:
     ):
         raise CaptureError(path, f"expected a list of 1 or {k} objects (one per image)", field)
     return items * k if len(items) == 1 else items
+
+
+def _entry_names(key: str, value, k: int) -> list[str]:
+    """The JSON path of each photo's entry: ``key[i]``, or ``key[0]`` / ``key`` where one
+    entry serves every photo (:func:`_per_photo`)."""
+    if isinstance(value, dict):
+        return [key] * k
+    return [f"{key}[{i if len(value) == k else 0}]" for i in range(k)]
 
 
 def _lt_get(lt: dict, key: str, path: Path, i: int):
@@ -416,6 +449,9 @@ def _load_generic(cj: Path, resolution, max_photos) -> Capture:
     lights = _per_photo(_get(data, "lights", cj), k_all, cj, "lights")
     cam_key = "camera" if "camera" in data and "cameras" not in data else "cameras"
     cams = _per_photo(_get(data, cam_key, cj), k_all, cj, cam_key)
+    # The entry each photo takes its light and camera from (one entry may serve all).
+    light_of = _entry_names("lights", data["lights"], k_all)
+    camera_of = _entry_names(cam_key, data[cam_key], k_all)
     side = _positive(_get(data, "side", cj), cj, "side")
     transfer = _get(data, "transfer", cj)
     k = min(k_all, max_photos) if max_photos else k_all
@@ -449,7 +485,7 @@ def _load_generic(cj: Path, resolution, max_photos) -> Capture:
             for i, lt in enumerate(lights[:k])
         ]
     )
-    mask = None
+    mask, mf = None, None
     if data.get("mask"):
         mf = folder / str(data["mask"])
         if not mf.is_file():
@@ -462,6 +498,12 @@ def _load_generic(cj: Path, resolution, max_photos) -> Capture:
                 f"{photos.images.shape[2]}x{photos.images.shape[1]} (WxH)",
             )
         mask = np.any(m > 0, axis=-1)
+    fields = Fields(
+        camera=(cj, [f"{camera_of[i]}.position" for i in range(k)]),
+        light=(cj, [f"{light_of[i]}.{key}" for i in range(k)]),
+        power=(cj, [f"{light_of[i]}.{pkey}" for i in range(k)]),
+        mask=mf,
+    )
     return _finish(
         photos,
         files,
@@ -472,6 +514,7 @@ def _load_generic(cj: Path, resolution, max_photos) -> Capture:
         light_pos=geo if point else None,
         light_dir=None if point else geo,
         light_power=power,
+        fields=fields,
         unit=str(data.get("unit", "cm")),
         meta={"capture_json": str(cj)},
         mask=mask,
