@@ -549,6 +549,12 @@ def main() -> None:
     p.add_argument("--map-captures", default="bath_tile,yellow_box,synthetic")
     p.add_argument("--map-model", default="auto", help="the fit's model (auto: the default)")
     p.add_argument("--only-map", action="store_true", help="skip parts 1 and 2")
+    p.add_argument(
+        "--only-family",
+        action="store_true",
+        help="only the maps of the capture family and the real captures (_family_maps.py)",
+    )
+    p.add_argument("--members", default=None, help="family members, comma-separated (all)")
     p.add_argument("--emcee-sbc", type=int, default=200, help="emcee SBC simulations (0: skip)")
     p.add_argument("--only-emcee-sbc", action="store_true")
     p.add_argument("--window-pixels", type=int, default=100)
@@ -560,6 +566,11 @@ def main() -> None:
     p.add_argument("--mixing-pixels", type=int, default=512)
     args = p.parse_args()
 
+    if args.only_family:
+        from _family_maps import run_family
+
+        run_family(None if args.members is None else args.members.split(","))
+        return
     if args.only_window:
         part_window(args)
         return
@@ -583,4 +594,8 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    if "--only-family" in sys.argv:
+        sys.exit(
+            run_and_record("posterior_speed_family", "Uncertainty maps of a capture family", main)
+        )
     sys.exit(run_and_record("posterior_speed", "Posterior speed", main))

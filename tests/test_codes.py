@@ -222,6 +222,7 @@ def test_method_codes_are_the_stored_ones_and_name_the_methods_table():
         "LAPLACE": 1,
         "MCMC": 2,
         "MCMC_AUDIT": 3,
+        "LAPLACE_TIME_LIMIT": 4,
     }
     assert {int(m): m.name.lower() for m in Method} == METHODS
     assert set(MCMC_METHODS) == {Method.MCMC, Method.MCMC_AUDIT}

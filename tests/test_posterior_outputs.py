@@ -192,7 +192,8 @@ def test_cli_sample_capture_end_to_end(tmp_path):
     assert main(["sample", str(tmp_path / "missing"), "--out", str(out)]) == 1
 
     # The library call behind it gives the same maps and report as a typed result.
-    hmc = jp.HMCOptions(num_warmup=60, num_samples=60, num_chains=2, gibbs_sweeps=2)
+    # the command's sampler is the library's map default with the flags given
+    hmc = replace(jp.MAP_OPTIONS, num_warmup=60, num_samples=60, num_chains=2)
     options = jp.AdaptiveOptions(mcmc="all", hmc=hmc)
     job = svbrdf.FitJob(model="lambert", config=fit.FitConfig(dtype=np.float64))
     res = svbrdf.uncertainty_maps(load_capture(cap).crop(2, 6, 2, 6), job, options)
@@ -463,12 +464,17 @@ def test_adaptive_options_are_one_checked_immutable_object():
     assert (o.mcmc, o.audit, o.hmc, o.rerun_rhat, o.chunk, o.seed) == (
         jp.MCMCPixels.FLAGGED,
         0.02,
-        jp.HMCOptions(),
+        jp.MAP_OPTIONS,
         1.05,
         2048,
         0,
     )
-    assert o.keep_samples and o.second_pass == jp.longer_options(jp.HMCOptions())
+    assert o.keep_samples and o.second_pass == jp.longer_options(jp.MAP_OPTIONS)
+    # one map default, said once (jaxrefl._map_defaults) for the library and the command
+    from jaxrefl._map_defaults import MAP_SAMPLER
+
+    assert all(getattr(o.hmc, k) == v for k, v in MAP_SAMPLER.items())
+    assert (o.hmc.num_warmup, o.hmc.num_samples, o.hmc.num_chains) == (100, 100, 2)
     assert jp.AdaptiveOptions(mcmc="all").mcmc is jp.MCMCPixels.ALL
     for bad, match in (
         (dict(mcmc="some"), "mcmc must be one of"),
@@ -630,3 +636,108 @@ def test_second_pass_of_an_untuned_sampler_reuses_the_first_pass_program(lambert
         u = jp.adaptive_uncertainty(lp, data, th, sd, flag, o)
         assert calls[2][1] == jp.longer_options(opts) and calls[2][0][0] == 1
         assert "rerun_settings" not in u.timings
+
+
+def test_time_limit_leaves_laplace_pixels_marked_and_a_pass_says_what_it_does(lambert, monkeypatch):
+    """A deadline: a chunk is not started where the last chunk's time would carry it past
+    the deadline; its pixels keep their Laplace summaries with method
+    ``laplace_time_limit`` (4), counted in the timings, and are not among the MCMC pixels.
+    ``log`` hears each pass's start, its progress every HEARTBEAT_S and its end."""
+    import time
+
+    from jaxrefl.posterior import _adaptive
+
+    lp, data, r, lap = lambert
+    theta, theta_std = np.asarray(r.theta), np.asarray(lap.theta_std)
+    flag = np.asarray(lap.flag)
+    opts = jp.AdaptiveOptions(
+        mcmc="all",
+        hmc=replace(jp.MAP_OPTIONS, num_warmup=20, num_samples=20, batch_size=2),
+        chunk=2,
+        rerun_rhat=None,
+        workers=1,
+    )
+    lines: list[str] = []
+    monkeypatch.setattr(_adaptive, "HEARTBEAT_S", 0.01)
+    # past already: nothing is sampled, every pixel keeps its Laplace summary
+    u0 = jp.adaptive_uncertainty(
+        lp, data, theta, theta_std, flag, opts, deadline=time.perf_counter() - 1.0, log=lines.append
+    )
+    assert np.all(u0.method == jp.Method.LAPLACE_TIME_LIMIT) and u0.mcmc_pixels.size == 0
+    assert u0.samples is None or u0.samples.theta.shape[0] == 0
+    assert u0.timings["time_limit_pixels_left"] == 6
+    assert u0.report()["method_counts"]["laplace_time_limit"] == 6
+    np.testing.assert_allclose(u0.std[:, :3], np.asarray(lap.std), rtol=1e-8)
+    assert lines[0].startswith("MCMC first pass: 6 pixels in 3 chunks")
+    assert "3 left by the time limit" in lines[-1]
+    # ahead: the first chunk runs; it is timed as a slow one, so the next, which would end
+    # past the deadline, is not started
+    lines.clear()
+    monkeypatch.setattr(_adaptive._Pace, "took", lambda self, s: setattr(self, "last_s", 1e6))
+    u1 = jp.adaptive_uncertainty(
+        lp,
+        data,
+        theta,
+        theta_std,
+        flag,
+        opts,
+        deadline=time.perf_counter() + 600.0,
+        log=lines.append,
+    )
+    sampled = np.isin(u1.method, (jp.Method.MCMC, jp.Method.MCMC_AUDIT))
+    assert sampled.sum() == 2 and np.sum(u1.method == jp.Method.LAPLACE_TIME_LIMIT) == 4
+    np.testing.assert_array_equal(np.sort(u1.mcmc_pixels), np.flatnonzero(sampled))
+    assert u1.samples is not None and u1.samples.theta.shape[0] == 2
+    assert np.all(np.isfinite(u1.rhat[sampled])) and np.all(np.isnan(u1.rhat[~sampled]))
+    assert any("chunks done" in ln for ln in lines), lines  # the heartbeat
+    # without a deadline the same options sample every pixel
+    u2 = jp.adaptive_uncertainty(lp, data, theta, theta_std, flag, opts)
+    assert np.all(np.isin(u2.method, (jp.Method.MCMC, jp.Method.MCMC_AUDIT)))
+
+
+def test_cli_sample_prints_its_stages_without_a_terminal_and_stops_at_its_time_limit(tmp_path):
+    """`jaxrefl sample` in a subprocess (stderr a pipe, not a terminal): one line per stage
+    with the seconds since the start; --time-limit: exit status 3, the MCMC pixels left
+    marked ``laplace_time_limit`` in uncertainty.exr and counted in report.json, the fit's
+    work kept and named for a rerun."""
+    import os
+    import subprocess
+    import sys
+
+    cap = tmp_path / "cap"
+    assert main(["demo", "--out", str(cap), "--size", "8", "--no-fit"]) == 0
+    out = tmp_path / "out"
+    argv = ["sample", str(cap), "--out", str(out), "--model", "lambert", "--pixels", "2:6,2:6"]
+    argv += ["--mcmc", "all", "--time-limit", "0.001"]
+    code = "import sys; from jaxrefl.cli import main; sys.exit(main(sys.argv[1:]))"
+    r = subprocess.run(
+        [sys.executable, "-c", code, *argv],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={**os.environ, "JAXREFL_NO_COMPILE_CACHE": "1"},
+    )
+    assert r.returncode == 3, r.stderr
+    stages = [ln for ln in r.stderr.splitlines() if ln.startswith("[")]
+    for want in (
+        "fit: 4 x 4 pixels",
+        "fit: model lambert (given)",
+        "priors:",
+        "MCMC first pass: 16 pixels",
+        "writing",
+    ):
+        assert any(want in ln for ln in stages), (want, r.stderr)
+    assert all(ln.split("]")[0].strip("[ s").replace(".", "").isdigit() for ln in stages)
+    assert "left 16 MCMC pixels their Laplace summary" in r.stderr and str(out / "mcmc") in r.stderr
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["time_limit"] == {
+        "limit_s": 0.001,
+        "pixels_left_laplace": 16,
+        "second_pass_pixels_left": 0,
+        "reached": True,
+    }
+    assert rep["model_choice"]["model"] == "lambert" and rep["model_choice"]["why"] == "given"
+    assert {"fit_s", "priors_s", "posterior_s", "total_s", "write_s"} <= set(rep["timings"])
+    im = read_exr(out / "uncertainty.exr")
+    assert np.all(im.channels["method.Y"] == int(jp.Method.LAPLACE_TIME_LIMIT))
+    assert (out / "fit").is_dir()  # the resumable work stays for the rerun

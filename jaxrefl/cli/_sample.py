@@ -1,17 +1,21 @@
 """Posterior sampling: uncertainty maps of a capture, or the posterior of a measured BRDF.
 
     jaxrefl sample CAPTURE_DIR --out OUT_DIR [--pixels R0:R1,C0:C1] [--downsample F]
-                   [--model ggx] [--mcmc flagged|all|none] [--audit 0.02]
+                   [--model auto] [--mcmc flagged|all|none] [--audit 0.02]
                    [--warmup N] [--samples N] [--chains N] [--gibbs-sweeps N]
                    [--rerun-rhat R] [--priors population|default] [--seed S]
+                   [--time-limit SECONDS] [--keep-work] [--quiet]
     jaxrefl sample BRDF_FILE --out OUT_DIR [--brdf-model ggx]
                    [--sampler emcee|hmc] [--max-steps N] [--walkers N]
 
 A capture (any layout :func:`jaxrefl.io.load_capture` reads; ``--downsample`` first, then
 the ``--pixels`` crop: rows R0:R1, columns C0:C1) goes through
-:func:`jaxrefl.svbrdf.uncertainty_maps`: the capture job's float64 fit, its Laplace std,
+:func:`jaxrefl.svbrdf.uncertainty_maps`: the capture job's float64 fit (``--model auto``,
+the default, chooses the model by held-out photos as ``jaxrefl fit`` does), its Laplace std,
 then :func:`jaxrefl.posterior.adaptive_uncertainty` with the
-:class:`~jaxrefl.posterior.AdaptiveOptions` the flags give (``--mcmc``, ``--audit``,
+:class:`~jaxrefl.posterior.AdaptiveOptions` the flags give; every default is the library's
+(:mod:`jaxrefl._map_defaults`: ``AdaptiveOptions()`` and this command make the same map)
+(``--mcmc``, ``--audit``,
 ``--warmup``/``--samples``/``--chains``/``--gibbs-sweeps`` as its
 :class:`~jaxrefl.posterior.HMCOptions`: where the posterior allows, Gibbs sampling instead
 of HMC, exact for ``pooled``, with the lobe width from its collapsed marginal for the
@@ -25,7 +29,18 @@ OUT_DIR/posterior.nc (ArviZ InferenceData of the MCMC pixels, with observed data
 posterior predictive draws) by :func:`jaxrefl.svbrdf.write_uncertainty`, and
 OUT_DIR/report.json (:meth:`jaxrefl.svbrdf.CaptureUncertainty.report` with the input,
 crop and downsampling: counts by method, R-hat/ESS distributions, divergences,
-Laplace/MCMC std ratios on the audit pixels, timings).
+Laplace/MCMC std ratios on the audit pixels, timings of each stage).
+
+Progress: one line per stage on stderr (the fit and the model it chose, the priors, each
+MCMC pass with its pixel count, writing), each with the seconds since the start, and during
+MCMC a line every 30 s with the chunks done and the time left; with stderr a terminal,
+progress bars too. ``--quiet`` silences both. The fit's tiles and the MCMC chunks are
+written under OUT_DIR (``fit``, ``mcmc``) as they finish: a stopped command says so, and
+the same command run again resumes there. They are removed once the map is whole, unless
+``--keep-work``. ``--time-limit``: no MCMC chunk is started that would end past that many
+seconds from the start; the pixels left keep their Laplace summary (method
+``laplace_time_limit`` in uncertainty.exr, counted in report.json's ``time_limit``), the
+exit status is 3, and the same command run again samples them.
 
 A measured BRDF file (Cornell .astm, MERL .binary, CURET; spectra converted to RGB) goes
 through :func:`jaxrefl.measured.sample_posterior`: the least-squares fit of
@@ -47,19 +62,32 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import shutil
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
 from jaxrefl._errors import JaxreflError
+from jaxrefl._map_defaults import MAP_AUDIT, MAP_CHUNK, MAP_SAMPLER, RERUN_RHAT
 from jaxrefl._names import CAPTURE_MODELS, MEASURED_MODELS, PRIOR_SOURCES, canonical
 
 from ._distributed import add_distributed_arguments, distributed_from_args
-from ._main import check_out_dir, fraction, non_negative_float, non_negative_int, positive_int
+from ._main import (
+    check_out_dir,
+    fraction,
+    non_negative_float,
+    non_negative_int,
+    positive_float,
+    positive_int,
+)
 from ._options import fit_config
 
 NOT_CONVERGED = 3  # exit status: outputs written, but the draws missed a convergence target
 EMCEE_MAX_STEPS = 30_000  # jaxrefl.posterior.EmceeOptions().max_steps (not imported: no JAX)
+# HMCOptions()'s warm-up, draws and chains (not imported: no JAX): a BRDF file's --sampler hmc
+BRDF_HMC = {"num_warmup": 300, "num_samples": 500, "num_chains": 4}
+WORK_DIRS = ("fit", "mcmc")  # resumable state under OUT_DIR (fit_<model>: a widened fit)
 HELP = "posterior sampling: uncertainty maps with diagnostics (capture or BRDF file)"
 
 
@@ -95,10 +123,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--downsample", type=positive_int, default=1, help="box-filter factor first")
     p.add_argument(
         "--model",
-        default="ggx",
+        default="auto",
         type=canonical,
-        choices=sorted(CAPTURE_MODELS),
-        help="capture model (jaxrefl models NAME describes one)",
+        choices=["auto", *sorted(CAPTURE_MODELS)],
+        help="capture model (jaxrefl models NAME describes one); auto (default): the "
+        "candidate that best predicts held-out training photos, as jaxrefl fit",
     )
     p.add_argument(
         "--mcmc",
@@ -109,18 +138,34 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--audit",
         type=fraction,
-        default=0.02,
+        default=MAP_AUDIT,
         help="fraction of reliable pixels also sampled, to check the Laplace std, in [0, 1]",
     )
     p.add_argument(
-        "--warmup", type=non_negative_int, default=300, help="HMC warm-up steps per chain"
+        "--warmup",
+        type=non_negative_int,
+        default=None,
+        help=f"warm-up steps per chain (default: {MAP_SAMPLER['num_warmup']} for a capture, "
+        f"{BRDF_HMC['num_warmup']} for a BRDF file's HMC)",
     )
-    p.add_argument("--samples", type=positive_int, default=500, help="HMC draws per chain")
-    p.add_argument("--chains", type=positive_int, default=4, help="chains per pixel")
+    p.add_argument(
+        "--samples",
+        type=positive_int,
+        default=None,
+        help=f"draws per chain (default: {MAP_SAMPLER['num_samples']} for a capture, "
+        f"{BRDF_HMC['num_samples']} for a BRDF file's HMC)",
+    )
+    p.add_argument(
+        "--chains",
+        type=positive_int,
+        default=None,
+        help=f"chains per pixel (default: {MAP_SAMPLER['num_chains']} for a capture, "
+        f"{BRDF_HMC['num_chains']} for a BRDF file's HMC)",
+    )
     p.add_argument(
         "--gibbs-sweeps",
         type=non_negative_int,
-        default=2,
+        default=MAP_SAMPLER["gibbs_sweeps"],
         help="scans between kept draws where a capture's posterior allows Gibbs sampling "
         "(pooled, per-pixel lobes under a co-located flash; --warmup scaled by "
         "HMCOptions.gibbs_warmup_fraction); 0: HMC everywhere",
@@ -129,8 +174,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--rerun-rhat",
         type=_rhat,
         default=None,
-        help="rerun pixels above this max R-hat, longer (0: no second pass; default "
-        "jaxrefl.posterior.RERUN_RHAT, 1.05)",
+        help=f"rerun pixels above this max R-hat, longer (0: no second pass; default {RERUN_RHAT})",
     )
     p.add_argument(
         "--priors",
@@ -140,7 +184,24 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "(population), or the model's defaults",
     )
     p.add_argument(
-        "--chunk", type=positive_int, default=2048, help="MCMC pixels per compiled sampler call"
+        "--chunk",
+        type=positive_int,
+        default=MAP_CHUNK,
+        help="MCMC pixels per compiled sampler call",
+    )
+    p.add_argument(
+        "--time-limit",
+        type=positive_float,
+        default=None,
+        metavar="SECONDS",
+        help="start no MCMC chunk that would end past this many seconds: the pixels left "
+        "keep their Laplace summary (method laplace_time_limit; exit status 3; the same "
+        "command run again samples them); default: no limit",
+    )
+    p.add_argument(
+        "--keep-work",
+        action="store_true",
+        help="keep the fit's tiles and the MCMC chunks (OUT/fit, OUT/mcmc) after a whole map",
     )
     p.add_argument(
         "--brdf-model",
@@ -172,7 +233,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "the map does not depend on it",
     )
     p.add_argument("--seed", type=non_negative_int, default=0, help="random seed (>= 0)")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--quiet", action="store_true", help="no progress bars or stage lines")
     add_distributed_arguments(p)
 
 
@@ -211,15 +272,35 @@ def run(args: argparse.Namespace) -> int:
             raise JaxreflError("--distributed splits a capture's tiles and chunks, not a BRDF file")
         dist.initialize()  # before any JAX computation
     args.out.mkdir(parents=True, exist_ok=True)
-    opts = _options(args)
+    opts = _options(args, brdf_file)
     if brdf_file:
         report = _run_brdf(args, path, opts)
     else:
-        report = _run_capture(args, path, opts, dist)
+        try:
+            report = _run_capture(args, path, opts, dist)
+        except KeyboardInterrupt:
+            work = ", ".join(str(args.out / d) for d in WORK_DIRS if (args.out / d).exists())
+            where = f": the work done so far is in {work}" if work else ""
+            print(
+                f"jaxrefl sample: stopped{where}; the same command run again resumes there",
+                file=sys.stderr,
+            )
+            raise
     if dist is not None and not dist.is_main:
         return 0  # process 0 writes the outputs
     _json(args.out / "report.json", report)
     print(f"wrote {', '.join(report['files'])} and report.json to {args.out}/")
+    limit = report.get("time_limit")
+    if limit and limit["reached"]:
+        print(
+            f"jaxrefl sample: the time limit ({limit['limit_s']:g} s) left "
+            f"{limit['pixels_left_laplace']} MCMC pixels their Laplace summary and "
+            f"{limit['second_pass_pixels_left']} their first pass; the MCMC chunks done are "
+            f"in {args.out / 'mcmc'}: the same command run again (or with a higher "
+            "--time-limit) samples the rest",
+            file=sys.stderr,
+        )
+        return NOT_CONVERGED
     if report.get("converged") is False:
         why = "; ".join(report["convergence"]["reasons"])
         print(f"jaxrefl sample: not converged: {why}{_raise_hint(args)}", file=sys.stderr)
@@ -238,15 +319,34 @@ def _progress(args) -> bool:
     return not args.quiet and sys.stderr.isatty()
 
 
-def _options(args):
-    from jaxrefl.posterior import HMCOptions
+def _options(args, brdf_file: bool):
+    """The sampler's settings: the map's (:data:`jaxrefl.posterior.MAP_OPTIONS`) for a
+    capture, :class:`~jaxrefl.posterior.HMCOptions`' own for a BRDF file's HMC, with the
+    flags given."""
+    import dataclasses
 
-    return HMCOptions(
-        num_warmup=args.warmup,
-        num_samples=args.samples,
-        num_chains=args.chains,
+    from jaxrefl.posterior import MAP_OPTIONS, HMCOptions
+
+    base = HMCOptions() if brdf_file else MAP_OPTIONS
+    given = {"num_warmup": args.warmup, "num_samples": args.samples, "num_chains": args.chains}
+    return dataclasses.replace(
+        base,
         gibbs_sweeps=args.gibbs_sweeps,
+        **{k: v for k, v in given.items() if v is not None},
     )
+
+
+class _Stages:
+    """Stage lines on stderr, each with the seconds since the command started."""
+
+    def __init__(self, quiet: bool) -> None:
+        import time
+
+        self.quiet, self.t0, self.clock = quiet, time.perf_counter(), time.perf_counter
+
+    def __call__(self, line: str) -> None:
+        if not self.quiet:
+            print(f"[{self.clock() - self.t0:7.1f} s] {line}", file=sys.stderr, flush=True)
 
 
 def _run_capture(args, path: Path, opts, dist) -> dict:
@@ -254,13 +354,14 @@ def _run_capture(args, path: Path, opts, dist) -> dict:
     from jaxrefl import svbrdf
     from jaxrefl.io import load_capture
 
+    stages = _Stages(args.quiet)
     job = svbrdf.FitJob(model=args.model, config=fit_config(dtype="float64"))
     options = jp.AdaptiveOptions(
         mcmc=args.mcmc,
         audit=args.audit,
         hmc=opts,
         rerun_rhat=(
-            jp.RERUN_RHAT
+            RERUN_RHAT
             if args.rerun_rhat is None
             else (args.rerun_rhat if args.rerun_rhat > 0 else None)
         ),
@@ -283,12 +384,23 @@ def _run_capture(args, path: Path, opts, dist) -> dict:
         options,
         priors=args.priors,
         progress=_progress(args),
-        out_dir=None if dist is None else args.out,  # the processes' exchange (resume)
+        out_dir=args.out,  # the fit's tiles and MCMC chunks as they finish (resume)
         distributed=dist,
+        time_limit_s=args.time_limit,
+        log=stages,
     )
     if dist is not None and not dist.is_main:
         return {}
+    t0 = time.perf_counter()
+    stages("writing uncertainty.exr, posterior.nc and previews")
     files = [p.name for p in svbrdf.write_uncertainty(res, args.out)]
+    res.timings["write_s"] = time.perf_counter() - t0
+    stages(f"writing: done in {res.timings['write_s']:.1f} s")
+    limit = res.time_limit_report()
+    if not args.keep_work and not (limit and limit["reached"]):
+        for d in args.out.iterdir():
+            if d.is_dir() and d.name in {*WORK_DIRS, *(f"fit_{m}" for m in CAPTURE_MODELS)}:
+                shutil.rmtree(d)
     rep = res.report()
     head = {k: rep.pop(k) for k in ("model", "height", "width")}
     report = {

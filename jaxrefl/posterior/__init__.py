@@ -22,6 +22,7 @@ sampler), :mod:`._adaptive` (Laplace everywhere, MCMC where flagged), :mod:`._di
 calibration), :mod:`._maps` (EXR uncertainty channels).
 """
 
+from ._adaptive import HEARTBEAT_S as HEARTBEAT_S
 from ._adaptive import MAP_OPTIONS as MAP_OPTIONS
 from ._adaptive import METHODS as METHODS
 from ._adaptive import RERUN_RHAT as RERUN_RHAT

@@ -17,6 +17,8 @@ code  name            summary from
 1     ``laplace``      the Laplace Gaussian in theta, pushed through the bijections
 2     ``mcmc``         MCMC: Laplace was flagged unreliable there
 3     ``mcmc_audit``   MCMC on a random audit pixel that Laplace called reliable
+4     ``laplace_time_limit``  the Laplace Gaussian: the pixel was chosen for MCMC, but the
+                      map's time limit (``deadline``) came first
 ====  ==============  ===============================================================
 
 Laplace summaries in natural units: ``mean`` is the optimum x* = g(theta*), ``std`` the
@@ -36,8 +38,10 @@ size (:func:`_chunk_size`; the last one padded by repeating pixels, whose result
 dropped), so the sampler compiles once for the whole map whatever the number of flagged
 pixels (twice where some have censored observations and some none: pixels without any go
 first and skip the censored likelihood branch, see :meth:`LogPosterior.for_data`), and
-memory stays bounded. :data:`MAP_OPTIONS` is a cheaper sampler setting for maps, whose
-targets are a std and 5% / 95% quantiles rather than tail probabilities: 2 chains of 100
+memory stays bounded. :data:`MAP_OPTIONS`, the default sampler of :class:`AdaptiveOptions`
+(defined once for the library, the command line and the docs in
+:mod:`jaxrefl._map_defaults`), is a cheaper setting than :class:`HMCOptions`' own, since a
+map's targets are a std and 5% / 95% quantiles rather than tail probabilities: 2 chains of 100
 warm-up and 100 kept steps of 32 leapfrog steps (1/4 of the gradients of the default
 :class:`HMCOptions`), adaptation still per chain and per pixel (the Laplace std is the
 initial metric), in the non-centred coordinates of :mod:`jaxrefl.posterior._reparam`
@@ -71,6 +75,15 @@ second-pass starts, so the map does not depend on the number of processes. Withi
 process, :func:`~jaxrefl.posterior.sample_pixels` spreads a chunk over the process's
 devices.
 
+Bounded time and progress: with a ``deadline`` (a :func:`time.perf_counter` value) a chunk
+is not started where the last finished chunk's wall time would carry it past the deadline
+(the first chunk runs unless the deadline has passed); its pixels keep their Laplace
+summaries, with method ``laplace_time_limit``, and a second-pass chunk that is not started
+leaves its pixels their first pass's draws. Chunks already written to ``chunk_dir`` are read
+on a rerun, so a map stopped by its time limit resumes where it stopped. ``log`` (a function
+of one line of text) hears each pass's start and end and, every :data:`HEARTBEAT_S` seconds
+while a pass runs, the chunks done and an estimate of the time left.
+
 Second pass: a pixel whose first-pass chains disagree (max split R-hat above
 ``rerun_rhat``, :data:`RERUN_RHAT` = 1.05 by default: the convergence threshold the maps
 are held to) runs again under ``rerun_hmc`` (default
@@ -98,7 +111,9 @@ import dataclasses
 import enum
 import hashlib
 import math
+import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -109,6 +124,8 @@ import numpy as np
 from scipy import stats
 
 from jaxrefl._errors import JaxreflError
+from jaxrefl._map_defaults import MAP_AUDIT, MAP_CHUNK, MAP_SAMPLER
+from jaxrefl._map_defaults import RERUN_RHAT as _RERUN_RHAT
 from jaxrefl.fit import LaplaceFlag, PixelData, process_barrier, process_share
 
 from ._batched import HMCOptions, Samples, sample_pixels
@@ -118,6 +135,7 @@ from ._methods import MCMC_METHODS, Method
 from ._workers import default_workers, in_order
 
 __all__ = [
+    "HEARTBEAT_S",
     "MAP_OPTIONS",
     "METHODS",
     "RERUN_RHAT",
@@ -135,20 +153,11 @@ METHODS = {int(m): m.name.lower() for m in Method}
 # docstring): nothing to tune, nearly independent draws.
 UNTUNED = frozenset({"gibbs_mh"})
 _Z95 = 1.6448536269514722  # standard normal 95% quantile
-MAP_OPTIONS = HMCOptions(
-    num_warmup=100,
-    num_samples=100,
-    num_chains=2,
-    num_integration_steps=32,
-    batch_size=128,
-    gibbs_sweeps=2,
-    width_scans=1,
-)
-
-# The max split R-hat above which a map pixel's chains count as disagreeing and run the
-# second pass: 1.05, the map's convergence threshold (a 2 x 100-draw chain cannot be held
-# to Vehtari et al. 2021's 1.01; BDA3's 1.1 lets a few percent of pixels through).
-RERUN_RHAT = 1.05
+#: The uncertainty map's sampler (:data:`jaxrefl._map_defaults.MAP_SAMPLER`, module
+#: docstring): the default ``hmc`` of :class:`AdaptiveOptions`.
+MAP_OPTIONS = HMCOptions(**MAP_SAMPLER)
+RERUN_RHAT = _RERUN_RHAT  # the second pass's threshold (jaxrefl._map_defaults.RERUN_RHAT)
+HEARTBEAT_S = 30.0  # seconds between the progress lines of a pass (module docstring)
 _RERUN_SEED = 100_003  # offsets the second pass's seeds from the first's chunk seeds
 
 
@@ -187,8 +196,8 @@ class AdaptiveOptions:
                  ``flagged`` (default), ``all`` or ``none``
     audit:       with ``flagged``, the fraction in [0, 1] of the reliable pixels (flag 0)
                  also sampled, ceil(audit x count), drawn at random (method 3)
-    hmc:         the sampler's settings (:class:`HMCOptions`; :data:`MAP_OPTIONS` is the
-                 cheaper one for whole maps)
+    hmc:         the sampler's settings (:class:`HMCOptions`; default :data:`MAP_OPTIONS`,
+                 the map's: :mod:`jaxrefl._map_defaults`)
     rerun_rhat:  pixels whose first-pass max split R-hat exceeds it (or is NaN) run a
                  second, longer pass; None: no second pass
     rerun_hmc:   the second pass's settings; None: :func:`longer_options` of ``hmc``. It
@@ -203,11 +212,11 @@ class AdaptiveOptions:
     """
 
     mcmc: MCMCPixels = MCMCPixels.FLAGGED
-    audit: float = 0.02
-    hmc: HMCOptions = field(default_factory=HMCOptions)
+    audit: float = MAP_AUDIT
+    hmc: HMCOptions = MAP_OPTIONS
     rerun_rhat: float | None = RERUN_RHAT
     rerun_hmc: HMCOptions | None = None
-    chunk: int = 2048
+    chunk: int = MAP_CHUNK
     seed: int = 0
     keep_samples: bool = True
     workers: int | None = None
@@ -384,6 +393,8 @@ def adaptive_uncertainty(
     dof: np.ndarray | None = None,
     progress: bool = False,
     chunk_dir: str | Path | None = None,
+    deadline: float | None = None,
+    log: Callable[[str], None] | None = None,
 ) -> UncertaintyMap:
     """Laplace on every pixel, MCMC on the flagged ones and an audit sample (module doc).
 
@@ -397,13 +408,21 @@ def adaptive_uncertainty(
     as if flagged (its t marginal has no variance). progress: a tqdm bar over the chunks.
     chunk_dir: a folder where each MCMC chunk's draws are written when sampled and read
     back on a rerun (resume); required in a job of several processes (module docstring),
-    which exchange their chunks there.
+    which exchange their chunks there. deadline: a :func:`time.perf_counter` value after
+    which no MCMC chunk is started (module docstring; not in a job of several processes).
+    log: called with a line of text at each pass's start and end and every
+    :data:`HEARTBEAT_S` seconds during a pass.
     """
     o = AdaptiveOptions() if options is None else options
     if chunk_dir is None and jax.process_count() > 1:
         raise JaxreflError(
             "adaptive_uncertainty in a job of several processes needs chunk_dir: a folder "
             "every process can read and write (the processes exchange their chunks there)"
+        )
+    if deadline is not None and jax.process_count() > 1:
+        raise JaxreflError(
+            "a time limit applies to one process: in a job of several processes every "
+            "process samples its share of the chunks (drop the time limit)"
         )
     theta_hat = np.asarray(theta_hat, dtype=np.float64)
     theta_std = np.asarray(theta_std, dtype=np.float64)
@@ -432,9 +451,13 @@ def adaptive_uncertainty(
             return th0, np.concatenate([theta_std[rows], np.ones((rows.size, extra))], -1)
 
         folder = None if chunk_dir is None else Path(chunk_dir)
-        run = _Run(lp, data, normals, o, progress, timings, folder)
+        run = _Run(lp, data, normals, o, progress, timings, folder, deadline, log)
         samples, restart = run.first_pass(idx, first_starts, out, rng)
         run.second_pass(idx, restart, out, samples)
+        if run.skipped:
+            left = np.concatenate(run.skipped)
+            method[left] = Method.LAPLACE_TIME_LIMIT
+            idx = idx[~np.isin(idx, left)]
     return UncertaintyMap(
         labels=lp.labels,
         mean=out.mean,
@@ -466,6 +489,9 @@ class _Run:
     progress: bool
     timings: dict[str, Any]
     folder: Path | None = None
+    deadline: float | None = None
+    log: Callable[[str], None] | None = None
+    skipped: list[np.ndarray] = field(default_factory=list)  # first-pass pixels not sampled
 
     @property
     def workers(self) -> int:
@@ -479,7 +505,10 @@ class _Run:
         restart: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         parts, run_s, used = [], [], []
         t0 = time.perf_counter()
-        for real, cut, rs in self._chunks(idx, starts, o.hmc, o.seed, "MCMC pixels", "first"):
+        for real, cut, rs in self._chunks(idx, starts, o.hmc, o.seed, "MCMC first pass", "first"):
+            if cut is None:  # the time limit came first: Laplace summaries stay
+                self.skipped.append(real)
+                continue
             run_s.append(rs)
             used.append(cut.method)
             out.store(real, cut)
@@ -492,15 +521,17 @@ class _Run:
                 parts.append(cut)
         tm["mcmc_s"] = float(np.sum(run_s))
         tm["mcmc_wall_s"] = time.perf_counter() - t0
-        tm["mcmc_pixels"] = int(idx.size)
+        tm["mcmc_pixels"] = int(idx.size) - sum(r.size for r in self.skipped)
         tm["mcmc_chunks"] = len(run_s)
+        if self.deadline is not None:
+            tm["time_limit_pixels_left"] = sum(r.size for r in self.skipped)
         tm["sampler"] = "+".join(dict.fromkeys(used))  # each chunk's (Samples.method)
         tm["mcmc_chunk_size"] = _chunk_size(int(idx.size), o.chunk, o.hmc.batch_size, self.workers)
         if len(run_s) > 1:
             # the first chunk compiles; the others reuse it
             tm["mcmc_compile_s"] = max(0.0, run_s[0] - float(np.median(run_s[1:])))
             tm["mcmc_chunk_s_median"] = float(np.median(run_s[1:]))
-        return (_concat(parts) if o.keep_samples else None), restart
+        return (_concat(parts) if o.keep_samples and parts else None), restart
 
     def second_pass(self, idx, restart, out: _Summaries, samples: Samples | None) -> None:
         """Sample the pixels of ``restart`` again from their starts under the second
@@ -524,17 +555,24 @@ class _Run:
         t0 = time.perf_counter()
         at = {int(i): k for k, i in enumerate(idx)}
         seed = self.o.seed + _RERUN_SEED
+        left = 0
         for real, cut, rs in self._chunks(
             again, starts, second, seed, "MCMC second pass", "second", size
         ):
+            if cut is None:  # the time limit came first: the first pass's draws stay
+                out.rhat_first[real] = np.nan
+                left += real.size
+                continue
             run_s.append(rs)
             out.store(real, cut)
+            out.rerun[real] = True
             if samples is not None:
                 _put(samples, [at[int(i)] for i in real], cut)
-        out.rerun[again] = True
+        if self.deadline is not None:
+            self.timings["time_limit_second_pass_left"] = left
         self.timings["rerun_s"] = float(np.sum(run_s))
         self.timings["rerun_wall_s"] = time.perf_counter() - t0
-        self.timings["rerun_pixels"] = int(again.size)
+        self.timings["rerun_pixels"] = int(again.size) - left
 
     def _chunks(self, idx, starts, opts: HMCOptions, seed: int, desc: str, tag: str, size=None):
         """Sample the pixels ``idx`` in chunks of one compiled size (module docstring).
@@ -567,22 +605,34 @@ class _Run:
 
             bar = tqdm(total=len(firsts), desc=desc, unit="chunk")
 
-        def get(ci: int) -> tuple[Samples, float] | None:
+        pace = _Pace(desc, len(firsts), int(idx.size), self.log, self.workers)
+
+        def get(ci: int) -> tuple[Samples, float] | _Skipped | None:
             real = idx[firsts[ci] : firsts[ci] + size]
             got = None if name is None else _load_chunk(name(ci), real.size, self.lp.labels)
             if got is None and ci in mine:
+                if pace.too_late(self.deadline):
+                    return _SKIPPED
+                t0 = time.perf_counter()
                 got = self._sample(real, size, starts, opts, seed + ci)
                 if name is not None:
                     _save_chunk(name(ci), *got)
+                pace.took(time.perf_counter() - t0)
             return got
 
         try:
-            for ci, got in enumerate(in_order(get, range(len(firsts)), self.workers)):
-                if bar is not None:
-                    bar.update(1)
-                if not many:
-                    assert got is not None  # one process: every chunk is its own
-                    yield idx[firsts[ci] : firsts[ci] + size], *got
+            with pace:
+                for ci, got in enumerate(in_order(get, range(len(firsts)), self.workers)):
+                    pace.done(ci, got is _SKIPPED)
+                    if bar is not None:
+                        bar.update(1)
+                    if not many:
+                        real = idx[firsts[ci] : firsts[ci] + size]
+                        if got is _SKIPPED:
+                            yield real, None, 0.0
+                            continue
+                        assert isinstance(got, tuple)  # one process: every chunk is its own
+                        yield real, *got
         finally:
             if bar is not None:
                 bar.close()
@@ -608,6 +658,72 @@ class _Run:
         nrm = None if self.normals is None else jnp.asarray(np.asarray(self.normals)[rows])
         smp = sample_pixels(self.lp, sub, th0, theta_std=sd, normals=nrm, options=opts, seed=seed)
         return _take(smp, real.size), smp.run_s
+
+
+class _Skipped:
+    """A chunk not started: the time limit came first."""
+
+
+_SKIPPED = _Skipped()
+
+
+class _Pace:
+    """One pass's chunks done, their wall time, and its progress lines (module docstring):
+    the pass's start and end, and every :data:`HEARTBEAT_S` seconds from a timer thread the
+    chunks done and the time left, estimated from the chunks after the first (which
+    compiles)."""
+
+    def __init__(self, desc: str, chunks: int, pixels: int, log, workers: int) -> None:
+        self.desc, self.chunks, self.pixels, self.log = desc, chunks, pixels, log
+        self.workers = max(1, workers)
+        self.n_done = self.n_skipped = 0
+        self.last_s: float | None = None  # wall time of the last chunk sampled
+        self.t0 = time.perf_counter()
+        self._stop = threading.Event()
+        self._timer: threading.Thread | None = None
+
+    def __enter__(self) -> _Pace:
+        if self.log is not None:
+            self.log(f"{self.desc}: {self.pixels} pixels in {self.chunks} chunks")
+            self._timer = threading.Thread(target=self._beat, daemon=True)
+            self._timer.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        if self._timer is not None:
+            self._timer.join()
+        if self.log is not None and exc[0] is None:
+            tail = f", {self.n_skipped} left by the time limit" if self.n_skipped else ""
+            self.log(f"{self.desc}: done in {time.perf_counter() - self.t0:.1f} s{tail}")
+
+    def _beat(self) -> None:
+        while not self._stop.wait(HEARTBEAT_S):
+            assert self.log is not None
+            self.log(self.line())
+
+    def line(self) -> str:
+        el = time.perf_counter() - self.t0
+        left = self.chunks - self.n_done
+        eta = ""
+        if self.last_s is not None and self.n_done:
+            eta = f", about {max(1, left / self.workers) * self.last_s:.0f} s left"
+        return f"{self.desc}: {self.n_done}/{self.chunks} chunks done, {el:.0f} s{eta}"
+
+    def too_late(self, deadline: float | None) -> bool:
+        """Whether a chunk started now would end past ``deadline`` (the last chunk's wall
+        time ahead; before any chunk has run, only a deadline already passed stops it)."""
+        if deadline is None:
+            return False
+        ahead = 0.0 if self.last_s is None else self.last_s
+        return time.perf_counter() + ahead > deadline
+
+    def took(self, seconds: float) -> None:
+        self.last_s = seconds
+
+    def done(self, ci: int, skipped: bool) -> None:
+        self.n_done += 1
+        self.n_skipped += skipped
 
 
 def _fingerprint(tag, idx, opts: HMCOptions, seed: int, size: int, box) -> str:

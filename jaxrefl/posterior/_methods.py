@@ -16,6 +16,8 @@ class Method(enum.IntEnum):
     LAPLACE = 1  # the Laplace approximation was trusted
     MCMC = 2  # sampled because the Laplace approximation was not reliable
     MCMC_AUDIT = 3  # sampled to audit a reliable Laplace approximation
+    # chosen for MCMC, but the map's time limit left it its Laplace summary
+    LAPLACE_TIME_LIMIT = 4
 
 
 #: The codes of pixels that were sampled (by MCMC).

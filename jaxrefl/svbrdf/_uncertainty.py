@@ -35,7 +35,7 @@ timings).
 from __future__ import annotations
 
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -50,6 +50,7 @@ from jaxrefl._errors import JaxreflError
 from jaxrefl._names import PRIOR_SOURCES
 from jaxrefl.fit import PixelData
 
+from ._check import NEAR
 from ._data import pixel_block
 from ._job import CaptureFit, FitJob, fit_capture, map_name
 from ._models import capture_model
@@ -69,6 +70,10 @@ __all__ = [
 ]
 
 NOISE = "Gaussian, unknown scale per pixel (Jeffreys prior)"
+#: Models whose fit may pile against a cap that another candidate lifts -> that candidate.
+WIDER: dict[str, str] = {"ggx": "ggx_rgb"}
+#: Share of fitted pixels at the cap above which the map's model is widened.
+WIDEN_SHARE = 0.5
 _NOISE_START = 1e-2  # the chains' starting noise scale where the fit gave none
 _PPC_DRAWS = 50  # posterior predictive draws per MCMC pixel in posterior.nc
 LOG_LIKELIHOOD_MAX = 20_000_000  # pointwise log-likelihood values in posterior.nc (float32: 80 MB)
@@ -86,8 +91,12 @@ class CaptureUncertainty:
     options:   the settings the map was made with
     prior_summary: where the priors came from (``source``: population, default or given;
                for a population, its pixels and estimates: :func:`population_priors`)
-    timings:   seconds in :func:`fit_capture` (``fit_s``) and in
-               :func:`jaxrefl.posterior.adaptive_uncertainty` (``posterior_s``)
+    timings:   seconds of each stage: :func:`fit_capture` (``fit_s``, a widened model's
+               second fit included), the priors (``priors_s``),
+               :func:`jaxrefl.posterior.adaptive_uncertainty` (``posterior_s``; its own
+               ``timings`` split it), and the call (``total_s``)
+    model_choice: the model sampled and why (:func:`uncertainty_maps`)
+    time_limit_s: the time limit the map was made under (None: none)
     """
 
     fit: CaptureFit
@@ -100,6 +109,8 @@ class CaptureUncertainty:
     options: jp.AdaptiveOptions
     timings: dict[str, float] = field(default_factory=dict)
     prior_summary: dict[str, Any] = field(default_factory=dict)
+    model_choice: dict[str, Any] = field(default_factory=dict)
+    time_limit_s: float | None = None
 
     @property
     def model(self) -> str:
@@ -179,8 +190,26 @@ class CaptureUncertainty:
                 k: self.fit.report.get(k)
                 for k in ("status_counts", "laplace_flag_counts", "misspecified_counts")
             },
+            "model_choice": dict(self.model_choice),
             "uncertainty": self.map.report(),
             "timings": dict(self.timings),
+            "time_limit": self.time_limit_report(),
+        }
+
+    def time_limit_report(self) -> dict[str, Any] | None:
+        """The time limit and what it left undone: pixels chosen for MCMC that kept their
+        Laplace summaries (method ``laplace_time_limit``) and second-pass pixels that kept
+        their first pass's draws; None without a limit."""
+        if self.time_limit_s is None:
+            return None
+        t = self.map.timings
+        first = int(t.get("time_limit_pixels_left", 0))
+        second = int(t.get("time_limit_second_pass_left", 0))
+        return {
+            "limit_s": self.time_limit_s,
+            "pixels_left_laplace": first,
+            "second_pass_pixels_left": second,
+            "reached": bool(first or second),
         }
 
 
@@ -324,6 +353,8 @@ def uncertainty_maps(
     progress: bool = False,
     out_dir: str | Path | None = None,
     distributed: fit.Distributed | None = None,
+    time_limit_s: float | None = None,
+    log: Callable[[str], None] | None = None,
 ) -> CaptureUncertainty:
     """Posterior uncertainty of every pixel of ``capture`` (module docstring).
 
@@ -348,6 +379,23 @@ def uncertainty_maps(
               :func:`fit_capture`): the fit's tiles and the MCMC chunks are split among
               the processes, which exchange them in ``out_dir`` (required); every process
               returns the whole result (process 0 writes it: :func:`write_uncertainty`)
+    time_limit_s: seconds from the call after which no MCMC chunk is started: the pixels
+              not sampled by then keep their Laplace summaries, with method
+              ``laplace_time_limit`` (:func:`jaxrefl.posterior.adaptive_uncertainty`'s
+              ``deadline``); with ``out_dir`` a rerun samples them (resume). None: no limit
+    log:      called with one line of text per stage (the fit and the model it chose, the
+              priors, each MCMC pass with its pixel count, and every
+              :data:`jaxrefl.posterior.HEARTBEAT_S` seconds during a pass the chunks done
+              and the time left); None: silent
+
+    The model is the job's; ``auto`` (the default) chooses it as :func:`fit_capture` does,
+    by held-out photos (:func:`jaxrefl.svbrdf.choose_model`). A model whose fit piles most
+    pixels against a cap that a candidate lifts is not sampled: where more than
+    :data:`WIDEN_SHARE` of the fitted pixels have their grey F0 at (within
+    :data:`jaxrefl.svbrdf._check.NEAR` of) the dielectric cap 0.25 of ``ggx``, the capture
+    is fitted again with :data:`WIDER` ``ggx_rgb`` (coloured F0 up to 1, metals), and
+    ``model_choice`` in the report says so and why. Sampling pixels whose mode sits at a
+    limit of the model would spend the MCMC budget on intervals that cannot be calibrated.
     """
     if jnp.asarray(0.0).dtype != jnp.float64:  # jax_enable_x64 is off
         raise JaxreflError(
@@ -371,13 +419,39 @@ def uncertainty_maps(
         from jaxrefl.io import load_capture
 
         capture = load_capture(capture)
+    if time_limit_s is not None and not (np.isfinite(time_limit_s) and time_limit_s > 0):
+        raise JaxreflError(f"time_limit_s must be a positive number of seconds, got {time_limit_s}")
+    if time_limit_s is not None and distributed is not None:
+        raise JaxreflError("a time limit applies to one process: drop it or --distributed")
+    say = log if log is not None else (lambda _line: None)
+    t0 = time.perf_counter()
+    deadline = None if time_limit_s is None else t0 + time_limit_s
     _k, h, w, _c = capture.shape
     job = replace(job, tile_pixels=min(job.tile_pixels, h * w))
-    t0 = time.perf_counter()
+    say(f"fit: {h} x {w} pixels, {capture.n_photos} photos, model {job.model}")
     fit_dir = None if out_dir is None else Path(out_dir) / "fit"
     cf = fit_capture(capture, job, fit_dir, progress=progress, distributed=distributed)
+    choice = _model_choice(cf, job.model)
+    wider = WIDER.get(cf.job.model)
+    if wider is not None and choice["capped_share"] > WIDEN_SHARE:
+        choice["widened"] = {
+            "from": cf.job.model,
+            "to": wider,
+            "why": f"{choice['capped_share']:.0%} of the fitted pixels have F0 at the "
+            f"{cf.job.model} model's cap (more than {WIDEN_SHARE:.0%}): {wider} lifts it",
+        }
+        say(f"fit: {choice['widened']['why']}; fitting {wider}")
+        wdir = None if out_dir is None else Path(out_dir) / f"fit_{wider}"
+        wjob = replace(cf.job, model=wider, config=cf.job.config.replace(loss=None))
+        cf = fit_capture(capture, wjob, wdir, progress=progress, distributed=distributed)
+        choice["model"] = cf.job.model
+        choice["capped_share_after"] = _model_choice(cf, wider)["capped_share"]
     t_fit = time.perf_counter() - t0
+    say(f"fit: model {cf.job.model} ({choice['why']}), {t_fit:.1f} s")
+    t_pri = time.perf_counter()
     lp, prior_summary = map_posterior(cf, priors)
+    t_pri = time.perf_counter() - t_pri
+    say(f"priors: {prior_summary.get('source')}, {t_pri:.1f} s")
     # The job's held-out photos stay out of the posterior as they stayed out of the fit
     # (weight 0: still in the data, for posterior predictive draws of them).
     train = np.ones(capture.n_photos, bool)
@@ -398,6 +472,8 @@ def uncertainty_maps(
         dof=laplace_dof(cf),
         progress=progress,
         chunk_dir=None if out_dir is None else Path(out_dir) / "mcmc",
+        deadline=deadline,
+        log=log,
     )
     t_post = time.perf_counter() - t1
     return CaptureUncertainty(
@@ -409,9 +485,37 @@ def uncertainty_maps(
         height=h,
         width=w,
         options=options,
-        timings={"fit_s": t_fit, "posterior_s": t_post},
+        timings={
+            "fit_s": t_fit,
+            "priors_s": t_pri,
+            "posterior_s": t_post,
+            "total_s": time.perf_counter() - t0,
+        },
         prior_summary=prior_summary,
+        model_choice=choice,
+        time_limit_s=time_limit_s,
     )
+
+
+def _model_choice(cf: CaptureFit, requested: str) -> dict[str, Any]:
+    """How the map's model was chosen (the report's ``model_choice``): the model, the one
+    asked for, why (auto's reason, or given), and the share of fitted pixels whose grey F0
+    piles against its cap (0 for a model without one)."""
+    auto = cf.report.get("auto")
+    why = "given" if auto is None else f"auto: {auto.get('why', 'chosen by held-out photos')}"
+    _model, space = cf.model()
+    spec = np.array([lab.split(".")[0] == "specular" for lab in space.labels])
+    share = 0.0
+    theta = np.asarray(cf.theta)
+    ok = np.all(np.isfinite(theta), -1)
+    if cf.job.model in WIDER and spec.any() and ok.any():
+        t = jnp.asarray(theta[ok])
+        x = np.asarray(space.natural_vector(t))
+        near = np.asarray(space.at_bound(t, NEAR))
+        lower, upper = np.asarray(space.lower), np.asarray(space.upper)
+        capped = near & (upper - x <= x - lower) & spec
+        share = float(np.mean(np.any(capped, -1)))
+    return {"model": cf.job.model, "requested": requested, "why": why, "capped_share": share}
 
 
 def write_uncertainty(result: CaptureUncertainty, out_dir: str | Path) -> list[Path]:

@@ -1,0 +1,41 @@
+"""The uncertainty map's default settings, said once and importable without JAX.
+
+One map, one default: :class:`jaxrefl.posterior.AdaptiveOptions` (whose ``hmc`` default is
+:data:`jaxrefl.posterior.MAP_OPTIONS`, built from :data:`MAP_SAMPLER`), ``jaxrefl sample
+CAPTURE`` (its ``--warmup``, ``--samples``, ``--chains``, ``--gibbs-sweeps``, ``--audit``,
+``--chunk`` and ``--rerun-rhat`` defaults) and the docs read these values, so a notebook
+user and a command-line user get the same map from the same capture. The command line
+imports this module without importing JAX (``jaxrefl --help`` stays fast).
+
+The sampler's targets are a std and 5% / 95% quantiles per pixel, not tail probabilities:
+2 chains of 100 warm-up and 100 kept steps; HMC with 32 leapfrog steps where HMC runs;
+Gibbs sampling where the posterior allows it (2 scans between kept draws), the width
+sampler's joint move once per kept draw (``width_scans``). Pixels whose chains disagree
+(max split R-hat above :data:`RERUN_RHAT`) run a second pass
+(:func:`jaxrefl.posterior.longer_options` or :func:`jaxrefl.posterior.untuned_rerun`).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+__all__ = ["MAP_AUDIT", "MAP_CHUNK", "MAP_SAMPLER", "RERUN_RHAT"]
+
+#: Keyword arguments of :class:`jaxrefl.posterior.HMCOptions` for an uncertainty map.
+MAP_SAMPLER: dict[str, Any] = {
+    "num_warmup": 100,
+    "num_samples": 100,
+    "num_chains": 2,
+    "num_integration_steps": 32,
+    "batch_size": 128,
+    "gibbs_sweeps": 2,
+    "width_scans": 1,
+}
+#: Share of the pixels Laplace calls reliable that are also sampled, to audit it.
+MAP_AUDIT = 0.02
+#: MCMC pixels per compiled sampler call.
+MAP_CHUNK = 2048
+#: The max split R-hat above which a map pixel's chains disagree and run the second pass:
+#: the map's convergence threshold (a 2 x 100-draw chain cannot be held to Vehtari et al.
+#: 2021's 1.01; BDA3's 1.1 lets a few percent of pixels through).
+RERUN_RHAT = 1.05
