@@ -1,8 +1,8 @@
 """jaxrefl: probabilistic reflectance estimation in JAX.
 
 ``import jaxrefl`` gives every subpackage (``brdf``, ``fit``, ``io``, ``scene``,
-``spectral``, ``measured``, ``posterior``, ``ps``, ``svbrdf``, ``cli``, ``demo``, ``plot``),
-each imported on first attribute access (module ``__getattr__``, PEP 562): ``import
+``spectral``, ``measured``, ``phone``, ``posterior``, ``ps``, ``svbrdf``, ``cli``, ``demo``,
+``plot``), each imported on first attribute access (module ``__getattr__``, PEP 562): ``import
 jaxrefl`` itself loads neither JAX nor anything heavier, so ``jaxrefl --help`` answers
 without importing JAX, and BlackJAX, emcee, SciPy or Matplotlib load only for the
 subpackages that use them.
@@ -23,6 +23,7 @@ if TYPE_CHECKING:
     from . import fit as fit
     from . import io as io
     from . import measured as measured
+    from . import phone as phone
     from . import plot as plot
     from . import posterior as posterior
     from . import ps as ps
@@ -40,6 +41,7 @@ _LAZY = (
     "fit",
     "io",
     "measured",
+    "phone",
     "plot",
     "posterior",
     "ps",

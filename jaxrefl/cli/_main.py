@@ -66,6 +66,8 @@ COMMANDS: dict[str, str] = {
     "fit-brdf": "jaxrefl.cli._fit_brdf",
     "models": "jaxrefl.cli._models",
     "export": "jaxrefl.cli._export",
+    "frame": "jaxrefl.cli._frame",
+    "capture": "jaxrefl.cli._capture",
 }
 
 
