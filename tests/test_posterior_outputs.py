@@ -667,6 +667,8 @@ def test_time_limit_leaves_laplace_pixels_marked_and_a_pass_says_what_it_does(la
     assert u0.samples is None or u0.samples.theta.shape[0] == 0
     assert u0.timings["time_limit_pixels_left"] == 6
     assert u0.report()["method_counts"]["laplace_time_limit"] == 6
+    # why they were chosen: pixel 0 for its AT_BOUND flag, the others as mcmc="all" asked
+    assert u0.report()["mcmc_reasons"]["AT_BOUND"] == 1 and u0.reasons["audit"] == 5
     np.testing.assert_allclose(u0.std[:, :3], np.asarray(lap.std), rtol=1e-8)
     assert lines[0].startswith("MCMC first pass: 6 pixels in 3 chunks")
     assert "3 left by the time limit" in lines[-1]

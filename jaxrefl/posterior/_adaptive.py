@@ -266,7 +266,8 @@ class UncertaintyMap:
     in the order of ``samples`` (those without censored observations first);
     samples: their draws; laplace_std: (N, D) the Laplace std everywhere (NaN where none);
     rerun: (N,) bool, the pixel's numbers come from the second pass; rhat_first: (N,) its
-    first pass's max R-hat (NaN where no second pass ran)
+    first pass's max R-hat (NaN where no second pass ran); reasons: why the pixels chosen
+    for MCMC were (:func:`mcmc_reasons`)
     """
 
     labels: tuple[str, ...]
@@ -285,6 +286,7 @@ class UncertaintyMap:
     rerun: np.ndarray
     rhat_first: np.ndarray
     timings: dict[str, float] = field(default_factory=dict)
+    reasons: dict[str, int] = field(default_factory=dict)
 
     @property
     def audit_std_ratio(self) -> np.ndarray:
@@ -337,6 +339,7 @@ class UncertaintyMap:
                 },
             },
             "audit_laplace_over_mcmc_std": audit,
+            "mcmc_reasons": dict(self.reasons),
             "timings": self.timings,
         }
 
@@ -433,6 +436,7 @@ def adaptive_uncertainty(
     rng = np.random.default_rng(o.seed)  # the audit pixels, then the second pass's starts
     unreliable = (flag != 0) | (has & np.any(np.isnan(std), -1))
     method = _choose_methods(has, unreliable, o, rng)
+    reasons = mcmc_reasons(method, flag, has & np.any(np.isnan(std), -1))
     timings = {"laplace_summary_s": time.perf_counter() - t0}
     out = _Summaries.from_laplace(mean, std, q05, q95, lp.size)
     idx = np.flatnonzero(np.isin(method, MCMC_METHODS))
@@ -475,7 +479,25 @@ def adaptive_uncertainty(
         rerun=out.rerun,
         rhat_first=out.rhat_first,
         timings=timings,
+        reasons=reasons,
     )
+
+
+def mcmc_reasons(method: np.ndarray, flag: np.ndarray, no_summary: np.ndarray) -> dict[str, int]:
+    """Why the pixels chosen for MCMC were: per :class:`jaxrefl.fit.LaplaceFlag` bit the
+    MCMC pixels (method ``mcmc``, or ``laplace_time_limit`` where the time limit came first)
+    whose flag has it (a pixel may count under several), ``NO_FINITE_SUMMARY`` those without
+    a flag whose Laplace marginals have no finite std (a Student t of <= 2 degrees of
+    freedom), ``audit`` the pixels Laplace calls reliable that were sampled all the same
+    (the random audit sample; with ``mcmc="all"`` every one). The report's
+    ``mcmc_reasons``: where a map's time goes and why."""
+    chosen = np.isin(method, (Method.MCMC, Method.LAPLACE_TIME_LIMIT))
+    f = np.asarray(flag)
+    out = {b.name or str(b.value): int(np.sum(chosen & ((f & b.value) != 0))) for b in LaplaceFlag}
+    out["NO_FINITE_SUMMARY"] = int(np.sum(chosen & (f == 0) & no_summary))
+    audit = method == Method.MCMC_AUDIT
+    out["audit"] = int(np.sum(audit))
+    return out
 
 
 @dataclass
