@@ -161,13 +161,14 @@ def _radiance(sample: SyntheticSample, points: np.ndarray, flash: np.ndarray, po
     n = len(points)
     pad = -n % _BUCKET  # one compiled program for every photo's number of sample points
     points = np.concatenate([points, np.zeros((pad, 3))]) if pad else points
-    params = {k: jnp.asarray(v) for k, v in sample.params_at(points[:, :2]).items()}
+    f32 = jnp.float32  # a photo's radiance needs no more; float64 would double the cost
+    params = {k: jnp.asarray(v, f32) for k, v in sample.params_at(points[:, :2]).items()}
     img = render(
         sample.model,  # type: ignore[arg-type]
         params,
-        PointLight(jnp.asarray(flash), jnp.full((3,), power)),
-        PinholeCamera(jnp.asarray(flash), look_at=(0.0, 0.0, 0.0)),
-        points=jnp.asarray(points),
+        PointLight(jnp.asarray(flash, f32), jnp.full((3,), power, f32)),
+        PinholeCamera(jnp.asarray(flash, f32), look_at=(0.0, 0.0, 0.0)),
+        points=jnp.asarray(points, f32),
         cos4=False,
     )
     return np.asarray(img[0], np.float64)[:n]
