@@ -239,6 +239,11 @@ def _encode(linear: np.ndarray, clipped: np.ndarray, valid: np.ndarray, alpha: b
     return q
 
 
+def _ratio(value: float | None, ref: float | None) -> float | None:
+    """value / ref, or None where either is unknown (or ref is 0)."""
+    return None if value is None or not ref else value / ref
+
+
 def _prepare_out(out: Path) -> None:
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise PhoneCaptureError(f"{out}: exists and is not an empty folder; name a new one")
@@ -326,9 +331,7 @@ def photos_to_capture(
                 "outside_photo_px": int((~rects[k].valid).sum()),
                 "metadata": {
                     **p.meta.to_json(),
-                    "relative_exposure": (
-                        None if exposures[k] is None or not median else exposures[k] / median
-                    ),
+                    "relative_exposure": _ratio(exposures[k], median),
                 },
             }
             for k, (name, p) in enumerate(zip(names, photos, strict=True))
