@@ -174,18 +174,22 @@ STORED_FLAGS = {
     "AT_BOUND": 4,
     "NOT_IDENTIFIED": 8,
     "NONFINITE": 16,
+    "SINGULAR": 32,
+    "CORR_UNDEFINED": 64,
 }
 
 
 def test_laplace_flag_bits_are_the_stored_ones_and_counted_per_bit():
     assert {b.name: int(b) for b in LaplaceFlag} == STORED_FLAGS
-    f = np.array([[0, 1, 3], [16, 24, 0]], np.int32)
+    f = np.array([[0, 1, 3], [16, 24, 0], [40, 64, 96]], np.int32)
     want = {
         "NO_ESTIMATE": 2,
         "NOT_POSITIVE_DEFINITE": 1,
         "AT_BOUND": 0,
-        "NOT_IDENTIFIED": 1,
+        "NOT_IDENTIFIED": 2,
         "NONFINITE": 2,
+        "SINGULAR": 2,
+        "CORR_UNDEFINED": 2,
         "reliable": 2,
     }
     assert flag_counts(f) == want

@@ -35,8 +35,20 @@ Reliability flags (bits of ``flag``; 0 = the Gaussian approximation is trusted):
                                   no highlight was observed), the equilibrated condition
                                   number of J^T J exceeds ``cond_max`` (then J^T J is not
                                   inverted: std NaN), or n <= P
-``NONFINITE``               16    a std or correlation is not finite
+``NONFINITE``               16    a std or correlation is not finite though J^T J was
+                                  inverted (an overflow in the delta method)
+``SINGULAR``                32    J^T J is numerically singular (the condition test
+                                  behind ``NOT_IDENTIFIED``, which is set too) and is
+                                  not inverted: std and corr NaN
+``CORR_UNDEFINED``          64    some parameter's std is 0 (its natural parameter does
+                                  not move to first order: a saturated bijection, or a
+                                  noise estimate of 0): its correlations are undefined
+                                  and NaN; the other entries are formed
 =========================  ====  =====================================================
+
+Every non-finite number of ``std`` and ``corr`` carries a flag that says why: ``std`` is NaN
+only where ``NO_ESTIMATE``, ``NOT_POSITIVE_DEFINITE``, ``SINGULAR`` or ``NONFINITE`` is set
+(:data:`STD_NAN_FLAGS`), ``corr`` also where ``CORR_UNDEFINED`` is (:data:`CORR_NAN_FLAGS`).
 
 A numerically singular J^T J (equilibrated condition number above ``cond_max``, the test
 behind the fit's ``ILL_CONDITIONED``; a zero column included) is never inverted. J^T J is a
@@ -76,7 +88,16 @@ from ._residual import PixelData, Residual
 from ._shard import device_count, map_sharded
 from ._status import has_estimate, ill_conditioned
 
-__all__ = ["LaplaceFlag", "LaplaceResult", "flag_counts", "laplace", "same_residual"]
+__all__ = [
+    "CORR_NAN_FLAGS",
+    "STD_NAN_FLAGS",
+    "LaplaceFlag",
+    "LaplaceResult",
+    "flag_counts",
+    "laplace",
+    "same_residual",
+    "undefined_correlations",
+]
 
 
 class LaplaceFlag(enum.IntFlag):
@@ -87,6 +108,37 @@ class LaplaceFlag(enum.IntFlag):
     AT_BOUND = 4
     NOT_IDENTIFIED = 8
     NONFINITE = 16
+    SINGULAR = 32
+    CORR_UNDEFINED = 64
+
+
+#: The bits of which one is set wherever a std is not finite (module docstring).
+STD_NAN_FLAGS = (
+    LaplaceFlag.NO_ESTIMATE
+    | LaplaceFlag.NOT_POSITIVE_DEFINITE
+    | LaplaceFlag.SINGULAR
+    | LaplaceFlag.NONFINITE
+)
+#: The bits of which one is set wherever a correlation is not finite.
+CORR_NAN_FLAGS = STD_NAN_FLAGS | LaplaceFlag.CORR_UNDEFINED
+
+
+def undefined_correlations(std: np.ndarray, corr: np.ndarray, flag: np.ndarray):
+    """``corr`` (N, P, P) with NaN where a parameter's ``std`` (N, P) is 0 (the correlation
+    of a parameter that does not vary is undefined), and ``flag`` (N,) with
+    ``CORR_UNDEFINED`` set exactly on the pixels that have such an entry. For std and
+    corr changed after :func:`laplace` (e.g. widened by a shared parameter's uncertainty);
+    pixels without a covariance (a non-finite std) keep their NaN and lose the bit."""
+    std = np.asarray(std)
+    zero = std == 0
+    pair = zero[:, :, None] | zero[:, None, :]
+    formed = np.all(np.isfinite(std), axis=-1)
+    pair &= formed[:, None, None]
+    corr = np.where(pair, np.nan, corr)
+    bit = int(LaplaceFlag.CORR_UNDEFINED)
+    has = np.any(pair, axis=(-2, -1))
+    flag = (np.asarray(flag) & ~bit) | np.where(has, bit, 0)
+    return corr, flag.astype(np.asarray(flag).dtype)
 
 
 def flag_counts(flag: ArrayLike) -> dict[str, int]:
@@ -182,11 +234,13 @@ def _pixel(space, theta, jtj, active, cost, estimate: bool, unroll_max: int, con
     cov_x = amat @ cov_t @ amat.T
     std_t = jnp.sqrt(jnp.maximum(jnp.diagonal(cov_t), 0.0))
     std_x = jnp.sqrt(jnp.maximum(jnp.diagonal(cov_x), 0.0))
-    # Safe division: a zero std (a parameter pinned exactly) gives correlation 0, not NaN.
+    # A zero std (a parameter that does not move) leaves its correlations undefined: NaN
+    # there (flagged CORR_UNDEFINED); the division is guarded so its gradient stays finite.
     denom = std_x[:, None] * std_x[None, :]
-    corr = jnp.where(denom > 0, cov_x / jnp.where(denom > 0, denom, 1.0), 0.0)
+    corr = jnp.where(denom > 0, cov_x / jnp.where(denom > 0, denom, 1.0), jnp.nan)
     corr = jnp.where(formed, corr, jnp.nan)
-    return std_x, corr, cov_x, std_t, s2, formed, ill, dof, ok
+    undefined = formed & jnp.any(std_x == 0)
+    return std_x, corr, cov_x, std_t, s2, formed, ill, dof, ok, undefined
 
 
 @eqx.filter_jit
@@ -202,7 +256,9 @@ def _laplace_jit(space, res, theta, lin, cost, status, estimate, max_theta_std, 
     def one(t, j, a, c):
         return _pixel(space, t, j, a, c, estimate, unroll, cond_max)
 
-    std, corr, cov, std_t, s2, formed, ill, dof, ok = jax.vmap(one)(theta, jtj, active, cost)
+    std, corr, cov, std_t, s2, formed, ill, dof, ok, undefined = jax.vmap(one)(
+        theta, jtj, active, cost
+    )
     at_bound = jnp.any(space.at_bound(jnp.where(ok[:, None], theta, 0.0)), axis=-1)
     identified = std_t <= max_theta_std
     none = ~has_estimate(status) | ~ok
@@ -212,7 +268,13 @@ def _laplace_jit(space, res, theta, lin, cost, status, estimate, max_theta_std, 
     flag = flag | jnp.where(at_bound & ~none, LaplaceFlag.AT_BOUND, 0)
     not_id = (ill | (formed & (~jnp.all(identified, axis=-1) | (dof <= 0)))) & ~none
     flag = flag | jnp.where(not_id, LaplaceFlag.NOT_IDENTIFIED, 0)
-    finite = jnp.all(jnp.isfinite(std), axis=-1) & jnp.all(jnp.isfinite(corr), axis=(-2, -1))
+    flag = flag | jnp.where(ill & ~none, LaplaceFlag.SINGULAR, 0)
+    flag = flag | jnp.where(undefined & ~none, LaplaceFlag.CORR_UNDEFINED, 0)
+    # Overflow in the delta method; the NaN of an undefined correlation is not one.
+    zero = std == 0
+    defined = ~(zero[:, :, None] | zero[:, None, :])
+    corr_ok = jnp.all(jnp.isfinite(corr) | ~defined, axis=(-2, -1))
+    finite = jnp.all(jnp.isfinite(std), axis=-1) & corr_ok
     flag = flag | jnp.where(~finite & formed & ~none, LaplaceFlag.NONFINITE, 0)
     nan = jnp.nan
     std = jnp.where(none[:, None], nan, std)

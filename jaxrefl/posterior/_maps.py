@@ -11,10 +11,17 @@ longer second pass of the pixels whose first chains disagreed). For GGX-type mod
 ``roughness_<stat>.Y`` (perceptual roughness sqrt(alpha): quantiles and mean mapped through
 the square root, std by the delta method std(alpha) / (2 sqrt(alpha))) is added. The
 method codes and labels go into the file's metadata.
+
+Non-finite values: the summaries (``<p>_<stat>``, ``roughness_<stat>``) are NaN where
+``method`` is 0 (no estimate), the MCMC diagnostics (``rhat``, ``ess_*``) where the pixel
+was not sampled. Anything else non-finite is flagged in ``nonfinite.Y`` (UINT,
+:class:`NonFinite` bits): 1 a summary is not finite although the pixel has an estimate, 2 an
+MCMC diagnostic is not finite although the pixel was sampled.
 """
 
 from __future__ import annotations
 
+import enum
 from pathlib import Path
 
 import numpy as np
@@ -23,9 +30,17 @@ from jaxrefl._errors import JaxreflError
 from jaxrefl.io import exr_channels, map_name
 
 from ._adaptive import METHODS, UncertaintyMap
-from ._methods import MCMC_METHODS
+from ._methods import MCMC_METHODS, Method
 
-__all__ = ["uncertainty_channels", "write_uncertainty_exr"]
+__all__ = ["NonFinite", "uncertainty_channels", "write_uncertainty_exr"]
+
+
+class NonFinite(enum.IntFlag):
+    """Bits of the ``nonfinite`` channel (module docstring)."""
+
+    SUMMARY = 1
+    DIAGNOSTIC = 2
+
 
 STATS = ("mean", "std", "q05", "q95")
 
@@ -56,6 +71,15 @@ def uncertainty_channels(umap: UncertaintyMap, height: int, width: int) -> dict[
         out["roughness_std"] = std.astype(np.float32)
         out["roughness_q05"] = img(np.sqrt(np.maximum(umap.q05[:, j], 0.0))).astype(np.float32)
         out["roughness_q95"] = img(np.sqrt(np.maximum(umap.q95[:, j], 0.0))).astype(np.float32)
+    # A pixel without an estimate holds NaN summaries whatever the map held (documented).
+    none = img(umap.method == Method.NONE)
+    summaries = list(out)
+    for name in summaries:
+        out[name] = np.where(none, np.float32(np.nan), out[name])
+    bad_stat = np.zeros(none.shape, bool)
+    for name in summaries:
+        bad_stat |= ~np.isfinite(out[name])
+    bad_stat &= ~none
     out["method"] = img(umap.method).astype(np.uint32)
     out["rhat"] = img(umap.rhat).astype(np.float32)
     out["ess_bulk"] = img(umap.ess_bulk).astype(np.float32)
@@ -64,6 +88,12 @@ def uncertainty_channels(umap: UncertaintyMap, height: int, width: int) -> dict[
     sampled = np.isin(umap.method, MCMC_METHODS)
     rerun = np.zeros(sampled.shape, bool) if umap.rerun is None else umap.rerun
     out["mcmc_pass"] = img(np.where(rerun, 2, sampled)).astype(np.uint32)
+    diag = ~np.isfinite(out["rhat"]) | ~np.isfinite(out["ess_bulk"]) | ~np.isfinite(out["ess_tail"])
+    bad_diag = diag & img(sampled)
+    out["nonfinite"] = (
+        np.where(bad_stat, int(NonFinite.SUMMARY), 0)
+        | np.where(bad_diag, int(NonFinite.DIAGNOSTIC), 0)
+    ).astype(np.uint32)
     return exr_channels(out)
 
 
@@ -76,6 +106,7 @@ def write_uncertainty_exr(
     meta = {
         "labels": list(umap.labels),
         "method_codes": {str(k): v for k, v in METHODS.items()},
+        "nonfinite_bits": {b.name: int(b.value) for b in NonFinite},
         "stats": list(STATS),
         **(metadata or {}),
     }

@@ -55,6 +55,7 @@ import numpy as np
 from jaxrefl import brdf, fit
 from jaxrefl._errors import JaxreflError
 from jaxrefl.fit import Distributed, Status, process_barrier, process_gather, process_share
+from jaxrefl.fit._laplace import undefined_correlations
 from jaxrefl.io import corr_name, map_name, save_npz_atomic
 
 from ._auto import ModelChoice, choose_model
@@ -763,16 +764,22 @@ def fit_capture(
     cat = {key: np.concatenate([r[key] for r in done]) for key in done[0]}
     width = None
     if fitter.width_terms and fitter.pooled is not None and fitter.pooled.alpha is not None:
-        # The shared width's share of every pixel's Laplace covariance (_shared).
-        cat["std"], cat["corr"], width = widen(
+        # The shared width's share of every pixel's Laplace covariance (_shared). A
+        # correlation undefined for a zero std enters as 0 (the covariance entry it stands
+        # for): the width's share may give that parameter a std, and its correlations are
+        # decided again from the widened stds.
+        formed = np.all(np.isfinite(cat["std"]), axis=-1)[:, None, None]
+        corr_in = np.where(formed & np.isnan(cat["corr"]), 0.0, cat["corr"])
+        cat["std"], corr_w, width = widen(
             fitter.space,
             fitter.pooled.alpha,
             cat["theta"],
             cat["std"],
-            cat["corr"],
+            corr_in,
             cat["width_v"],
             cat["width_s"],
         )
+        cat["corr"], cat["flag"] = undefined_correlations(cat["std"], corr_w, cat["flag"])
     maps = _maps(fitter, cat, h, w, width)
     report = _report(fitter, cat, capture, job, maps, compile_s, times, len(tiles), loaded)
     if width is not None:
