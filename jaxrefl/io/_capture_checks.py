@@ -95,6 +95,7 @@ def check_geometry(
     limit = MAX_SIDES * side
     # The sample's farthest point from its centre: a corner.
     reach = side * np.sqrt(0.5)
+    far: list[tuple[int, float, float]] = []  # phone flashes far from their camera
     for k in range(camera_pos.shape[0]):
         cam = camera_pos[k]
         if not cam[2] > 0:
@@ -104,7 +105,8 @@ def check_geometry(
                 f"the camera is at z = {cam[2]:g} {unit}, not above the sample plane; the "
                 "sample lies in z = 0 facing +z, so a camera needs z > 0",
             )
-        dist = float(np.sqrt(np.sum(cam * cam)))
+        with np.errstate(over="ignore"):  # an overflowing square is refused just below
+            dist = float(np.sqrt(np.sum(cam * cam)))
         if not dist <= limit:
             raise _refuse(
                 fields.camera,
@@ -137,7 +139,8 @@ def check_geometry(
                 f"the light is at z = {lp[2]:g} {unit}, not above the sample plane; the sample "
                 "lies in z = 0 facing +z, so a light needs z > 0",
             )
-        r = float(np.sqrt(np.sum(lp * lp)))
+        with np.errstate(over="ignore"):  # an overflowing square is refused just below
+            r = float(np.sqrt(np.sum(lp * lp)))
         if not r <= limit:
             raise _refuse(
                 fields.light,
@@ -159,18 +162,21 @@ def check_geometry(
                 f"irradiance between {lo:.3g} and {hi:.3g}, outside float32's normal range "
                 f"[{_F32.tiny:.3g}, {_F32.max:.3g}]; give the power in the photos' units",
             )
-        if fields.phone:
-            gap = float(np.linalg.norm(lp - cam))
-            if gap > PHONE_SEPARATION * dist:
-                path, names = fields.light
-                warnings.warn(
-                    f"{path}: {names[k]}: the flash is {gap:.3g} {unit} from the camera "
-                    f"({fields.camera[0].name} {fields.camera[1][k]}), {gap / dist:.2f} of the "
-                    "camera's distance to the sample; a phone's flash sits beside its lens. "
-                    "Check that the two files list the same photos in the same order.",
-                    CaptureWarning,
-                    stacklevel=3,
-                )
+        gap = float(np.linalg.norm(lp - cam))
+        if fields.phone and gap > PHONE_SEPARATION * dist:
+            far.append((k, gap, dist))
+    if far:
+        k, gap, dist = far[0]
+        path, names = fields.light
+        warnings.warn(
+            f"{path}: {names[k]}: the flash is {gap:.3g} {unit} from the camera "
+            f"({fields.camera[0].name} {fields.camera[1][k]}), {gap / dist:.2f} of the camera's "
+            f"distance to the sample ({len(far)} of {camera_pos.shape[0]} photos so); a "
+            "phone's flash sits beside its lens. Check that the two files list the same "
+            "photos in the same order.",
+            CaptureWarning,
+            stacklevel=3,
+        )
 
 
 def _names(files: list[Path]) -> str:

@@ -29,6 +29,14 @@ The winner is the first candidate (in :data:`AUTO_CANDIDATES` order, simplest fi
 score is within :data:`TOLERANCE` (relative) of the lowest: the ranking is a measurement, and
 a difference smaller than the folds' scatter is not evidence for extra parameters. The
 report's ``auto`` entry lists every candidate's score and says why the winner won.
+
+Small captures: a model can be fitted to a pixel only where its photos give at least as many
+observations (C per photo) as the model has per-pixel parameters (:func:`photos_needed`;
+``pooled`` also needs two photos to choose its width), and it can be scored only where each
+leave-one-out fold (one training photo fewer) can fit it. Candidates that cannot be fitted
+or scored are listed in ``skipped`` with the photos they need; with nothing left to score
+the choice is the simplest candidate that can be fitted (``why`` says so), and with nothing
+that can be fitted :func:`choose_model` refuses, listing what each candidate needs.
 """
 
 from __future__ import annotations
@@ -45,12 +53,20 @@ import numpy as np
 
 from jaxrefl._errors import JaxreflError
 
+from ._models import capture_model
 from ._pooled import PoolChoice
 
 if TYPE_CHECKING:
     from ._job import FitJob
 
-__all__ = ["AUTO_CANDIDATES", "SELECTION_PIXELS", "TOLERANCE", "ModelChoice", "choose_model"]
+__all__ = [
+    "AUTO_CANDIDATES",
+    "SELECTION_PIXELS",
+    "TOLERANCE",
+    "ModelChoice",
+    "choose_model",
+    "photos_needed",
+]
 
 # In order of complexity (parameters per pixel, then shared structure): ties go to the first.
 AUTO_CANDIDATES: tuple[str, ...] = ("lambert", "pooled", "ggx", "ggx_rgb", "ggx_normal")
@@ -85,6 +101,7 @@ class ModelChoice:
               the fit reuses when ``pooled`` wins
     evidence: per refinement tested, its score statistic over that statistic's expectation
               where the refinement is not needed (:data:`EVIDENCE_RATIO`)
+    note:     why no candidate was scored, where none was (too few training photos)
     """
 
     model: str
@@ -94,14 +111,26 @@ class ModelChoice:
     skipped: dict[str, str]
     pooled: PoolChoice | None = None
     evidence: dict[str, float] = field(default_factory=dict)
+    note: str | None = None
 
     def as_dict(self) -> dict[str, Any]:
         ranked = sorted(self.cv_rmse.items(), key=lambda kv: kv[1])
         lam = self.cv_rmse.get("lambert")
-        why = f"lowest leave-one-photo-out RMSE over {len(self.folds)} training photos: " + (
-            ", ".join(f"{m} {r:.5f}" for m, r in ranked)
-        )
-        if lam is not None and self.model != "lambert":
+        scored = [r for r in self.cv_rmse.values() if np.isfinite(r)]
+        if self.note is not None:
+            why = self.note
+        elif not scored:
+            # Every fold's held-out observations censored, masked or unpredicted.
+            why = (
+                f"no candidate could be scored: over {len(self.folds)} training photos, no "
+                "held-out photo has a measured (uncensored, unmasked) observation that a fit "
+                f"on the others predicts; chose the simplest, {self.model}"
+            )
+        else:
+            why = f"lowest leave-one-photo-out RMSE over {len(self.folds)} training photos: " + (
+                ", ".join(f"{m} {r:.5f}" for m, r in ranked)
+            )
+        if self.note is None and scored and lam is not None and self.model != "lambert":
             why += f" ({self.cv_rmse[self.model] / lam:.2f} x Lambert's)"
         return {
             "model": self.model,
@@ -133,6 +162,21 @@ def _stack(data, train: list[int], k: int, size: int):
     return stacked, mask, held
 
 
+def _photos(n: int) -> str:
+    return f"{n} photo" if n == 1 else f"{n} photos"
+
+
+def photos_needed(model: str, channels: int, alpha_min: float | None = None) -> int:
+    """The fewest photos that pose ``model``'s per-pixel fit: as many observations (``channels``
+    per photo) as per-pixel parameters; ``pooled`` (albedo and F0 per channel, one shared
+    width) also needs two to choose its width by held-out error."""
+    if model == "pooled":
+        # 2 C observations for albedo and F0, and a second photo to score the width by.
+        return 2
+    _, space = capture_model(model, channels=channels, alpha_min=alpha_min)
+    return -(-space.size // channels)
+
+
 def choose_model(
     capture,
     job: FitJob,
@@ -145,11 +189,12 @@ def choose_model(
     """Score every candidate by leave-one-photo-out over the photos ``job`` trains on
     (module docstring) and choose one. ``job`` gives everything but the model (noise, loss
     -- None: each model's default --, dtype, alpha_min, tiling). ``max_pixels``: selection
-    rows in all (pixels x folds; at least 256 pixels a fold). With fewer than two training
-    photos there is nothing to score and the choice is the first candidate that is not
-    Lambert. ``compact``: the per-pixel fits gather their slow pixels into the lean LM's
-    compaction stages (:func:`jaxrefl.svbrdf.fit_capture` passes its own choice: the
-    selection's tiles have the fit's shape, so they share its compiled programs)."""
+    rows in all (pixels x folds; at least 256 pixels a fold). Candidates the training photos
+    cannot fit or score are skipped (module docstring, "Small captures"); where none can be
+    fitted a :class:`~jaxrefl.JaxreflError` lists what each needs. ``compact``: the
+    per-pixel fits gather their slow pixels into the lean LM's compaction stages
+    (:func:`jaxrefl.svbrdf.fit_capture` passes its own choice: the selection's tiles have
+    the fit's shape, so they share its compiled programs)."""
     from ._job import _TileFitter
     from ._pooled import _subsample
 
@@ -157,15 +202,44 @@ def choose_model(
         raise JaxreflError("candidates must name one or more models other than 'auto'")
     k = capture.n_photos
     train = [i for i in range(k) if i not in job.holdout]
-    if len(train) < 2:
-        first = next((m for m in candidates if m != "lambert"), candidates[0])
-        return ModelChoice(first, {}, 0, (), {})
+    n = len(train)
+    if n == 0:
+        raise JaxreflError("every photo is held out: nothing left to fit")
+    need = {m: photos_needed(m, capture.shape[-1], job.alpha_min) for m in candidates}
+    fits = [m for m in candidates if need[m] <= n]
+    if not fits:
+        raise JaxreflError(
+            f"auto: no candidate model can be fitted to the {_photos(n)} of "
+            f"{capture.source or 'this capture'} it trains on: "
+            + ", ".join(f"{m} needs {need[m]}" for m in candidates)
+            + "; add photos or hold fewer out"
+        )
+    # Each leave-one-out fold trains on one photo fewer.
+    scorable = [m for m in fits if need[m] <= n - 1]
+    skipped: dict[str, str] = {
+        m: f"needs {need[m]} training photos, the capture has {_photos(n)}"
+        for m in candidates
+        if m not in fits
+    }
+    skipped.update(
+        {
+            m: f"can be fitted to {_photos(n)} but not scored: each leave-one-out fold trains "
+            f"on {_photos(n - 1)} and it needs {need[m]}"
+            for m in fits
+            if m not in scorable
+        }
+    )
+    if not scorable:
+        note = (
+            f"too few training photos ({n}) to score any candidate by leave-one-out; "
+            f"{', '.join(fits)} can be fitted, and the simplest, {fits[0]}, is chosen"
+        )
+        return ModelChoice(fits[0], {}, 0, tuple(train), skipped, note=note)
     per_fold = max(256, max_pixels // len(train))
     data = _subsample(capture, per_fold, seed, job.dtype)
     size = job.tile_pixels
     stacked, mask, held = _stack(data, train, k, size)
     cv: dict[str, float] = {}
-    skipped: dict[str, str] = {}
     evidence: dict[str, float] = {}
     bases = set(REFINES.values())
 
@@ -189,12 +263,12 @@ def choose_model(
 
     # The candidates that refine none are independent: they are scored side by side (most of
     # their time is compiling their programs, which runs on one core each).
-    plain = [m for m in candidates if m not in REFINES]
+    plain = [m for m in scorable if m not in REFINES]
     with ThreadPoolExecutor(max(1, min(len(plain), os.cpu_count() or 1))) as ex:
         done = dict(zip(plain, ex.map(score, plain), strict=True))
     pool: PoolChoice | None = done["pooled"][0].pooled if "pooled" in done else None
     cv.update({m: done[m][1] for m in plain})
-    for m in candidates:
+    for m in scorable:
         base = REFINES.get(m)
         if base is None:
             continue

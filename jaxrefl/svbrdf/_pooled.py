@@ -237,7 +237,11 @@ def choose_pooled(
     defaults bracket alpha to a few percent: the held-out error is flat near its optimum)."""
     train = np.asarray(train, bool)
     if train.sum() < 2:
-        raise JaxreflError("pooling needs at least two training photos to score by held-out error")
+        raise JaxreflError(
+            f"pooled needs at least two training photos to choose its shared width by held-out "
+            f"error; {capture.source or 'the capture'} has {int(train.sum())}: fit it with "
+            "lambert (or model auto, which chooses among the models its photos allow)"
+        )
     data = _subsample(capture, n_pixels, seed, dtype)
     tr = jnp.asarray(train)
 
