@@ -380,7 +380,19 @@ def main() -> int:
         action="store_false",
         help="skip the uncertainty map's intervals on the synthetic capture",
     )
+    ap.add_argument(
+        "--only-family",
+        action="store_true",
+        help="only the uncertainty maps of the capture family and the real captures "
+        "(_family_maps.py: the coverage of the truth per generated capture)",
+    )
+    ap.add_argument("--members", default=None, help="family members, comma-separated (all)")
     args = ap.parse_args()
+    if args.only_family:
+        from _family_maps import run_family
+
+        run_family(None if args.members is None else args.members.split(","))
+        return 0
     print(
         "Noise model: additive Gaussian, independent between photos and channels. The "
         "per-pixel models: each pixel's residual variance plus a discrepancy variance "
@@ -406,4 +418,8 @@ def main() -> int:
 
 
 if __name__ == "__main__":
+    if "--only-family" in sys.argv:
+        sys.exit(
+            run_and_record("posterior_speed_family", "Uncertainty maps of a capture family", main)
+        )
     sys.exit(run_and_record("predictive_coverage", "Predictive coverage", main))

@@ -98,14 +98,12 @@ def test_quick_start_is_what_ci_runs():
     assert commands == ci, f"README quick start {commands} != .ci/run {ci}"
 
 
-def test_results_table_quotes_benchmarks_md():
-    """Every number in the README's results table appears in docs/benchmarks.md."""
+def test_results_link_to_benchmarks_md_and_copy_no_figure():
+    """The README's results point at docs/benchmarks.md, which the benchmark scripts write;
+    the README copies none of its figures (a copied figure goes stale when a script reruns)."""
     readme = README.read_text()
     section = re.search(r"^## Results\n(.*?)(?=^## )", readme, re.S | re.M)
     assert section, "README.md: no '## Results' section"
-    rows = [ln for ln in section.group(1).splitlines() if ln.startswith("|")]
-    numbers = [n for ln in rows for n in re.findall(r"\b\d+\.\d+\b", ln)]
-    assert numbers, "README.md: the results table has no numbers"
-    bench = (ROOT / "docs" / "benchmarks.md").read_text()
-    missing = [n for n in numbers if not re.search(rf"(?<![\d.]){re.escape(n)}(?![\d])", bench)]
-    assert not missing, f"README results not in docs/benchmarks.md: {missing}"
+    text = section.group(1)
+    assert "docs/benchmarks.md" in text
+    assert not re.findall(r"\b\d+\.\d+\b", text), "README.md: a figure copied into Results"
