@@ -145,3 +145,86 @@ def run_family(
         "know it). The first capture's time includes compiling what the others reuse."
     )
     return rows
+
+
+def run_family_cli(
+    members: list[str] | None = None,
+    real: tuple[str, ...] = ("bath_tile", "yellow_box"),
+    size: int = 256,
+) -> list[list[object]]:
+    """``jaxrefl sample CAPTURE`` in a fresh process per run, as a user runs it: each
+    capture twice, first with an empty compile cache (cold: every program compiled), then
+    again with the cache the first run filled (warm). Prints one row per capture: the two
+    wall times, the stage times of the warm run (report.json's ``timings``), its MCMC pixels
+    and their share with max R-hat <= 1.05."""
+    import json
+    import os
+    import subprocess
+    import tempfile
+
+    from capture_family import write_member
+
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        root = Path(tmp)
+        caps: list[tuple[str, Path]] = []
+        for m in FAMILY:
+            if members is None or m.name in members:
+                caps.append((m.name, write_member(m, root / m.name)))
+        data = shared_data() / "svbrdf_flash"
+        for name in real:
+            if (data / name).exists():
+                caps.append((name, data / name))
+        for name, folder in caps:
+            cache = root / f"cache_{name}"
+            env = {**os.environ, "JAX_COMPILATION_CACHE_DIR": str(cache)}
+            env.pop("JAXREFL_NO_COMPILE_CACHE", None)
+            walls, rep = [], {}
+            for run in ("cold", "warm"):
+                out = root / f"out_{name}_{run}"
+                argv = ["jaxrefl", "sample", str(folder), "--out", str(out), "--quiet"]
+                if folder.parent == data:
+                    argv += ["--downsample", str(max(1, _native(folder) // size))]
+                t0 = time.perf_counter()
+                r = subprocess.run(argv, env=env, capture_output=True, text=True)
+                walls.append(time.perf_counter() - t0)
+                if r.returncode not in (0, 3):
+                    print(f"{name} ({run}): exit {r.returncode}\n{r.stderr[-2000:]}")
+                    break
+                rep = json.loads((out / "report.json").read_text())
+            if len(walls) < 2:
+                continue
+            tm, mc = rep["timings"], rep["uncertainty"]["mcmc"]
+            n = mc["pixels"]
+            ok = (1 - (mc["pixels_rhat_above_1.05"] + mc["pixels_rhat_nan"]) / n) if n else 1.0
+            rows.append(
+                [
+                    name,
+                    f"{rep['height']}x{rep['width']}",
+                    rep["model"],
+                    f"{walls[0]:.1f}",
+                    f"{walls[1]:.1f}",
+                    f"{tm['fit_s']:.1f}",
+                    f"{tm['posterior_s']:.1f}",
+                    f"{tm.get('write_s', 0.0):.1f}",
+                    n,
+                    f"{100 * ok:.2f}",
+                ]
+            )
+            print(f"{name}: cold {walls[0]:.1f} s, warm {walls[1]:.1f} s", flush=True)
+    head = ["capture", "size", "model", "cold s", "warm s", "warm: fit s", "MCMC s", "write s"]
+    print()
+    print(table([*head, "MCMC px", "R-hat<=1.05 %"], rows))
+    print(
+        f"\n`jaxrefl sample CAPTURE --out OUT --quiet` in a fresh process, wall time from start "
+        f"to exit: cold with an empty compile cache, warm with the cache the cold run filled. "
+        f"Targets: {TARGET_WARM_S:.0f} s warm, {TARGET_COLD_S:.0f} s cold."
+    )
+    return rows
+
+
+def _native(folder: Path) -> int:
+    """The side of a real capture's photos as ``load_capture`` reads them by default."""
+    from jaxrefl.io import load_capture
+
+    return load_capture(folder).shape[1]

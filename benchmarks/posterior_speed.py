@@ -555,6 +555,11 @@ def main() -> None:
         help="only the maps of the capture family and the real captures (_family_maps.py)",
     )
     p.add_argument("--members", default=None, help="family members, comma-separated (all)")
+    p.add_argument(
+        "--cli",
+        action="store_true",
+        help="with --only-family: also jaxrefl sample per capture, cold and warm compile cache",
+    )
     p.add_argument("--emcee-sbc", type=int, default=200, help="emcee SBC simulations (0: skip)")
     p.add_argument("--only-emcee-sbc", action="store_true")
     p.add_argument("--window-pixels", type=int, default=100)
@@ -569,7 +574,12 @@ def main() -> None:
     if args.only_family:
         from _family_maps import run_family
 
-        run_family(None if args.members is None else args.members.split(","))
+        members = None if args.members is None else args.members.split(",")
+        run_family(members)
+        if args.cli:
+            from _family_maps import run_family_cli
+
+            run_family_cli(members)
         return
     if args.only_window:
         part_window(args)

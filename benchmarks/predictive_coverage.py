@@ -387,11 +387,21 @@ def main() -> int:
         "(_family_maps.py: the coverage of the truth per generated capture)",
     )
     ap.add_argument("--members", default=None, help="family members, comma-separated (all)")
+    ap.add_argument(
+        "--cli",
+        action="store_true",
+        help="with --only-family: also jaxrefl sample per capture, cold and warm compile cache",
+    )
     args = ap.parse_args()
     if args.only_family:
         from _family_maps import run_family
 
-        run_family(None if args.members is None else args.members.split(","))
+        members = None if args.members is None else args.members.split(",")
+        run_family(members)
+        if args.cli:
+            from _family_maps import run_family_cli
+
+            run_family_cli(members)
         return 0
     print(
         "Noise model: additive Gaussian, independent between photos and channels. The "
