@@ -42,11 +42,14 @@ from ._init import diffuse_albedo as diffuse_albedo
 from ._init import grid_values as grid_values
 from ._init import initial_theta as initial_theta
 from ._init import linear_params as linear_params
+from ._laplace import CORR_NAN_FLAGS as CORR_NAN_FLAGS
+from ._laplace import STD_NAN_FLAGS as STD_NAN_FLAGS
 from ._laplace import LaplaceFlag as LaplaceFlag
 from ._laplace import LaplaceResult as LaplaceResult
 from ._laplace import flag_counts as flag_counts
 from ._laplace import laplace as laplace
 from ._laplace import same_residual as same_residual
+from ._laplace import undefined_correlations as undefined_correlations
 from ._lm import LMInfo as LMInfo
 from ._lm import LMOptions as LMOptions
 from ._lm import LMResult as LMResult

@@ -54,8 +54,14 @@ import numpy as np
 
 from jaxrefl import brdf, fit
 from jaxrefl._errors import JaxreflError
-from jaxrefl.fit import Distributed, Status, process_barrier, process_gather, process_share
-from jaxrefl.fit._laplace import undefined_correlations
+from jaxrefl.fit import (
+    Distributed,
+    Status,
+    process_barrier,
+    process_gather,
+    process_share,
+    undefined_correlations,
+)
 from jaxrefl.io import corr_name, map_name, save_npz_atomic
 
 from ._auto import ModelChoice, choose_model
