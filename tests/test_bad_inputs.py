@@ -33,8 +33,8 @@ import re
 import shutil
 import struct
 import zlib
-from pathlib import Path
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
