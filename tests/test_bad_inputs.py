@@ -641,9 +641,17 @@ def test_every_input_error_is_a_jaxrefl_error():
     from jaxrefl.io._exr import ExrFormatError
     from jaxrefl.io._measured import MeasuredDataError
     from jaxrefl.io._photos import PNGError
+    from jaxrefl.phone import PhoneCaptureError
     from jaxrefl.ps import PSInputError
 
-    for cls in (CaptureError, ExrFormatError, MeasuredDataError, PNGError, PSInputError):
+    for cls in (
+        CaptureError,
+        ExrFormatError,
+        MeasuredDataError,
+        PNGError,
+        PSInputError,
+        PhoneCaptureError,
+    ):
         assert issubclass(cls, JaxreflError) and issubclass(cls, ValueError), cls
 
 
