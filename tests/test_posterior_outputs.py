@@ -739,6 +739,7 @@ def test_cli_sample_prints_its_stages_without_a_terminal_and_stops_at_its_time_l
         "reached": True,
     }
     assert rep["model_choice"]["model"] == "lambert" and rep["model_choice"]["why"] == "given"
+    assert rep["nonfinite_counts"] == {"SUMMARY": 0, "DIAGNOSTIC": 0}
     assert {"fit_s", "priors_s", "posterior_s", "total_s", "write_s"} <= set(rep["timings"])
     im = read_exr(out / "uncertainty.exr")
     assert np.all(im.channels["method.Y"] == int(jp.Method.LAPLACE_TIME_LIMIT))

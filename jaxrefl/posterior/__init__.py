@@ -54,6 +54,7 @@ from ._emcee import sample_emcee as sample_emcee
 from ._logpost import LogPosterior as LogPosterior
 from ._logpost import SharedLight as SharedLight
 from ._logpost import log_posterior as log_posterior
+from ._maps import NonFinite as NonFinite
 from ._maps import uncertainty_channels as uncertainty_channels
 from ._maps import write_uncertainty_exr as write_uncertainty_exr
 from ._methods import MCMC_METHODS as MCMC_METHODS

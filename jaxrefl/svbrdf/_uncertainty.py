@@ -192,9 +192,18 @@ class CaptureUncertainty:
             },
             "model_choice": dict(self.model_choice),
             "uncertainty": self.map.report(),
+            # pixels of uncertainty.exr whose non-finite values no method code explains
+            "nonfinite_counts": self.nonfinite_counts(),
             "timings": dict(self.timings),
             "time_limit": self.time_limit_report(),
         }
+
+    def nonfinite_counts(self) -> dict[str, int]:
+        """Pixels per bit of ``uncertainty.exr``'s ``nonfinite`` channel
+        (:class:`jaxrefl.posterior.NonFinite`): summaries or MCMC diagnostics that are not
+        finite where the pixel's method says they should be."""
+        ch = jp.uncertainty_channels(self.map, self.height, self.width)["nonfinite.Y"]
+        return {b.name or str(b.value): int(np.sum((ch & b.value) != 0)) for b in jp.NonFinite}
 
     def time_limit_report(self) -> dict[str, Any] | None:
         """The time limit and what it left undone: pixels chosen for MCMC that kept their
