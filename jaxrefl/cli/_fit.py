@@ -1,14 +1,18 @@
 """Fit a photographed planar capture: per-pixel reflectance maps with uncertainty.
 
     jaxrefl fit CAPTURE_DIR --out OUT_DIR [--model auto|ggx|ggx_rgb|pooled|lambert|...]
-                [--holdout i,j,...|all] [--tile-pixels N] [--downsample F] [--restart]
-                [--keep-tiles]
+                [--holdout i,j,...|all] [--photos i,j,...] [--tile-pixels N] [--downsample F]
+                [--restart] [--keep-tiles]
 
 CAPTURE_DIR is in one of the layouts :func:`jaxrefl.io.load_capture` reads (the
 svbrdf-diff-renderer ``parameters.json`` or ``optim.json`` layouts, MaterialGAN's text
 files, or the generic JSON). ``--holdout all`` fits every photo out in turn and reports each
 one's held-out RMSE beside Lambert's (:func:`jaxrefl.svbrdf.leave_one_out`), then writes the
-maps of the fit on all photos. ``--model auto`` (the default) fits the model that best predicts
+maps of the fit on all photos. ``--photos 0,3,5`` fits with those photos only (the others are
+neither fitted nor held out; ``--holdout`` then names photos among them, by their numbers in
+the capture; the report numbers photos by their place in the subset, ``capture.selected``
+lists the subset): the first step of sequential capture planning (``jaxrefl plan``).
+``--model auto`` (the default) fits the model that best predicts
 held-out training photos (:func:`jaxrefl.svbrdf.choose_model`); the report says which and why.
 
 Writes OUT_DIR/maps.exr (parameters, their Laplace std, correlations, status and
@@ -50,6 +54,33 @@ def _indices(text: str) -> tuple[int, ...] | str:
     return idx
 
 
+def _photos(text: str) -> tuple[int, ...]:
+    try:
+        idx = tuple(int(t) for t in text.split(",") if t.strip())
+    except ValueError:
+        idx = (-1,)
+    if not idx or min(idx) < 0 or len(set(idx)) != len(idx):
+        raise argparse.ArgumentTypeError(
+            f"--photos takes distinct photo indices >= 0 separated by commas (e.g. 0,3,5), "
+            f"not {text!r}"
+        )
+    return idx
+
+
+def _subset_holdout(photos: tuple[int, ...] | None, holdout: tuple[int, ...]) -> tuple[int, ...]:
+    """``--holdout`` as positions in the ``--photos`` subset (its indices name photos of the
+    capture, which must be among those selected)."""
+    if photos is None:
+        return holdout
+    missing = [i for i in holdout if i not in photos]
+    if missing:
+        raise JaxreflError(
+            f"--holdout photo(s) {missing} are not among --photos {list(photos)}: hold out "
+            "photos of the subset (the others are neither fitted nor held out)"
+        )
+    return tuple(photos.index(i) for i in holdout)
+
+
 def _alpha(text: str) -> float:
     value = positive_float(text)
     if value > 1.0:
@@ -74,6 +105,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=(),
         help="photos to leave out, e.g. 0,4; 'all': leave-one-out over every photo against "
         "Lambert, then the maps from all photos (default: none)",
+    )
+    p.add_argument(
+        "--photos",
+        type=_photos,
+        default=None,
+        help="fit with these photos only, e.g. 0,3,5,6,8 (the others are neither fitted nor "
+        "held out; default: all)",
     )
     p.add_argument("--tile-pixels", type=positive_int, default=4096, help="pixels per tile")
     p.add_argument(
@@ -161,13 +199,20 @@ def run(args: argparse.Namespace) -> int:
     loo_all = args.holdout == "all"
     job = FitJob(
         model=args.model,
-        holdout=() if loo_all else args.holdout,
+        holdout=() if loo_all else _subset_holdout(args.photos, args.holdout),
         tile_pixels=args.tile_pixels,
         config=fit_config(args.backend, args.dtype, args.noise, args.loss),
         alpha_min=args.alpha_min,
         tilt_std=args.tilt_std,
     )  # options are checked before any file is read
     capture = load_capture(args.capture, resolution=args.resolution, max_photos=args.max_photos)
+    if args.photos is not None:
+        bad = [i for i in args.photos if i >= capture.n_photos]
+        if bad:
+            raise JaxreflError(
+                f"--photos {bad} out of range: the capture has {capture.n_photos} photos"
+            )
+        capture = capture.select(list(args.photos))
     if args.downsample > 1:
         capture = capture.downsample(args.downsample)
     print(f"{capture}")
@@ -181,6 +226,14 @@ def run(args: argparse.Namespace) -> int:
     )
     if loo is not None:
         result.report.update(loo.report)
+    # How the capture was read, so that `jaxrefl plan` can read the same photos again.
+    result.report.setdefault("capture", {}).update(
+        path=str(Path(args.capture).resolve()),
+        selected=None if args.photos is None else list(args.photos),
+        resolution=args.resolution,
+        downsample=args.downsample,
+        max_photos=args.max_photos,
+    )
     if dist is not None and not dist.is_main:
         return 0  # process 0 writes the outputs
     files = write_outputs(result, capture, args.out, previews=not args.no_previews)
