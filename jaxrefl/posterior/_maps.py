@@ -14,7 +14,9 @@ method codes and labels go into the file's metadata.
 
 Non-finite values: the summaries (``<p>_<stat>``, ``roughness_<stat>``) are NaN where
 ``method`` is 0 (no estimate), the MCMC diagnostics (``rhat``, ``ess_*``) where the pixel
-was not sampled. Anything else non-finite is flagged in ``nonfinite.Y`` (UINT,
+was not sampled, and the entries Laplace has no summary of (the noise scale, a sampled
+light) on the pixels whose summary is Laplace's (methods 1 and 4). Anything else non-finite
+is flagged in ``nonfinite.Y`` (UINT,
 :class:`NonFinite` bits): 1 a summary is not finite although the pixel has an estimate, 2 an
 MCMC diagnostic is not finite although the pixel was sampled.
 """
@@ -76,9 +78,18 @@ def uncertainty_channels(umap: UncertaintyMap, height: int, width: int) -> dict[
     summaries = list(out)
     for name in summaries:
         out[name] = np.where(none, np.float32(np.nan), out[name])
+    # Entries without a Laplace summary anywhere (the noise scale, a sampled light) are NaN
+    # by design on the Laplace pixels (methods laplace, laplace_time_limit): not flagged.
+    no_laplace = np.all(np.isnan(np.asarray(umap.laplace_std)), axis=0)
+    laplace_px = img(np.isin(umap.method, (Method.LAPLACE, Method.LAPLACE_TIME_LIMIT)))
     bad_stat = np.zeros(none.shape, bool)
-    for name in summaries:
-        bad_stat |= ~np.isfinite(out[name])
+    for j, lab in enumerate(umap.labels):
+        for stat in STATS:
+            bad = ~np.isfinite(out[_channel(lab, stat)])
+            bad_stat |= bad & ~laplace_px if no_laplace[j] else bad
+    if "alpha" in umap.labels:
+        for stat in STATS:
+            bad_stat |= ~np.isfinite(out[f"roughness_{stat}"])
     bad_stat &= ~none
     out["method"] = img(umap.method).astype(np.uint32)
     out["rhat"] = img(umap.rhat).astype(np.float32)
