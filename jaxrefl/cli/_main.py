@@ -68,6 +68,7 @@ COMMANDS: dict[str, str] = {
     "export": "jaxrefl.cli._export",
     "frame": "jaxrefl.cli._frame",
     "capture": "jaxrefl.cli._capture",
+    "plan": "jaxrefl.cli._plan",
 }
 
 

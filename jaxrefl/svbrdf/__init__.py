@@ -29,7 +29,9 @@ for renderers), :mod:`._uncertainty` (the fit's Laplace std, then MCMC where Lap
 flagged: posterior uncertainty maps), :mod:`._population` (the lobe's priors of flagged
 pixels from the reliably fitted ones), :mod:`._check` (where the model cannot be right: the
 ``misspecified`` map), :mod:`._predictive` (posterior predictive intervals of photos, with a
-model-discrepancy term measured on training photos; their coverage of held-out photos).
+model-discrepancy term measured on training photos; their coverage of held-out photos),
+:mod:`._plan` (where to take the next photo: candidate positions ranked by expected
+information gain), :mod:`._plan_files` (a fit's folder read back; ``plan.json`` and figures).
 """
 
 from ._auto import AUTO_CANDIDATES as AUTO_CANDIDATES
@@ -68,6 +70,18 @@ from ._outputs import predict_photos as predict_photos
 from ._outputs import write_maps as write_maps
 from ._outputs import write_outputs as write_outputs
 from ._outputs import write_previews as write_previews
+from ._plan import INFORMED_GAIN as INFORMED_GAIN
+from ._plan import Candidates as Candidates
+from ._plan import Plan as Plan
+from ._plan import PlanOptions as PlanOptions
+from ._plan import censoring_factor as censoring_factor
+from ._plan import hemisphere_candidates as hemisphere_candidates
+from ._plan import listed_candidates as listed_candidates
+from ._plan import photo_candidates as photo_candidates
+from ._plan import photo_information as photo_information
+from ._plan import plan_next as plan_next
+from ._plan_files import read_fit as read_fit
+from ._plan_files import write_plan as write_plan
 from ._pooled import PoolChoice as PoolChoice
 from ._pooled import choose_pooled as choose_pooled
 from ._population import population_priors as population_priors

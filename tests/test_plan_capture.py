@@ -1,0 +1,226 @@
+"""Capture planning for a flash capture (jaxrefl.svbrdf._plan): the Fisher information of a
+new photo against finite differences of its log-likelihood (uncensored and censored), a
+highlight on the sample against one beside it, censoring at saturation, and
+``jaxrefl fit --photos`` followed by ``jaxrefl plan`` writing plan.json."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.special import log_ndtr
+
+from jaxrefl import svbrdf
+from jaxrefl.cli import main
+from jaxrefl.demo import demo_scene, photograph_maps
+
+MODEL, SPACE = svbrdf.capture_model("ggx")
+SIZE = 8
+SIGMA = 0.002
+
+
+# ----------------------------------------------------------------- Fisher information
+def _pixel_prediction():
+    """(theta (P,), y(theta) (C,)) of one pixel under one oblique flash photo, float64."""
+    theta = SPACE.from_natural(
+        {"albedo": np.array([0.3, 0.5, 0.2]), "specular": np.array([0.08]), "alpha": np.array(0.1)},
+        dtype=jnp.float64,
+    )
+    wi = jnp.asarray([[0.2, 0.1, 0.97]]) / jnp.linalg.norm(jnp.asarray([0.2, 0.1, 0.97]))
+    scale = 2.0
+
+    def y(t):
+        return MODEL.eval(SPACE.to_natural(t[None]), wi, wi)[0] * scale
+
+    return theta, y
+
+
+def _loglik(mu, obs, sd, sat):
+    """log p(obs | mu) of normal observations (any shape) recorded censored at ``sat``
+    (obs >= sat: the censored outcome)."""
+    censored = log_ndtr((mu - sat) / sd)
+    plain = -0.5 * ((obs - mu) / sd) ** 2 - np.log(sd * np.sqrt(2 * np.pi))
+    return np.where(obs >= sat, censored, plain)
+
+
+def test_fisher_information_matches_finite_differences_of_the_log_likelihood():
+    """Uncensored: minus the finite-difference Hessian of the log-likelihood at y = mean is
+    J^T J / var. Censored at a level inside the spread of two channels: the expected outer
+    product of the finite-difference score (quadrature over the uncensored values, plus the
+    censored outcome's probability) equals photo_information's Tobit information."""
+    theta, y = _pixel_prediction()
+    theta = np.asarray(theta)
+    y_jit = jax.jit(y)
+
+    def mu(t):
+        return np.asarray(y_jit(jnp.asarray(t)))
+
+    mean = mu(theta)
+    jac = np.asarray(jax.jacfwd(y)(jnp.asarray(theta)))
+    sd = 0.02 * mean
+    var = sd * sd
+    p = theta.size
+    e = np.eye(p)
+
+    # Uncensored: the central-difference Hessian of sum_c log p(mean_c | mu_c(theta)).
+    h = 1e-4
+    inf = np.full(3, np.inf)
+
+    def ll(t):
+        return float(np.sum(_loglik(mu(t), mean, sd, inf)))
+
+    hess = np.array(
+        [
+            [
+                (
+                    ll(theta + h * (e[j] + e[k]))
+                    - ll(theta + h * (e[j] - e[k]))
+                    - ll(theta - h * (e[j] - e[k]))
+                    + ll(theta - h * (e[j] + e[k]))
+                )
+                / (4 * h * h)
+                for k in range(p)
+            ]
+            for j in range(p)
+        ]
+    )
+    f_plain = svbrdf.photo_information(jac, mean, var)
+    np.testing.assert_allclose(-hess, f_plain, rtol=2e-3, atol=1e-6 * np.abs(f_plain).max())
+
+    # Censored: channels 0 and 1 saturate at 0.5 and 1 std above their means, channel 2 not.
+    sat = mean + np.array([0.5, 1.0, np.inf]) * sd
+    hs = 1e-5
+    mu_plus = np.array([mu(theta + hs * e[j]) for j in range(p)])  # (P, C)
+    mu_minus = np.array([mu(theta - hs * e[j]) for j in range(p)])
+    nodes, weights = np.polynomial.legendre.leggauss(80)
+    expected = np.zeros((p, p))
+    for c in range(3):
+        lo = mean[c] - 9 * sd[c]
+        hi = min(sat[c], mean[c] + 9 * sd[c])
+        ys = 0.5 * (hi - lo) * nodes + 0.5 * (hi + lo)
+        ws = 0.5 * (hi - lo) * weights
+        outcomes = np.append(ys, sat[c]) if np.isfinite(sat[c]) else ys
+        # (P, outcomes): the finite-difference score of channel c's log-likelihood
+        score = (
+            _loglik(mu_plus[:, c, None], outcomes, sd[c], sat[c])
+            - _loglik(mu_minus[:, c, None], outcomes, sd[c], sat[c])
+        ) / (2 * hs)
+        prob = ws * np.exp(-0.5 * ((ys - mean[c]) / sd[c]) ** 2) / (sd[c] * np.sqrt(2 * np.pi))
+        if np.isfinite(sat[c]):
+            prob = np.append(prob, np.exp(log_ndtr((mean[c] - sat[c]) / sd[c])))
+        expected += (score * prob) @ score.T
+    f_cens = svbrdf.photo_information(jac, mean, var, saturation_level=sat)
+    np.testing.assert_allclose(f_cens, expected, rtol=5e-3, atol=1e-6 * np.abs(expected).max())
+    # Censoring loses information: the uncensored minus the censored is positive semi-definite.
+    assert np.linalg.eigvalsh(f_plain - f_cens).min() > -1e-9 * np.abs(f_plain).max()
+    # albedo.R is seen by channel 0 alone, censored half a std above its mean: lambda ~ 0.92
+    assert f_cens[0, 0] < 0.95 * f_plain[0, 0]
+
+
+# ----------------------------------------------------------------- planning a capture
+def _truth_fit(saturation_level=np.inf):
+    """(CaptureFit at the true maps, capture): a narrow-lobe sample photographed by the demo
+    rig; the plan is evaluated at the fit's optimum, here the truth."""
+    scene = demo_scene(size=SIZE)
+    rng = np.random.default_rng(0)
+    truth = {
+        "albedo": rng.uniform(0.1, 0.6, (SIZE, SIZE, 3)),
+        "specular": np.full((SIZE, SIZE, 3), 0.06),
+        "alpha": rng.uniform(0.03, 0.06, (SIZE, SIZE)),
+    }
+    cap = photograph_maps(scene, truth, SIGMA, rng)
+    cap = dataclasses.replace(cap, saturation_level=saturation_level)
+    theta = np.asarray(
+        SPACE.from_natural(
+            {k: v.reshape(SIZE * SIZE, *v.shape[2:]) for k, v in truth.items()},
+            dtype=jnp.float64,
+        )
+    )
+    fit = svbrdf.CaptureFit(
+        maps={
+            "status": np.zeros((SIZE, SIZE), np.uint32),
+            "noise_std": np.full((SIZE, SIZE), SIGMA),
+            "alpha": truth["alpha"],
+        },
+        report={},
+        labels=SPACE.labels,
+        theta=theta,
+        job=svbrdf.FitJob(model="ggx"),
+        extra={"alpha_min": 1e-3, "channels": 3},
+    )
+    return fit, cap
+
+
+# A camera (flash at the lens) whose highlight crosses the sample, and one whose highlight
+# falls 30 cm beside it, both 24 cm up.
+ON, OFF = [1.0, -1.0, 24.0], [30.0, 0.0, 24.0]
+
+
+@pytest.fixture(scope="module")
+def truth_fit():
+    return _truth_fit()
+
+
+def test_highlight_beside_the_sample_scores_below_one_crossing_it(truth_fit):
+    fit, cap = truth_fit
+    plan = svbrdf.plan_next(fit, cap, svbrdf.listed_candidates(cap, [ON, OFF]))
+    rows = {tuple(r["position"]): r for r in plan.ranking()}
+    on, off = rows[tuple(ON)], rows[tuple(OFF)]
+    assert on["highlight_on_sample"] and not off["highlight_on_sample"]
+    assert plan.best == 0
+    assert on["gain"] > 2 * off["gain"] > 0
+    assert on["share_informed"] > off["share_informed"]
+    # No shared parameter in the per-pixel ggx model: the gain is the pixels'.
+    assert plan.shared == () and np.all(plan.gain_shared == 0)
+
+
+def test_censoring_lowers_the_gain_of_a_candidate_that_saturates(truth_fit):
+    fit, cap = truth_fit
+    cands = svbrdf.listed_candidates(cap, [ON, OFF])
+    free = svbrdf.plan_next(fit, cap, cands, svbrdf.PlanOptions(censoring=False))
+    # Saturation far above every prediction: censoring changes nothing.
+    same = svbrdf.plan_next(fit, cap, cands)
+    np.testing.assert_allclose(same.gain, free.gain, rtol=1e-9)
+    # Saturation at a tenth of the brightest observation of the capture: the highlight of
+    # ON saturates, OFF (diffuse only, below the level) does not.
+    level = 0.1 * float(np.max(cap.images))
+    fit_s, cap_s = fit, dataclasses.replace(cap, saturation_level=level)
+    cens = svbrdf.plan_next(fit_s, cap_s, cands)
+    assert cens.gain[0] < 0.9 * free.gain[0]
+    np.testing.assert_allclose(cens.gain[1], free.gain[1], rtol=1e-6)
+
+
+# ----------------------------------------------------------------- command line
+def test_fit_photos_then_plan_writes_plan_json(tmp_path, capsys):
+    """``jaxrefl fit --photos`` fits the subset (report.json records it); ``jaxrefl plan
+    --candidates-from`` ranks the other photos, best first, with the documented keys."""
+    demo, fit_dir, plan_dir = tmp_path / "demo", tmp_path / "fit", tmp_path / "plan"
+    assert main(["demo", "--out", str(demo), "--size", str(SIZE), "--no-fit"]) == 0
+    fit_args = ["fit", str(demo), "--out", str(fit_dir), "--model", "lambert", "--quiet"]
+    assert main([*fit_args, "--photos", "0,3,5,6,8", "--no-previews", "--no-compile-cache"]) == 0
+    report = json.loads((fit_dir / "report.json").read_text())
+    assert report["capture"]["selected"] == [0, 3, 5, 6, 8]
+    assert report["capture"]["photos"] == 5
+    plan_args = ["plan", str(fit_dir), "--out", str(plan_dir), "--no-compile-cache"]
+    assert main([*plan_args, "--candidates-from", str(demo), "--photos", "1,2,4,7"]) == 0
+    doc = json.loads((plan_dir / "plan.json").read_text())
+    ranking = doc["ranking"]
+    assert sorted(r["photo"] for r in ranking) == [1, 2, 4, 7]
+    for row in ranking:
+        assert {"photo", "gain", "share_informed", "position", "highlight"} <= set(row)
+        assert 0.0 <= row["share_informed"] <= 1.0
+    gains = [r["gain"] for r in ranking]
+    assert gains == sorted(gains, reverse=True) and gains[-1] > 0
+    assert (plan_dir / "highlights.png").stat().st_size > 0
+    assert (plan_dir / "positions.png").stat().st_size > 0
+    out = capsys.readouterr().out
+    assert f"photo {ranking[0]['photo']}" in out
+    # Grid candidates: positions, no photo numbers.
+    assert main(["plan", str(fit_dir), "--out", str(tmp_path / "grid"), "--no-compile-cache"]) == 0
+    grid = json.loads((tmp_path / "grid" / "plan.json").read_text())
+    assert grid["candidates"] == "grid" and len(grid["ranking"]) > 20
+    assert all("photo" not in r and len(r["position"]) == 3 for r in grid["ranking"])
