@@ -99,7 +99,10 @@ class FamilyMember:
     ``metal_cover`` of the surface (None: no metal); ``albedo_range``: diffuse albedo per
     channel; ``flash_offset_cm``: distance from the lens to the flash, in the plane of the
     phone; ``noise``: relative noise std; ``tiles``: patches per side (0: smooth maps only);
-    ``light_power``: the flash's radiant intensity (the real captures: 1500).
+    ``light_power``: the flash's radiant intensity (the real captures: 1500);
+    ``photo_gain_spread``: each photo's flash output times exposure is ``light_power`` times
+    a gain drawn uniformly in [1 - spread, 1 + spread] and divided by the gains' geometric
+    mean (the files state ``light_power`` for every photo; the truth keeps the gains).
     """
 
     name: str
@@ -116,6 +119,7 @@ class FamilyMember:
     light_power: float = 1500.0
     side_cm: float = SIDE_CM
     seed: int = 0
+    photo_gain_spread: float = 0.0
 
     def __post_init__(self) -> None:
         lo, hi = self.alpha_range
@@ -125,6 +129,8 @@ class FamilyMember:
             raise ValueError(f"{self.name}: f0 must satisfy 0 <= lo <= hi <= 1")
         if self.photos < 1 or self.size < 1 or self.noise < 0 or self.flash_offset_cm < 0:
             raise ValueError(f"{self.name}: photos, size >= 1; noise, flash offset >= 0")
+        if not 0.0 <= self.photo_gain_spread < 1.0:
+            raise ValueError(f"{self.name}: photo_gain_spread must be in [0, 1)")
 
 
 FAMILY: list[FamilyMember] = [
@@ -271,8 +277,9 @@ def _rig(m: FamilyMember, rng: np.random.Generator) -> tuple[np.ndarray, np.ndar
 class RenderedMember:
     """A rendered member: ``images`` (K, H, W, 3) what the camera recorded (linear, noisy,
     clipped to [0, 1]), ``radiance`` the noiseless unclipped radiance, the geometry (cm:
-    ``camera_pos``, TRUE ``light_pos``, ``light_power`` (K, 3)) and ``truth`` (the maps of
-    the module docstring)."""
+    ``camera_pos``, TRUE ``light_pos``, ``light_power`` (K, 3) as the files state it) and
+    ``truth`` (the maps of the module docstring); ``photo_gain`` (K,) the true gain of each
+    photo over ``light_power`` (1 unless the member's ``photo_gain_spread``)."""
 
     member: FamilyMember
     images: np.ndarray
@@ -281,6 +288,16 @@ class RenderedMember:
     light_pos: np.ndarray
     light_power: np.ndarray
     truth: dict[str, np.ndarray]
+    photo_gain: np.ndarray | None = None
+
+    def with_noise(self, seed: int) -> RenderedMember:
+        """The same photos with the noise drawn again from ``seed`` (repeated-draw checks)."""
+        m = self.member
+        rng = np.random.default_rng(seed)
+        rad = self.radiance.astype(np.float64)
+        std = m.noise * (rad + NOISE_FLOOR)
+        images = np.clip(rad + std * rng.standard_normal(rad.shape), 0.0, 1.0)
+        return dataclasses.replace(self, images=images.astype(np.float32))
 
     def written_light_pos(self, true_light: bool = False) -> np.ndarray:
         """The flash positions a capture's files give: at the lens unless ``true_light``."""
@@ -321,10 +338,15 @@ def render_member(member: FamilyMember) -> RenderedMember:
     model, _space = capture_model("ggx_rgb")
     params = {n: jnp.asarray(truth[n]) for n in model.param_names}
     power = np.full((m.photos, 3), m.light_power)
+    gain = np.ones(m.photos)
+    if m.photo_gain_spread > 0:
+        # drawn after the maps and the rig, so a member without a spread is unchanged
+        gain = rng.uniform(1 - m.photo_gain_spread, 1 + m.photo_gain_spread, m.photos)
+        gain = gain / np.exp(np.mean(np.log(gain)))
     radiance = render(
         model,
         params,
-        [PointLight(p, e) for p, e in zip(lights, power, strict=True)],
+        [PointLight(p, e * g) for p, e, g in zip(lights, power, gain, strict=True)],
         [PinholeCamera(p) for p in cams],
         points=planar_points(m.size, m.size, m.side_cm),
         cos4=False,  # the flash captures carry no vignetting
@@ -340,6 +362,7 @@ def render_member(member: FamilyMember) -> RenderedMember:
         light_pos=lights,
         light_power=power,
         truth=truth,
+        photo_gain=gain,
     )
 
 
@@ -428,6 +451,7 @@ def write_member(
         "light_pos": r.light_pos,
         "camera_pos": r.camera_pos,
         "light_power": r.light_power,
+        "photo_gain": np.ones(m.photos) if r.photo_gain is None else r.photo_gain,
     }
     np.savez_compressed(folder / "truth.npz", **arrays)  # type: ignore[arg-type]
     spec = {

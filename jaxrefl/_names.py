@@ -18,7 +18,19 @@ Older spellings are accepted as aliases (:data:`ALIASES`) and resolved by
 
 from __future__ import annotations
 
-__all__ = ["ALIASES", "CAPTURE_MODELS", "FAMILIES", "MEASURED_MODELS", "canonical", "describe"]
+__all__ = [
+    "ALIASES",
+    "CAPTURE_MODELS",
+    "FAMILIES",
+    "LIGHT_CHOICES",
+    "MEASURED_MODELS",
+    "canonical",
+    "describe",
+]
+
+#: What a capture fit does with its flash (``jaxrefl fit --light``, ``svbrdf.FitJob.light``):
+#: as stated, its offset from the lens estimated, the offset and a gain per photo, or auto.
+LIGHT_CHOICES: tuple[str, ...] = ("fixed", "offset", "offset+gains", "auto")
 
 #: BRDF families of :func:`jaxrefl.brdf.get` -> one line.
 FAMILIES: dict[str, str] = {

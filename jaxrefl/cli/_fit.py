@@ -30,7 +30,7 @@ import shutil
 from pathlib import Path
 
 from jaxrefl._errors import JaxreflError
-from jaxrefl._names import CAPTURE_MODELS, canonical
+from jaxrefl._names import CAPTURE_MODELS, LIGHT_CHOICES, canonical
 
 from ._distributed import add_distributed_arguments, distributed_from_args
 from ._main import check_out_dir, positive_float, positive_int
@@ -165,6 +165,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=0.1,
         help="ggx_normal: std of the zero-mean prior on the normal's slopes",
     )
+    p.add_argument(
+        "--light",
+        default="auto",
+        choices=LIGHT_CHOICES,
+        help="the flash: fixed (as the capture states it), offset (its offset from the lens "
+        "estimated), offset+gains (and a gain per photo), auto: what held-out observations "
+        "support",
+    )
     p.add_argument("--restart", action="store_true", help="ignore tiles of an earlier run")
     p.add_argument(
         "--keep-tiles",
@@ -204,6 +212,7 @@ def run(args: argparse.Namespace) -> int:
         config=fit_config(args.backend, args.dtype, args.noise, args.loss),
         alpha_min=args.alpha_min,
         tilt_std=args.tilt_std,
+        light=args.light,
     )  # options are checked before any file is read
     capture = load_capture(args.capture, resolution=args.resolution, max_photos=args.max_photos)
     if args.photos is not None:
@@ -252,6 +261,21 @@ def remove_tiles(out: Path) -> None:
     shutil.rmtree(out / "tiles", ignore_errors=True)
 
 
+def light_line(light: dict) -> str:
+    """What was estimated of the flash, and why (the report's ``light``)."""
+    if light["mode"] == "fixed":
+        return f"light: fixed as the capture states it ({light['why']})"
+    d = ", ".join(
+        f"{v:+.2f} +- {s:.2f}"
+        for v, s in zip(light["offset_cm"], light["offset_std_cm"], strict=True)
+    )
+    text = f"light: estimated {light['mode']}: flash offset ({d}) cm"
+    if light["mode"] == "offset+gains":
+        g = light["photo_gain"]
+        text += f", photo gains {min(g):.3f}-{max(g):.3f}"
+    return f"{text} ({light['why']})"
+
+
 def print_summary(report: dict) -> None:
     t = report["timings"]
     counts = ", ".join(f"{k} {v}" for k, v in report["status_counts"].items() if v)
@@ -297,6 +321,8 @@ def print_summary(report: dict) -> None:
                 f"per-pixel 99th percentile {b_p99:.5f}; photos predicted worse than "
                 f"{base}: {report['photos_worse_than_baseline'] or 'none'}"
             )
+    if report.get("light"):
+        print(light_line(report["light"]))
     if report.get("auto"):
         print(f"auto: chose {report['auto']['model']}: {report['auto']['why']}")
     for a in report.get("auto_per_fold", []):

@@ -64,6 +64,14 @@ from ._job import FitJob as FitJob
 from ._job import fit_capture as fit_capture
 from ._job import map_name as map_name
 from ._job import status_meanings as status_meanings
+from ._light import LIGHT_CHOICES as LIGHT_CHOICES
+from ._light import LIGHT_MODES as LIGHT_MODES
+from ._light import GainPrior as GainPrior
+from ._light import LightEstimate as LightEstimate
+from ._light import LightProblem as LightProblem
+from ._light import estimate_light as estimate_light
+from ._light import gain_prior as gain_prior
+from ._light import light_problem as light_problem
 from ._models import CAPTURE_MODELS as CAPTURE_MODELS
 from ._models import capture_model as capture_model
 from ._outputs import predict_photos as predict_photos

@@ -67,6 +67,7 @@ from jaxrefl.io import corr_name, map_name, save_npz_atomic
 from ._auto import ModelChoice, choose_model
 from ._check import ModelCheck, bound_bits, check_counts, ppc_failed
 from ._data import pixel_block, resolvable_alpha
+from ._light import LIGHT_CHOICES, estimate_light
 from ._models import ALPHA_RANGE, TWO_STAGE, capture_model
 from ._pooled import PoolChoice, choose_pooled
 from ._score_test import score_test
@@ -125,6 +126,11 @@ class FitJob:
                 ``tilt_x``, ``tilt_y`` (MAP fit; 0.1 is about 6 degrees). Without it the
                 slopes of a real capture overfit: a tilt turns a highlight seen in one
                 photo into a steep normal rather than a brighter lobe.
+    light:      the flash as the capture states it (``fixed``, the default here), or
+                estimated first (:func:`jaxrefl.svbrdf.estimate_light`): ``offset`` (its
+                offset from the lens), ``offset+gains`` (and a gain per photo), ``auto``
+                (whichever held-out observations support; ``jaxrefl fit``'s default); the
+                report's ``light`` says what and why
     """
 
     model: str = "auto"
@@ -133,8 +139,13 @@ class FitJob:
     config: fit.FitConfig = field(default_factory=fit.FitConfig)
     alpha_min: float | None = None
     tilt_std: float = 0.1
+    light: str = "fixed"
 
     def __post_init__(self) -> None:
+        if self.light not in LIGHT_CHOICES:
+            raise JaxreflError(
+                f"FitJob.light must be one of {', '.join(LIGHT_CHOICES)}, not {self.light!r}"
+            )
         if self.model != "auto":
             capture_model(self.model)  # raises for an unknown name
         cfg = self.config
@@ -172,6 +183,7 @@ class FitJob:
             "config": self.config.to_json(),
             "alpha_min": self.alpha_min,
             "tilt_std": self.tilt_std,
+            "light": self.light,
         }
 
 
@@ -694,6 +706,11 @@ def fit_capture(
     _k, h, w, c = capture.shape
     if compact is None:
         compact = h * w >= COMPACT_MIN_PIXELS
+    # The light first (the capture as the estimate places it): every model sees the same.
+    t_light = time.perf_counter()
+    light = estimate_light(capture, job.light, job.holdout)
+    capture = light.apply(capture)
+    light_s = time.perf_counter() - t_light
     choice: ModelChoice | None = None
     t_choose = time.perf_counter()
     if job.model == "auto":
@@ -792,6 +809,8 @@ def fit_capture(
         report["pooled"]["width_laplace"] = width.as_dict()
     report["timings"]["stages_s"] = dict(fitter.stage_s)
     report["timings"]["choose_s"] = choose_s
+    report["timings"]["light_s"] = light_s
+    report["light"] = light.as_dict()
     if per_process is not None:
         _distributed_timings(report, per_process, h * w * len(missing) / len(tiles))
     report["auto"] = None if choice is None else choice.as_dict()
