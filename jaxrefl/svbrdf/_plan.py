@@ -288,6 +288,25 @@ def _logdet(a: np.ndarray) -> np.ndarray:
     return np.where(sign > 0, ld, -np.inf)
 
 
+@eqx.filter_jit
+def _residual_jacobian(res, theta, data):
+    """(n, rows, P) Jacobian of the fit's residual of every pixel at its theta."""
+    return jax.vmap(jax.jacfwd(res))(theta, data)
+
+
+@eqx.filter_jit
+def _prediction_jacobian(model, space, inverse, theta, wi, wo, scale):
+    """((n, C, P) Jacobian, (n, C) value) of each pixel's predicted radiance under one new
+    photo (directions (n, 3), scale = E cos_i (n, C)); theta's entries in the order whose
+    inverse permutation is ``inverse``."""
+
+    def pred(t, wi1, wo1, s1):
+        params = space.to_natural(t[inverse][None, :])
+        return model.eval(params, wi1[None], wo1[None])[0] * s1
+
+    return jax.vmap(jax.jacfwd(pred))(theta, wi, wo, scale), jax.vmap(pred)(theta, wi, wo, scale)
+
+
 # ------------------------------------------------------------------------ the fit's state
 @dataclass(frozen=True)
 class _State:
@@ -312,11 +331,13 @@ def _fit_noise(capture_fit: CaptureFit, noise_std: np.ndarray):
     pooled = capture_fit.extra.get("pooled")
     unknown = isinstance(noise, fit.GaussianNoise) and noise.sigma is None
     if unknown and pooled is not None and pooled.alpha is not None:
-        return fit.GaussianNoise(sigma=float(pooled.sigma)), False
+        # An array, not a float: equinox's jit would compile again for every value.
+        return fit.GaussianNoise(sigma=jnp.asarray(float(pooled.sigma))), False
     if unknown and job.model in TWO_STAGE:
         # The tilted fit's scale: one value for the capture (empirical Bayes), in the map.
         good = noise_std[np.isfinite(noise_std) & (noise_std > 0)]
-        return fit.GaussianNoise(sigma=float(np.median(good)) if good.size else 1.0), False
+        sigma = float(np.median(good)) if good.size else 1.0
+        return fit.GaussianNoise(sigma=jnp.asarray(sigma)), False
     return noise, True
 
 
@@ -383,7 +404,7 @@ def _state(capture_fit: CaptureFit, capture, options: PlanOptions) -> _State:
     data = eqx.tree_at(
         lambda d: d.weight, data, data.weight * jnp.asarray(train, data.weight.dtype)[None, :, None]
     )
-    jac = jax.jit(jax.vmap(jax.jacfwd(res)))(jnp.asarray(theta, dtype), data)
+    jac = _residual_jacobian(res, jnp.asarray(theta, dtype), data)
     jac = np.asarray(jac, np.float64)
     jac = np.where(np.isfinite(jac), jac, 0.0)  # a non-finite row carries no information
     precision = np.einsum("nrp,nrq->npq", jac, jac) / s2[:, None, None]
@@ -524,16 +545,8 @@ def plan_next(
     dtype = capture_fit.job.dtype
     order = _order(st.space, st.shared)
     inverse = np.argsort(order)
-    space, model, noise = st.space, st.model, st.noise
-
-    def pred(t, wi, wo, sc):
-        params = space.to_natural(t[inverse][None, :])
-        return model.eval(params, wi[None], wo[None])[0] * sc
-
-    def jac_and_mean(theta, wi, wo, sc):
-        return jax.vmap(jax.jacfwd(pred))(theta, wi, wo, sc), jax.vmap(pred)(theta, wi, wo, sc)
-
-    jit_jm = jax.jit(jac_and_mean)
+    noise = st.noise
+    inverse_j = jnp.asarray(inverse)
     theta_j = jnp.asarray(st.theta, dtype)
     m = len(candidates)
     gain_px, gain_sh, informed = np.zeros(m), np.zeros(m), np.zeros(m)
@@ -541,8 +554,14 @@ def plan_next(
         wi, wo, sc = _candidate_geometry(
             points, candidates.camera_pos[j], candidates.light_pos[j], candidates.light_power[j]
         )
-        jac, mean = jit_jm(
-            theta_j, jnp.asarray(wi, dtype), jnp.asarray(wo, dtype), jnp.asarray(sc, dtype)
+        jac, mean = _prediction_jacobian(
+            st.model,
+            st.space,
+            inverse_j,
+            theta_j,
+            jnp.asarray(wi, dtype),
+            jnp.asarray(wo, dtype),
+            jnp.asarray(sc, dtype),
         )
         jac = np.nan_to_num(np.asarray(jac, np.float64))  # a non-finite row informs nothing
         mean = np.asarray(mean, np.float64)
