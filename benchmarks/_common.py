@@ -127,12 +127,15 @@ class _Tee(io.TextIOBase):
         self.out.flush()
 
 
-def run_and_record(section: str, title: str, main: Callable[[], int | None]) -> int:
+def run_and_record(
+    section: str, title: str, main: Callable[[], int | None], script: str | None = None
+) -> int:
     """Run a benchmark's ``main``, print as usual, and record what it printed.
 
     The printed report becomes the script's section of ``docs/benchmarks.md``: a heading,
     the date, the machine and the command line, then the report itself (its Markdown
-    headings one level down). ``--no-write`` on the command line prints only.
+    headings one level down). ``--no-write`` on the command line prints only. ``script``:
+    the command named in the heading (default: ``<section>.py``).
     """
     record = "--no-write" not in sys.argv
     if not record:
@@ -147,7 +150,7 @@ def run_and_record(section: str, title: str, main: Callable[[], int | None]) -> 
     )
     args = " ".join(sys.argv[1:])
     body = (
-        f"## {title} (`benchmarks/{section}.py`)\n\n"
+        f"## {title} (`benchmarks/{script or section + '.py'}`)\n\n"
         f"{datetime.date.today().isoformat()}; {machine()}; "
         f"`{args or 'default arguments'}`.\n\n{report.strip()}"
     )

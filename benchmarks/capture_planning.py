@@ -1,6 +1,7 @@
 """Capture planning: measurements needed to pin down roughness, D-optimal vs random vs uniform.
 
     python benchmarks/capture_planning.py [--materials 4] [--candidates 400] [--target 0.05]
+    python benchmarks/capture_planning.py --flash ...   (a flash capture: _flash_planning.py)
 
 Synthetic materials (diffuse + GGX lobe with Schlick Fresnel, RGB albedo, grey F0, alpha in
 0.05 ... 0.4), a fixed candidate set of light/view pairs within 75 degrees of the normal, a
@@ -204,4 +205,15 @@ def main() -> int:
 
 
 if __name__ == "__main__":
+    if "--flash" in sys.argv:  # the flash-capture part (benchmarks/_flash_planning.py)
+        from _flash_planning import main as flash_main
+
+        sys.exit(
+            run_and_record(
+                "capture_planning_flash",
+                "Capture planning for a flash capture",
+                lambda: flash_main(sys.argv[1:]),
+                script="capture_planning.py --flash",
+            )
+        )
     sys.exit(run_and_record("capture_planning", "Capture planning", main))
