@@ -26,6 +26,15 @@ compilation apart too: the peer's around its compiled steps, jaxrefl's of a seco
 
 It prints the tables and writes them, dated and with the machine, to the section
 ``real_captures`` of ``docs/benchmarks.md``.
+
+The light column (``--light-only`` runs it alone, into the section
+``real_captures_light``): every photo held out in turn, the ``--light-model`` fitted with
+the flash as the capture states it (``FitJob(light="fixed")``) and with the light estimated
+in each fold from its training photos (``light="auto"``, :func:`jaxrefl.svbrdf.estimate_light`;
+a held-out photo keeps its prior gain), the held-out RMSE of each photo side by side and
+what each fold's ``auto`` kept.
+
+    python benchmarks/real_captures.py --light-only [--size 128] [--light-model pooled]
 """
 
 from __future__ import annotations
@@ -241,6 +250,64 @@ def _targets(name: str, results: dict) -> str:
     return f"{name} ({tag}): " + "; ".join(lines)
 
 
+def _light_fold_loo(cap, model: str, light: str) -> tuple[np.ndarray, list[dict]]:
+    """Held-out RMSE per photo of ``model`` with the flash ``light``, and each fold's light."""
+    from jaxrefl.svbrdf import FitJob, fit_capture
+
+    k = cap.n_photos
+    per = np.full(k, np.nan)
+    lights = []
+    for i in range(k):
+        fit = fit_capture(cap, FitJob(model=model, holdout=(i,), light=light))
+        v = fit.report["heldout_rmse_per_photo"][str(i)]
+        per[i] = np.nan if v is None else v
+        lights.append(fit.report["light"])
+    return per, lights
+
+
+def light_column(name: str, size: int, model: str) -> str:
+    """The light column's table for capture ``name`` (module docstring)."""
+    cap = flash_capture(name, size)
+    k = cap.n_photos
+    t0 = time.perf_counter()
+    fixed, _ = _light_fold_loo(cap, model, "fixed")
+    t1 = time.perf_counter()
+    est, lights = _light_fold_loo(cap, model, "auto")
+    t2 = time.perf_counter()
+    headers = ["light", *[f"photo {i}" for i in range(k)], "mean", "s (all folds)"]
+    rows = [
+        ["fixed", *[_fmt(v) for v in fixed], _fmt(float(np.nanmean(fixed))), f"{t1 - t0:.0f}"],
+        ["estimated", *[_fmt(v) for v in est], _fmt(float(np.nanmean(est))), f"{t2 - t1:.0f}"],
+        [
+            "estimated / fixed",
+            *[_fmt(a / b, 3) for a, b in zip(est, fixed, strict=True)],
+            _fmt(float(np.nanmean(est)) / float(np.nanmean(fixed)), 3),
+            "",
+        ],
+    ]
+    kept = [lt["mode"] for lt in lights]
+    offsets = [lt["offset_cm"] for lt in lights if lt["mode"] != "fixed"]
+    text = [
+        f"**{name}**, {size} x {size}, {k} photos, model `{model}`, each photo held out in "
+        "turn (held-out RMSE, linear radiance):",
+        "",
+        table(headers, rows),
+        "",
+        "auto kept " + ", ".join(f"{m} in {kept.count(m)} of {k} folds" for m in sorted(set(kept))),
+    ]
+    if offsets:
+        o = np.asarray(offsets)
+        text.append(
+            "; offset (cm) over those folds: "
+            + ", ".join(
+                f"{c} {lo:+.2f} to {hi:+.2f}"
+                for c, lo, hi in zip("xyz", o.min(0), o.max(0), strict=True)
+            )
+        )
+    text.append(f"; first fold's why: {lights[0]['why']}")
+    return "\n".join(text[:5]) + " " + " ".join(text[5:])
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--size", type=int, default=256)
@@ -248,7 +315,29 @@ def main(argv=None) -> int:
     ap.add_argument("--models", default="lambert,ggx,pooled,auto,adam")
     ap.add_argument("--adam-steps", type=int, default=1000)
     ap.add_argument("--no-write", action="store_true", help="print only")
+    ap.add_argument(
+        "--light-only",
+        action="store_true",
+        help="run only the light column: held-out RMSE per photo, light estimated vs fixed",
+    )
+    ap.add_argument("--light-model", default="pooled", help="the model of the light column")
     args = ap.parse_args(argv)
+    if args.light_only:
+        date = datetime.date.today().isoformat()
+        parts = [
+            "## Real flash captures, the flash estimated or fixed (`benchmarks/real_captures.py "
+            "--light-only`)",
+            "",
+            f"{date}; {machine()}; `--light-only --size {args.size} --light-model "
+            f"{args.light_model}`.",
+        ]
+        for name in args.captures.split(","):
+            text = light_column(name, args.size, args.light_model)
+            print(text, flush=True)
+            parts += ["", text]
+        if not args.no_write:
+            print(f"wrote {write_section('real_captures_light', chr(10).join(parts))}")
+        return 0
     models = args.models.split(",")
     date = datetime.date.today().isoformat()
     parts = [
