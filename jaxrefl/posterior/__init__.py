@@ -34,7 +34,6 @@ from ._adaptive import laplace_summary as laplace_summary
 from ._adaptive import longer_options as longer_options
 from ._adaptive import untuned_rerun as untuned_rerun
 from ._batched import HMCOptions as HMCOptions
-from ._batched import Samples as Samples
 from ._batched import sample_pixels as sample_pixels
 from ._diagnostics import diagnostics as diagnostics
 from ._diagnostics import log_likelihood_draws as log_likelihood_draws
@@ -71,6 +70,7 @@ from ._priors import default_priors as default_priors
 from ._priors import sample_truncated as sample_truncated
 from ._reparam import ConditionalAlbedo as ConditionalAlbedo
 from ._reparam import conditional_albedo as conditional_albedo
+from ._samples import Samples as Samples
 from ._sbc import SBCResult as SBCResult
 from ._sbc import coverage as coverage
 from ._sbc import pit as pit

@@ -128,10 +128,11 @@ from jaxrefl._map_defaults import MAP_AUDIT, MAP_CHUNK, MAP_SAMPLER
 from jaxrefl._map_defaults import RERUN_RHAT as _RERUN_RHAT
 from jaxrefl.fit import LaplaceFlag, PixelData, process_barrier, process_share
 
-from ._batched import HMCOptions, Samples, sample_pixels
+from ._batched import HMCOptions, sample_pixels
 from ._diagnostics import diagnostics
 from ._logpost import LogPosterior
 from ._methods import MCMC_METHODS, Method
+from ._samples import Samples
 from ._workers import default_workers, in_order
 
 __all__ = [
@@ -553,7 +554,7 @@ class _Run:
             # the first chunk compiles; the others reuse it
             tm["mcmc_compile_s"] = max(0.0, run_s[0] - float(np.median(run_s[1:])))
             tm["mcmc_chunk_s_median"] = float(np.median(run_s[1:]))
-        return (_concat(parts) if o.keep_samples and parts else None), restart
+        return (Samples.concat(parts) if o.keep_samples and parts else None), restart
 
     def second_pass(self, idx, restart, out: _Summaries, samples: Samples | None) -> None:
         """Sample the pixels of ``restart`` again from their starts under the second
@@ -589,7 +590,7 @@ class _Run:
             out.store(real, cut)
             out.rerun[real] = True
             if samples is not None:
-                _put(samples, [at[int(i)] for i in real], cut)
+                samples.put([at[int(i)] for i in real], cut)
         if self.deadline is not None:
             self.timings["time_limit_second_pass_left"] = left
         self.timings["rerun_s"] = float(np.sum(run_s))
@@ -679,7 +680,7 @@ class _Run:
         th0, sd = starts(rows)
         nrm = None if self.normals is None else jnp.asarray(np.asarray(self.normals)[rows])
         smp = sample_pixels(self.lp, sub, th0, theta_std=sd, normals=nrm, options=opts, seed=seed)
-        return _take(smp, real.size), smp.run_s
+        return smp.take(real.size), smp.run_s
 
 
 class _Skipped:
@@ -888,52 +889,3 @@ def _restarts(cut: Samples, j: int, chains: int, rng) -> tuple[np.ndarray, np.nd
     c, k = th.shape[:2]
     x = th[np.arange(chains) % c, rng.integers(0, k, size=chains)]
     return x, th.reshape(c * k, -1).std(0)
-
-
-def _put(s: Samples, at: list[int], cut: Samples) -> None:
-    """Overwrite pixels ``at`` of ``s`` with ``cut``'s (same chains and draws)."""
-
-    def put(a, b):
-        a = a if a.flags.writeable else a.copy()  # arrays from JAX are read-only views
-        a[at] = b
-        return a
-
-    s.theta = put(s.theta, cut.theta)
-    s.natural = put(s.natural, cut.natural)
-    s.stats = {k: put(v, cut.stats[k]) for k, v in s.stats.items()}
-    s.tuning = {k: put(v, cut.tuning[k]) for k, v in s.tuning.items()}
-
-
-def _take(s: Samples, m: int) -> Samples:
-    """The first m pixels of ``s`` (drops the padding of a chunk)."""
-    return Samples(
-        theta=s.theta[:m],
-        natural=s.natural[:m],
-        labels=s.labels,
-        stats={k: v[:m] for k, v in s.stats.items()},
-        method=s.method,
-        tuning={k: v[:m] for k, v in s.tuning.items()},
-        compile_s=s.compile_s,
-        run_s=s.run_s,
-        extra={**s.extra, "no_estimate": s.extra["no_estimate"][:m]},
-    )
-
-
-def _concat(parts: list[Samples]) -> Samples:
-    """Chunks' samples joined along the pixel axis."""
-    if len(parts) == 1:
-        return parts[0]
-    p0 = parts[0]
-    cat = np.concatenate
-    return Samples(
-        theta=cat([p.theta for p in parts]),
-        natural=cat([p.natural for p in parts]),
-        labels=p0.labels,
-        stats={k: cat([p.stats[k] for p in parts]) for k in p0.stats},
-        # chunks of exact Gibbs draws and of HMC can meet in one map (module docstring)
-        method="+".join(dict.fromkeys(p.method for p in parts)),
-        tuning={k: cat([p.tuning[k] for p in parts]) for k in p0.tuning},
-        compile_s=p0.compile_s,
-        run_s=float(sum(p.run_s for p in parts)),
-        extra={**p0.extra, "no_estimate": cat([p.extra["no_estimate"] for p in parts])},
-    )

@@ -41,8 +41,8 @@ from __future__ import annotations
 
 import contextlib
 import time
-from dataclasses import dataclass, field
-from typing import Any, Literal
+from dataclasses import dataclass
+from typing import Literal
 
 import equinox as eqx
 import jax
@@ -57,9 +57,10 @@ from ._bind import bind_once
 from ._gibbs import qualifies, sample_gibbs
 from ._logpost import LogPosterior
 from ._reparam import ConditionalAlbedo, conditional_albedo
+from ._samples import Samples
 from ._width_gibbs import qualifies_width, sample_width_gibbs
 
-__all__ = ["HMCOptions", "Samples", "sample_pixels"]
+__all__ = ["HMCOptions", "sample_pixels"]
 
 
 @dataclass(frozen=True)
@@ -138,40 +139,6 @@ class HMCOptions:
     def gibbs_warmup(self) -> int:
         """Kept-draw intervals of warm-up on the Gibbs path."""
         return max(1, round(self.num_warmup * self.gibbs_warmup_fraction))
-
-
-@dataclass
-class Samples:
-    """Posterior draws of N pixels (N = 1 for a single problem).
-
-    theta:   (N, chains, draws, D) unconstrained draws
-    natural: (N, chains, draws, D) natural values, named by ``labels``
-    stats:   per-draw sample statistics (N, chains, draws): ``acceptance_rate``,
-             ``diverging`` (bool), ``lp`` (log density)
-    tuning:  per-chain tuned settings, e.g. ``step_size`` (N, chains)
-    method:  ``"hmc"``, ``"nuts"`` or ``"emcee"``
-    compile_s, run_s: time of compilation (first call minus a warm one, or of tracing),
-             and of the sampling itself
-    """
-
-    theta: np.ndarray
-    natural: np.ndarray
-    labels: tuple[str, ...]
-    stats: dict[str, np.ndarray]
-    method: str
-    tuning: dict[str, np.ndarray] = field(default_factory=dict)
-    compile_s: float = float("nan")
-    run_s: float = float("nan")
-    extra: dict[str, Any] = field(default_factory=dict)
-
-    @property
-    def n_pixels(self) -> int:
-        return int(self.theta.shape[0])
-
-    def flat(self, pixel: int = 0) -> np.ndarray:
-        """(chains * draws, D) natural draws of one pixel."""
-        x = self.natural[pixel]
-        return x.reshape(-1, x.shape[-1])
 
 
 def _welford(mean, m2, count, x, on):

@@ -38,8 +38,8 @@ import numpy as np
 from jaxrefl._errors import JaxreflError
 from jaxrefl.fit import L2, PixelData
 
-from ._batched import Samples
 from ._fastdiag import rank_diagnostics
+from ._samples import Samples
 
 __all__ = [
     "diagnostics",

@@ -36,8 +36,8 @@ from jaxtyping import ArrayLike, Float
 from jaxrefl._errors import JaxreflError
 from jaxrefl.fit import PixelData
 
-from ._batched import Samples
 from ._fastdiag import ess_bulk, rhat_rank
+from ._samples import Samples
 
 __all__ = ["Convergence", "EmceeOptions", "autocorr_check", "convergence", "sample_emcee"]
 

@@ -60,6 +60,7 @@ from jaxrefl.fit import L2, PixelData, ScaledSigmoid
 
 from ._logpost import LogPosterior
 from ._priors import Jeffreys, Uniform
+from ._samples import Samples
 
 __all__ = ["linear_terms", "qualifies", "sample_gibbs"]
 
@@ -274,7 +275,6 @@ def sample_gibbs(
     positive number starts at 1. Returns :class:`~jaxrefl.posterior.Samples` with
     ``method="gibbs"`` (acceptance 1, no divergences, ``lp`` the log density of each draw).
     The caller checks :func:`qualifies` first."""
-    from ._batched import Samples
 
     box = _box(lp)
     assert box is not None  # qualifies() checked it

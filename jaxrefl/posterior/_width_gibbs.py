@@ -93,6 +93,7 @@ from ._bind import bind_once
 from ._gibbs import _EDGE, _density, _sweep, _theta_of, truncated_normal
 from ._logpost import LogPosterior
 from ._priors import Jeffreys, MultivariateNormal, Normal, Uniform
+from ._samples import Samples
 
 __all__ = ["WIDTH", "qualifies_width", "sample_width_gibbs"]
 
@@ -327,7 +328,6 @@ def sample_width_gibbs(
     Laplace std in theta (centres the local cells; NaN: a default width). Returns
     :class:`~jaxrefl.posterior.Samples` with ``method="gibbs_mh"``. The caller checks
     :func:`qualifies_width` first."""
-    from ._batched import Samples
 
     lp = _general(lp)
     lay = _layout(lp)
