@@ -167,11 +167,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--light",
-        default="auto",
+        default="fixed",
         choices=LIGHT_CHOICES,
-        help="the flash: fixed (as the capture states it), offset (its offset from the lens "
-        "estimated), offset+gains (and a gain per photo), auto: what held-out observations "
-        "support",
+        help="the flash: fixed (as the capture states it; default), offset (its offset from "
+        "the lens estimated), offset+gains (and a gain per photo), auto: what held-out "
+        "observations support",
     )
     p.add_argument("--restart", action="store_true", help="ignore tiles of an earlier run")
     p.add_argument(
