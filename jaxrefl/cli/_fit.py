@@ -33,7 +33,7 @@ from jaxrefl._errors import JaxreflError
 from jaxrefl._names import CAPTURE_MODELS, LIGHT_CHOICES, canonical
 
 from ._distributed import add_distributed_arguments, distributed_from_args
-from ._main import check_out_dir, positive_float, positive_int
+from ._main import check_out_dir, photo_indices, positive_float, positive_int
 from ._options import BACKENDS, DTYPES, LOSSES, NOISES, SHOT_GAIN, SHOT_READ, fit_config
 
 HELP = "fit a capture: per-pixel maps, uncertainty, held-out error"
@@ -42,29 +42,11 @@ HELP = "fit a capture: per-pixel maps, uncertainty, held-out error"
 def _indices(text: str) -> tuple[int, ...] | str:
     if text.strip().lower() == "all":
         return "all"
-    try:
-        idx = tuple(int(t) for t in text.split(",") if t.strip())
-    except ValueError:
-        idx = (-1,)
-    if not idx or min(idx) < 0:
-        raise argparse.ArgumentTypeError(
-            f"--holdout takes photo indices >= 0 separated by commas (e.g. 0,4) or 'all', "
-            f"not {text!r}"
-        )
-    return idx
+    return photo_indices(text, "--holdout", "0,4 or 'all'")
 
 
 def _photos(text: str) -> tuple[int, ...]:
-    try:
-        idx = tuple(int(t) for t in text.split(",") if t.strip())
-    except ValueError:
-        idx = (-1,)
-    if not idx or min(idx) < 0 or len(set(idx)) != len(idx):
-        raise argparse.ArgumentTypeError(
-            f"--photos takes distinct photo indices >= 0 separated by commas (e.g. 0,3,5), "
-            f"not {text!r}"
-        )
-    return idx
+    return photo_indices(text, "--photos")
 
 
 def _subset_holdout(photos: tuple[int, ...] | None, holdout: tuple[int, ...]) -> tuple[int, ...]:

@@ -82,6 +82,20 @@ def _int_at_least(text: str, lo: int) -> int:
     return value
 
 
+def photo_indices(text: str, flag: str, example: str = "0,3,5") -> tuple[int, ...]:
+    """Distinct photo indices >= 0 separated by commas, for ``flag``'s message."""
+    try:
+        idx = tuple(int(t) for t in text.split(",") if t.strip())
+    except ValueError:
+        idx = (-1,)
+    if not idx or min(idx) < 0 or len(set(idx)) != len(idx):
+        raise argparse.ArgumentTypeError(
+            f"{flag} takes distinct photo indices >= 0 separated by commas (e.g. {example}), "
+            f"not {text!r}"
+        )
+    return idx
+
+
 def positive_int(text: str) -> int:
     """An argparse type: an integer >= 1 (a count, a size or a factor)."""
     return _int_at_least(text, 1)

@@ -30,21 +30,13 @@ from pathlib import Path
 
 from jaxrefl._errors import JaxreflError
 
-from ._main import check_out_dir, positive_int
+from ._main import check_out_dir, photo_indices, positive_int
 
 HELP = "rank candidate positions for the next photo by expected information gain"
 
 
 def _photos(text: str) -> tuple[int, ...]:
-    try:
-        idx = tuple(int(t) for t in text.split(",") if t.strip())
-    except ValueError:
-        idx = (-1,)
-    if not idx or min(idx) < 0:
-        raise argparse.ArgumentTypeError(
-            f"--photos takes photo indices >= 0 separated by commas (e.g. 1,2,4,7), not {text!r}"
-        )
-    return idx
+    return photo_indices(text, "--photos", "1,2,4,7")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -311,8 +311,9 @@ class GainPrior:
         }
 
 
-def _calibration_exposures(capture) -> list[float | None] | None:
-    """EXIF exposures kept in ``calibration.json`` beside a capture of ``jaxrefl capture``."""
+def _calibration_photos(capture) -> tuple[Path, list] | None:
+    """(path, its ``photos`` list) of the ``calibration.json`` that ``jaxrefl capture`` keeps
+    beside a capture, or None where there is none."""
     src = capture.source
     if src is None:
         return None
@@ -321,9 +322,23 @@ def _calibration_exposures(capture) -> list[float | None] | None:
     if not path.is_file():
         return None
     try:
-        photos = json.loads(path.read_text())["photos"]
-        return [(p.get("metadata") or {}).get("exposure") for p in photos][: capture.n_photos]
+        return path, list(json.loads(path.read_text())["photos"])
     except (ValueError, KeyError, TypeError) as e:
+        raise JaxreflError(
+            f"{path}: no readable photos list ({e}); rewrite the file with jaxrefl capture "
+            "or remove it"
+        ) from None
+
+
+def _calibration_exposures(capture) -> list[float | None] | None:
+    """EXIF exposures kept in ``calibration.json`` beside a capture of ``jaxrefl capture``."""
+    found = _calibration_photos(capture)
+    if found is None:
+        return None
+    path, photos = found
+    try:
+        return [(p.get("metadata") or {}).get("exposure") for p in photos][: capture.n_photos]
+    except AttributeError as e:
         raise JaxreflError(
             f"{path}: photos[k].metadata.exposure cannot be read ({e}); rewrite the file "
             "with jaxrefl capture or remove it"
@@ -332,16 +347,12 @@ def _calibration_exposures(capture) -> list[float | None] | None:
 
 def _orientations(capture) -> np.ndarray | None:
     """(K, 3, 3) camera-to-sample rotations from ``calibration.json``, or None."""
-    src = capture.source
-    if src is None:
-        return None
-    folder = Path(src) if Path(src).is_dir() else Path(src).parent
-    path = folder / "calibration.json"
-    if not path.is_file():
+    found = _calibration_photos(capture)
+    if found is None:
         return None
     try:
-        rot = [p["camera_orientation"] for p in json.loads(path.read_text())["photos"]]
-        rot_a = np.asarray(rot, np.float64)[: capture.n_photos]
+        rot_a = np.asarray([p["camera_orientation"] for p in found[1]], np.float64)
+        rot_a = rot_a[: capture.n_photos]
     except (ValueError, KeyError, TypeError):
         return None
     return rot_a if rot_a.shape == (capture.n_photos, 3, 3) else None
