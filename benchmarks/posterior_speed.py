@@ -560,6 +560,11 @@ def main() -> None:
         action="store_true",
         help="with --only-family: also jaxrefl sample per capture, cold and warm compile cache",
     )
+    p.add_argument(
+        "--only-family-cli",
+        action="store_true",
+        help="only jaxrefl sample per capture (--members, and the real captures), cold and warm",
+    )
     p.add_argument("--emcee-sbc", type=int, default=200, help="emcee SBC simulations (0: skip)")
     p.add_argument("--only-emcee-sbc", action="store_true")
     p.add_argument("--window-pixels", type=int, default=100)
@@ -571,6 +576,11 @@ def main() -> None:
     p.add_argument("--mixing-pixels", type=int, default=512)
     args = p.parse_args()
 
+    if args.only_family_cli:
+        from _family_maps import run_family_cli
+
+        run_family_cli(None if args.members is None else args.members.split(","))
+        return
     if args.only_family:
         from _family_maps import run_family
 
@@ -604,6 +614,12 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    if "--only-family-cli" in sys.argv:
+        sys.exit(
+            run_and_record(
+                "posterior_speed_family_cli", "jaxrefl sample on captures of the family", main
+            )
+        )
     if "--only-family" in sys.argv:
         sys.exit(
             run_and_record("posterior_speed_family", "Uncertainty maps of a capture family", main)
