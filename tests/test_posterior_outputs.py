@@ -744,3 +744,34 @@ def test_cli_sample_prints_its_stages_without_a_terminal_and_stops_at_its_time_l
     im = read_exr(out / "uncertainty.exr")
     assert np.all(im.channels["method.Y"] == int(jp.Method.LAPLACE_TIME_LIMIT))
     assert (out / "fit").is_dir()  # the resumable work stays for the rerun
+
+
+def test_map_widens_grey_ggx_where_most_pixels_pile_at_its_f0_cap():
+    """uncertainty_maps: a ggx fit of a metal (F0 up to 0.9) piles most pixels at the 0.25
+    cap, so the map is fitted and sampled with ggx_rgb and model_choice says why; a
+    dielectric keeps the ggx it was given."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import capture_family as cfam
+
+    jax.config.update("jax_enable_x64", True)
+    job = svbrdf.FitJob(model="ggx", config=fit.FitConfig(dtype=np.float64))
+    none = jp.AdaptiveOptions(mcmc="none")
+    by_name = {m.name: m for m in cfam.FAMILY}
+    metal = replace(by_name["gold_foil"], size=8)
+    res = svbrdf.uncertainty_maps(cfam.render_member(metal).capture(), job, none)
+    mc = res.model_choice
+    assert res.model == "ggx_rgb" and res.posterior.labels[3:6] == (
+        "specular.R",
+        "specular.G",
+        "specular.B",
+    )
+    assert mc["requested"] == "ggx" and mc["widened"]["from"] == "ggx"
+    assert mc["capped_share"] > svbrdf._uncertainty.WIDEN_SHARE > mc["capped_share_after"]
+    assert "cap" in mc["widened"]["why"] and res.report()["model_choice"] == mc
+    plastic = replace(by_name["colocated_tiles"], size=8, photos=metal.photos)
+    kept = svbrdf.uncertainty_maps(cfam.render_member(plastic).capture(), job, none)
+    assert kept.model == "ggx" and "widened" not in kept.model_choice
+    assert kept.model_choice["capped_share"] <= svbrdf._uncertainty.WIDEN_SHARE
