@@ -9,7 +9,7 @@ capture: the model chosen, the stage times (the fit with its model choice, the M
 and second passes, the whole call), the MCMC pixel count and the share of them with max
 R-hat <= 1.05 and, for the generated captures, the share of pixels whose 90% interval
 covers the truth, per parameter (albedo R, F0 R, alpha), over all pixels and split by the
-fit's misspecification flag. The targets (issue 45): at most 120 s a map with the compile
+fit's misspecification flag. The targets: at most 120 s a map with the compile
 cache warm, 180 s cold; R-hat <= 1.05 on 99% of the MCMC pixels; coverage 85-95%.
 
 ``posterior_speed.py --only-family`` and ``predictive_coverage.py --only-family`` both run

@@ -27,7 +27,7 @@ What varies between members (:class:`FamilyMember`):
                        flash 0.5 cm from the lens, 1% noise, 9 photos, 128 px
 ``rough_dielectric``   matte stone/paper (alpha 0.3-0.7), F0 0.04, flash 1.5 cm away,
                        3% noise, 5 photos, 64 px: few, noisy photos of a dull surface
-``grey_gloss``         the capture of issue 45: alpha 0.2-0.7 (roughness 0.45-0.84),
+``grey_gloss``         a user's glossy capture: alpha 0.2-0.7 (roughness 0.45-0.84),
                        grey F0 0.04-0.5, flash 1 cm away, 1% noise, 9 photos, 256 px
 ``gold_foil``          a coloured metal everywhere (RGB F0 up to 0.9, albedo 0.03),
                        alpha 0.05-0.3, flash 1 cm away, 0.5% noise, 12 photos, 128 px,
