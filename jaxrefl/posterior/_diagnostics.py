@@ -13,7 +13,8 @@ predictions plus noise). OBSERVATION names the K axis (``photo`` for a capture, 
 for a measured file); ``channel`` has coordinates R, G, B for three channels. Variable
 names are the parameter labels with dots as underscores (``albedo.R`` -> ``albedo_R``;
 NetCDF names stay portable); the labels are kept in ``attrs``. :func:`save_netcdf` writes
-it (``idata.to_netcdf``), ``arviz.from_netcdf`` reads it back.
+it (``idata.to_netcdf``, uncompressed by default: zlib on a whole map's draws costs several
+times the write itself), ``arviz.from_netcdf`` reads it back.
 
 ArviZ 0.x only: ArviZ 1.0 replaced ``InferenceData`` by xarray's ``DataTree`` and changed
 ``from_dict``; ``pyproject.toml`` pins ``arviz<1`` until this module moves to it.
@@ -138,6 +139,7 @@ def to_inference_data(
     log_likelihood: np.ndarray | None = None,
     observation: str = "k",
     attrs: dict[str, Any] | None = None,
+    dtype: Any = None,
 ):
     """``arviz.InferenceData`` of ``samples`` (module docstring).
 
@@ -146,15 +148,24 @@ def to_inference_data(
     predictive:  (N, draws, K, C) from :func:`posterior_predictive` (``posterior_predictive``)
     log_likelihood: (N, chains, draws, K, C) from :func:`log_likelihood_draws`
     observation: the name of the K axis of the data (``photo``, ``sample``)
+    dtype:       the floating type the draws (``posterior``, ``sample_stats``,
+                 ``posterior_predictive``) are stored in; None keeps theirs. A whole map's
+                 draws in ``numpy.float32`` take half the file, and float32's relative
+                 resolution (6e-8) is far below any posterior std they summarise
     """
     az = _az()
     n = samples.n_pixels
     pix = np.arange(n) if pixels is None else np.asarray(pixels)
+
+    def draws(a) -> np.ndarray:
+        a = np.asarray(a)
+        return a.astype(dtype) if dtype is not None and a.dtype.kind == "f" else a
+
     post = {
-        var_name(lab): np.moveaxis(samples.natural[..., j], 0, -1)
+        var_name(lab): np.moveaxis(draws(samples.natural[..., j]), 0, -1)
         for j, lab in enumerate(samples.labels)
     }
-    stats = {k: np.moveaxis(np.asarray(v), 0, -1) for k, v in samples.stats.items()}
+    stats = {k: np.moveaxis(draws(v), 0, -1) for k, v in samples.stats.items()}
     dims: dict[str, list[str]] = {k: ["pixel"] for k in (*post, *stats)}
     coords: dict[str, Any] = {"pixel": pix}
     obs_dims = ["pixel", observation, "channel"]
@@ -177,7 +188,7 @@ def to_inference_data(
         ll = {"obs": np.moveaxis(np.asarray(log_likelihood), 0, 2)}
     if predictive is not None:
         # (N, draws, K, C) -> (chain 1, draw, pixel, K, C)
-        ppc = {"obs": np.swapaxes(np.asarray(predictive), 0, 1)[None]}
+        ppc = {"obs": np.swapaxes(draws(predictive), 0, 1)[None]}
         dims["obs"] = obs_dims
     idata = az.from_dict(
         posterior=post,
@@ -210,10 +221,11 @@ def _attr(v: Any) -> Any:
     return str(v)
 
 
-def save_netcdf(idata, path: str | Path) -> Path:
-    """Write InferenceData to NetCDF (read back with ``arviz.from_netcdf``)."""
+def save_netcdf(idata, path: str | Path, *, compress: bool = False) -> Path:
+    """Write InferenceData to NetCDF (read back with ``arviz.from_netcdf``); ``compress``:
+    zlib on every variable (smaller file, several times the write time)."""
     path = Path(path)
-    idata.to_netcdf(str(path))
+    idata.to_netcdf(str(path), compress=compress)
     return path
 
 

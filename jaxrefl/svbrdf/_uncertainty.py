@@ -119,12 +119,13 @@ class CaptureUncertainty:
 
     def inference_data(self, n_draws: int = _PPC_DRAWS):
         """ArviZ InferenceData of the MCMC pixels (None when no pixel was sampled or
-        ``AdaptiveOptions.keep_samples`` is False): posterior, sample stats, observed data
+        ``AdaptiveOptions.keep_samples`` is False): posterior and sample stats (float32),
+        observed data
         (dims ``pixel``, ``photo``, ``channel``), weights and censoring flags
         (``constant_data``), the pointwise log-likelihood (``log_likelihood``, float32, where it
         holds at most :data:`LOG_LIKELIHOOD_MAX` values; else attr
         ``log_likelihood_left_out`` says why) and ``n_draws`` posterior predictive draws
-        per pixel. The ``pixel`` axis (in the order of :attr:`UncertaintyMap.mcmc_pixels`)
+        per pixel (float32). The ``pixel`` axis (in the order of :attr:`UncertaintyMap.mcmc_pixels`)
         carries coordinates ``row`` and ``col``, each pixel's place in the map; attrs
         ``rows``, ``cols``, ``width``, ``height``."""
         u = self.map
@@ -156,6 +157,7 @@ class CaptureUncertainty:
             log_likelihood=ll,
             observation="photo",
             attrs=attrs,
+            dtype=np.float32,
         )
         return idata.assign_coords(row=("pixel", rows), col=("pixel", cols))
 
