@@ -210,7 +210,7 @@ def test_host_driven_steps_give_each_pixel_its_own_lm_solve(monkeypatch, fused):
     host = fit.LMOptions(max_iters=25, compact_after=2, host_round=3, host_fused=fused)
     gathered: list[int] = []  # live slots of each gathered round
     steps: list[int] = []  # host_fused: the steps each round may take
-    real_gather, real_round = fit._lm._gather, fit._lm._round
+    real_gather, real_round = fit._lm_host._gather, fit._lm_host._round
 
     def recording(states, data, idx, live):
         if not isinstance(live, jax.core.Tracer):  # not inside a fused round's program
@@ -224,8 +224,8 @@ def test_host_driven_steps_give_each_pixel_its_own_lm_solve(monkeypatch, fused):
             steps.append(int(n))
         return real_round(residual_fn, states, data, idx, n, options)
 
-    monkeypatch.setattr(fit._lm, "_gather", recording)
-    monkeypatch.setattr(fit._lm, "_round", recording_round)
+    monkeypatch.setattr(fit._lm_host, "_gather", recording)
+    monkeypatch.setattr(fit._lm_host, "_round", recording_round)
     theta, r = fit.batched_lm(res, theta0, pr.data, host, space=space)
     plain = jax.vmap(lambda t, d: fit.lm_solve(res, t, d, host, space=space))
     theta_ref, r_ref = plain(theta0, pr.data)

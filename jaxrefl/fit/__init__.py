@@ -16,7 +16,8 @@ Quick use::
 Parts: :class:`ParamSpace` and the bijections (unconstrained parametrisation), :class:`PixelData`
 and :func:`make_residual` (noise models, robust losses, censoring), :func:`initial_theta`
 (closed-form colours on a roughness grid), :func:`lm_solve` / :func:`batched_lm` (the lean
-Levenberg-Marquardt as pure init/step functions), :func:`solve` (the solver objects
+Levenberg-Marquardt as pure init/step functions; :func:`cholesky_unrolled` and the unrolled
+triangular solves are its shared small linear algebra), :func:`solve` (the solver objects
 :class:`LMOptions`, :class:`OptimistixLM`, :class:`JaxoptLM`), :class:`FitConfig` (solver,
 noise, loss and dtype of a fit, taken by every fitting entry point), per-pixel
 :class:`Status` codes, and :func:`laplace` (Gauss-Newton covariance in natural units with
@@ -50,16 +51,18 @@ from ._laplace import flag_counts as flag_counts
 from ._laplace import laplace as laplace
 from ._laplace import same_residual as same_residual
 from ._laplace import undefined_correlations as undefined_correlations
+from ._linalg import cho_solve_unrolled as cho_solve_unrolled
+from ._linalg import cholesky_unrolled as cholesky_unrolled
+from ._linalg import solve_lower_t_unrolled as solve_lower_t_unrolled
+from ._linalg import solve_lower_unrolled as solve_lower_unrolled
 from ._lm import LMInfo as LMInfo
 from ._lm import LMOptions as LMOptions
 from ._lm import LMResult as LMResult
 from ._lm import LMState as LMState
-from ._lm import batched_lm as batched_lm
-from ._lm import cho_solve_unrolled as cho_solve_unrolled
-from ._lm import cholesky_unrolled as cholesky_unrolled
 from ._lm import lm_init as lm_init
 from ._lm import lm_solve as lm_solve
 from ._lm import lm_step as lm_step
+from ._lm_batched import batched_lm as batched_lm
 from ._options import Option as Option
 from ._options import check_number as check_number
 from ._problem import FitConfig as FitConfig

@@ -40,7 +40,8 @@ from jaxtyping import Array, Bool, Float, Int
 
 from jaxrefl._errors import JaxreflError
 
-from ._lm import LMOptions, _linearise, batched_lm
+from ._lm import LMOptions, _linearise
+from ._lm_batched import batched_lm
 from ._options import Option
 from ._status import Status, classify, default_cond_max, severity
 from ._transform import ParamSpace

@@ -82,8 +82,8 @@ from jaxtyping import Array, ArrayLike, Float, Int
 
 from jaxrefl._errors import JaxreflError
 
+from ._linalg import cho_solve_unrolled, cholesky_unrolled
 from ._lm import _linearise as lm_linearise
-from ._lm import cho_solve_unrolled, cholesky_unrolled
 from ._residual import PixelData, Residual
 from ._shard import device_count, map_sharded
 from ._status import has_estimate, ill_conditioned
