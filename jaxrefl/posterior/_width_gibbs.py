@@ -87,7 +87,16 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from jaxrefl.fit import L2, PixelData, ScaledSigmoid, device_count, map_sharded
+from jaxrefl.fit import (
+    L2,
+    PixelData,
+    ScaledSigmoid,
+    cholesky_unrolled,
+    device_count,
+    map_sharded,
+    solve_lower_t_unrolled,
+    solve_lower_unrolled,
+)
 
 from ._bind import bind_once
 from ._gibbs import _EDGE, _density, _sweep, _theta_of, truncated_normal
@@ -260,43 +269,6 @@ def _linear_given_width(lp, data, i, lo, hi):
         return ok
 
     return jax.vmap(one)(data)
-
-
-def _chol(h):
-    """Cholesky factor of symmetric positive-definite (..., P, P), written out entry by
-    entry (P is small and static: elementwise operations over the batch)."""
-    p = h.shape[-1]
-    rows: list[list] = [[None] * p for _ in range(p)]
-    for j in range(p):
-        s = h[..., j, j] - sum(rows[j][k] ** 2 for k in range(j))
-        d = jnp.sqrt(s)
-        rows[j][j] = d
-        for r in range(j + 1, p):
-            rows[r][j] = (h[..., r, j] - sum(rows[r][k] * rows[j][k] for k in range(j))) / d
-    zero = jnp.zeros_like(h[..., 0, 0])
-    return jnp.stack(
-        [jnp.stack([rows[r][c] if c <= r else zero for c in range(p)], -1) for r in range(p)],
-        -2,
-    )
-
-
-def _solve_lower(l, b):
-    """L^-1 b for lower-triangular (..., P, P) and (..., P)."""
-    p = l.shape[-1]
-    out: list = []
-    for r in range(p):
-        out.append((b[..., r] - sum(l[..., r, k] * out[k] for k in range(r))) / l[..., r, r])
-    return jnp.stack(out, -1)
-
-
-def _solve_upper_t(l, b):
-    """L^-T b for lower-triangular (..., P, P) and (..., P)."""
-    p = l.shape[-1]
-    out: list = [None] * p
-    for r in reversed(range(p)):
-        s = b[..., r] - sum(l[..., k, r] * out[k] for k in range(r + 1, p))
-        out[r] = s / l[..., r, r]
-    return jnp.stack(out, -1)
 
 
 def _moments(aw, bw, y, w):
@@ -473,8 +445,8 @@ def _run(
             stand-in's precision D = dref (P - 1, P - 1) in units of s^-2 and dc = D c.
             The proposal's Gaussian is N(L^-T v, s^2 (Q + D)^-1), its factor free of s."""
             q, r, zz = _moments(aw, bw, y, w)
-            l = _chol(q + jnp.broadcast_to(dref, q.shape))
-            return q, r, zz, l, _solve_lower(l, r + jnp.broadcast_to(dc, r.shape))
+            l = cholesky_unrolled(q + jnp.broadcast_to(dref, q.shape))[0]
+            return q, r, zz, l, solve_lower_unrolled(l, r + jnp.broadcast_to(dc, r.shape))
 
         # Cell edges over u: even ones, and local ones around the optimum.
         u_hat = jnp.log(v0[0, i])
@@ -513,9 +485,9 @@ def _run(
             _q, _r, zz_g, l_g, v_g = factor(aw_g, bw_g, yw, dref, dc)
             base_g = prior_g + log_cell - jnp.sum(jnp.log(jnp.diagonal(l_g, 0, -2, -1)), -1)
             lia_gc = (
-                jax.vmap(lambda l, a: jax.vmap(lambda col: _solve_lower(l, col), 1, 1)(a.T))(
-                    l_g, aw_gc
-                )
+                jax.vmap(
+                    lambda l, a: jax.vmap(lambda col: solve_lower_unrolled(l, col), 1, 1)(a.T)
+                )(l_g, aw_gc)
                 * w_c[None, None, :]
             )
             return dref, dc, zz_g, v_g, base_g, lia_gc, cdc
@@ -577,7 +549,7 @@ def _run(
             def candidate(u_t, e_t):
                 aw_t, bw_t = terms(jnp.exp(u_t))
                 q_t, r_t, zz_t, l_t, v_t = factor(aw_t, bw_t, y, dref, dc)
-                x_t = _solve_upper_t(l_t, v_t + jnp.sqrt(s2) * e_t)
+                x_t = solve_lower_t_unrolled(l_t, v_t + jnp.sqrt(s2) * e_t)
                 return aw_t, bw_t, q_t, r_t, zz_t, l_t, v_t, x_t
 
             cand = jax.vmap(candidate)(us, eps)
@@ -588,7 +560,7 @@ def _run(
             z_c = y - bw
             r_c = jnp.einsum("mp,m,m->p", aw, w, z_c)
             zz_c = jnp.sum(w * z_c * z_c)
-            v_c = _solve_lower(l, r_c + dc)
+            v_c = solve_lower_unrolled(l, r_c + dc)
             log_w_new = log_target_minus_x(aw_n, bw_n, x_new, u_new, y, s2, l_n, v_n)
             log_w_new = log_w_new - log_q(logits, u_new)
             log_w_cur = log_target_minus_x(aw, bw, x, u, y, s2, l, v_c) - log_q(logits, u)
@@ -605,7 +577,7 @@ def _run(
             # 3. s^2 | u, x and x | u, s along the columns of L^-T: conjugate for Q + D,
             # nearly so for Q (the moves are exact for any directions)
             eye = jnp.eye(q.shape[0], dtype=dtype)
-            dirs = jax.vmap(lambda e: _solve_upper_t(l, e), out_axes=1)(eye)
+            dirs = jax.vmap(lambda e: solve_lower_t_unrolled(l, e), out_axes=1)(eye)
             lam = jnp.einsum("pk,pq,qk->k", dirs, q, dirs)
             x, s2 = _sweep(k_s, x, s2, q, r, yy, nw, dirs, lam, xl, xh, jeffreys, pp, pm, k_prior)
             return (key, u, x, s2, aw, bw, q, l), accept.astype(dtype)
@@ -632,7 +604,7 @@ def _run(
                 carry, draws = state
                 length, keep = spec[0], spec[1] > 0
                 grid = cells(carry[3])
-                carry = (*carry[:7], _chol(carry[6] + grid[0]))
+                carry = (*carry[:7], cholesky_unrolled(carry[6] + grid[0])[0])
 
                 def interval(t, st):
                     carry, draws = st
