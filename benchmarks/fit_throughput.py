@@ -373,7 +373,8 @@ def end_to_end(side: int, lm_pixels: int, repeats: int, auto: bool) -> list[dict
     the same capture's pixels (module docstring)."""
     from jaxrefl import svbrdf
     from jaxrefl.svbrdf._data import pixel_block
-    from jaxrefl.svbrdf._job import COMPACT_MIN_PIXELS, _TileFitter
+    from jaxrefl.svbrdf._job import COMPACT_MIN_PIXELS
+    from jaxrefl.svbrdf._tile_fitter import TileFitter
 
     t0 = time.perf_counter()
     cap = noisy_demo_capture(side)
@@ -406,7 +407,7 @@ def end_to_end(side: int, lm_pixels: int, repeats: int, auto: bool) -> list[dict
         if r.job.model not in lm_ref:
             # The LM alone and the start alone on the same pixels, tile-shaped blocks (the
             # job's own compiled shapes), same model, space, noise and loss as the job.
-            fitter = _TileFitter(
+            fitter = TileFitter(
                 cap,
                 r.job,
                 pooled=r.extra["pooled"],

@@ -345,18 +345,19 @@ def test_leave_one_out_compacts_by_the_work_of_all_folds(shared_lobe_capture, mo
     """fit_capture compacts the LM's slow pixels by the capture's size unless told; the K
     fits of leave_one_out share their programs, so they compact by K x H x W, and the
     model selection's per-pixel fits follow the fit's choice (the same tile shape)."""
-    from jaxrefl.svbrdf import _holdout, _job
+    from jaxrefl.svbrdf import _auto, _holdout, _job, _tile_fitter
 
     cap, _ = shared_lobe_capture
     cap = cap.select(SIX).crop(0, 8, 0, 8)
     seen: list[tuple[str, bool]] = []
 
-    class Recording(_job._TileFitter):
+    class Recording(_tile_fitter.TileFitter):
         def __init__(self, capture, job, pooled=None, *, compact=True, width_terms=True):
             seen.append((job.model, compact))
             super().__init__(capture, job, pooled, compact=compact, width_terms=width_terms)
 
-    monkeypatch.setattr(_job, "_TileFitter", Recording)
+    monkeypatch.setattr(_job, "TileFitter", Recording)
+    monkeypatch.setattr(_auto, "TileFitter", Recording)
     job = FitJob(model="lambert", tile_pixels=64)
     fit_capture(cap, job)
     assert seen == [("lambert", False)]  # 64 pixels: far below COMPACT_MIN_PIXELS

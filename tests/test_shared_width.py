@@ -14,7 +14,7 @@ from jaxrefl import fit
 from jaxrefl.demo import demo_scene, photograph_maps
 from jaxrefl.svbrdf import FitJob, fit_capture, map_name
 from jaxrefl.svbrdf._data import pixel_block
-from jaxrefl.svbrdf._job import _TileFitter
+from jaxrefl.svbrdf._tile_fitter import TileFitter
 
 SIZE = 8  # 64 pixels: the joint problem has 64 x 6 + 1 unknowns
 
@@ -44,7 +44,7 @@ def test_width_share_equals_the_joint_laplace(pooled_fit):
     cap, cf = pooled_fit
     with jax.enable_x64(True):
         n = SIZE * SIZE
-        fitter = _TileFitter(cap, cf.job, pooled=cf.extra["pooled"])
+        fitter = TileFitter(cap, cf.job, pooled=cf.extra["pooled"])
         res, space = fitter.residual, fitter.space
         data = pixel_block(cap, 0, n, dtype=np.float64)
         train = jnp.asarray(fitter.train, jnp.float64)[None, :, None]
@@ -94,7 +94,7 @@ def test_a_pixel_without_a_covariance_takes_no_part(pooled_fit):
 
     cap, cf = pooled_fit
     with jax.enable_x64(True):
-        fitter = _TileFitter(cap, cf.job, pooled=cf.extra["pooled"])
+        fitter = TileFitter(cap, cf.job, pooled=cf.extra["pooled"])
         n = SIZE * SIZE
         data = pixel_block(cap, 0, n, dtype=np.float64)
         train = jnp.asarray(fitter.train, jnp.float64)[None, :, None]

@@ -207,15 +207,15 @@ def test_score_test_of_the_slopes_sees_a_tilt_and_nothing_else(amplitude):
     (0.6 degrees) put it far above. T / 2 is also checked against an independent algebra:
     the cost drop of one Gauss-Newton step in every parameter, less that of a step in the
     flat parameters alone (block inversion of J^T J)."""
-    from jaxrefl.svbrdf._job import _extend_start, _TileFitter
     from jaxrefl.svbrdf._score_test import score_test
+    from jaxrefl.svbrdf._tile_fitter import TileFitter, extend_start
 
     cap = _tilted_capture(amplitude, noise=1e-6)
-    flat = _TileFitter(cap, svbrdf.FitJob(**_F64_JOB))
+    flat = TileFitter(cap, svbrdf.FitJob(**_F64_JOB))
     data = flat.data(0, 64)
     train = np.ones((64, cap.n_photos), bool)
     _, _, r1, fit_data = flat.score(data, train)
-    tilted = _TileFitter(cap, svbrdf.FitJob(**{**_F64_JOB, "model": "ggx_normal"}))
+    tilted = TileFitter(cap, svbrdf.FitJob(**{**_F64_JOB, "model": "ggx_normal"}))
     t, e, v = tilted.tilt_evidence(r1, fit_data)
     assert 120 < e <= 128  # about 2 a pixel: the prior is weak against noise of 1e-6
     if amplitude == 0.0:
@@ -225,7 +225,7 @@ def test_score_test_of_the_slopes_sees_a_tilt_and_nothing_else(amplitude):
     res = fit.make_residual(
         tilted.model, tilted.space, tilted.noise, tilted.loss, tilted._tilt_prior()
     )
-    theta = jnp.asarray(_extend_start(r1, tilted.space, np.float64, np.zeros(2)))
+    theta = jnp.asarray(extend_start(r1, tilted.space, np.float64, np.zeros(2)))
     extra = (tilted.space.index("tilt_x").start, tilted.space.index("tilt_y").start)
     ones = jnp.ones(64)
     t_px = np.asarray(score_test(res, theta, fit_data, extra, ones)[0])

@@ -22,7 +22,10 @@ Quick use::
 Parts: :mod:`._models` (named capture models), :mod:`._auto` (the capture's model chosen by
 held-out photos), :mod:`._data` (capture pixels as least-squares
 data: weights, censoring, geometry), :mod:`._pooled` (one lobe shape per capture, chosen by
-held-out photos), :mod:`._job` (tiled fit with Laplace uncertainty and resume),
+held-out photos), :mod:`._job` (tiled fit with Laplace uncertainty: :func:`fit_capture`),
+:mod:`._job_types` (:class:`FitJob`, :class:`CaptureFit`), :mod:`._tile_fitter` (one tile:
+fit, Laplace, held-out errors), :mod:`._tile_store` (tiles on disk: resume, several
+processes), :mod:`._maps` (tiles to maps and report),
 :mod:`._holdout` (leave-one-photo-out against a baseline), :mod:`._outputs` (EXR maps,
 report, previews), :mod:`._export` (textures, a Mitsuba 3 scene and a glTF 2.0 material
 for renderers), :mod:`._uncertainty` (the fit's Laplace std, then MCMC where Laplace is
@@ -58,12 +61,11 @@ from ._export import write_mitsuba as write_mitsuba
 from ._export import write_textures as write_textures
 from ._holdout import LeaveOneOut as LeaveOneOut
 from ._holdout import leave_one_out as leave_one_out
-from ._job import DEFAULT_LOSS as DEFAULT_LOSS
-from ._job import CaptureFit as CaptureFit
-from ._job import FitJob as FitJob
 from ._job import fit_capture as fit_capture
 from ._job import map_name as map_name
-from ._job import status_meanings as status_meanings
+from ._job_types import DEFAULT_LOSS as DEFAULT_LOSS
+from ._job_types import CaptureFit as CaptureFit
+from ._job_types import FitJob as FitJob
 from ._light import LIGHT_CHOICES as LIGHT_CHOICES
 from ._light import LIGHT_MODES as LIGHT_MODES
 from ._light import GainPrior as GainPrior
@@ -72,6 +74,7 @@ from ._light import LightProblem as LightProblem
 from ._light import estimate_light as estimate_light
 from ._light import gain_prior as gain_prior
 from ._light import light_problem as light_problem
+from ._maps import status_meanings as status_meanings
 from ._models import CAPTURE_MODELS as CAPTURE_MODELS
 from ._models import capture_model as capture_model
 from ._outputs import predict_photos as predict_photos

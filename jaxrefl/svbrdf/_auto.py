@@ -44,20 +44,18 @@ from __future__ import annotations
 import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
-import equinox as eqx
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from jaxrefl._errors import JaxreflError
 
+from ._data import stack_folds, subsample
+from ._job_types import FitJob
 from ._models import capture_model
 from ._pooled import PoolChoice
-
-if TYPE_CHECKING:
-    from ._job import FitJob
+from ._tile_fitter import TileFitter
 
 __all__ = [
     "AUTO_CANDIDATES",
@@ -144,24 +142,6 @@ class ModelChoice:
         }
 
 
-def _stack(data, train: list[int], k: int, size: int):
-    """``data`` (n pixels) once per training photo j, each copy fitted without photo j, padded
-    to a multiple of ``size`` rows with unweighted rows. Returns (stacked data, (rows, K)
-    training mask, (rows,) the copy's held-out photo, -1 for padding)."""
-    n = data.obs.shape[0]
-    rows = -(-(n * len(train)) // size) * size
-    pad = rows - n * len(train)
-    idx = np.concatenate([np.tile(np.arange(n), len(train)), np.full(pad, n - 1)])
-    held = np.concatenate([np.repeat(np.asarray(train), n), np.full(pad, -1)])
-    stacked = jax.tree.map(lambda a: a[idx], data)
-    live = jnp.asarray(held >= 0, stacked.weight.dtype)[:, None, None]
-    stacked = eqx.tree_at(lambda d: d.weight, stacked, stacked.weight * live)
-    mask = np.zeros((rows, k), bool)
-    mask[:, train] = True
-    mask[held >= 0, held[held >= 0]] = False
-    return stacked, mask, held
-
-
 def _photos(n: int) -> str:
     return f"{n} photo" if n == 1 else f"{n} photos"
 
@@ -195,9 +175,6 @@ def choose_model(
     per-pixel fits gather their slow pixels into the lean LM's compaction stages
     (:func:`jaxrefl.svbrdf.fit_capture` passes its own choice: the selection's tiles have
     the fit's shape, so they share its compiled programs)."""
-    from ._job import _TileFitter
-    from ._pooled import _subsample
-
     if not candidates or "auto" in candidates:
         raise JaxreflError("candidates must name one or more models other than 'auto'")
     k = capture.n_photos
@@ -236,9 +213,9 @@ def choose_model(
         )
         return ModelChoice(fits[0], {}, 0, tuple(train), skipped, note=note)
     per_fold = max(256, max_pixels // len(train))
-    data = _subsample(capture, per_fold, seed, job.dtype)
+    data = subsample(capture, per_fold, seed, job.dtype)
     size = job.tile_pixels
-    stacked, mask, held = _stack(data, train, k, size)
+    stacked, mask, held = stack_folds(data, train, k, size)
     cv: dict[str, float] = {}
     evidence: dict[str, float] = {}
     bases = set(REFINES.values())
@@ -247,7 +224,7 @@ def choose_model(
         """(fitter, leave-one-photo-out RMSE, the fits of each tile of rows where a
         refinement starts from ``m``'s)."""
         if fitter is None:
-            fitter = _TileFitter(capture, replace(job, model=m), compact=compact, width_terms=False)
+            fitter = TileFitter(capture, replace(job, model=m), compact=compact, width_terms=False)
         sse = cnt = 0.0
         fits = []
         for s in range(0, mask.shape[0], size):
@@ -275,7 +252,7 @@ def choose_model(
         if base in cv and cv[base] > min(cv.values()) * (1.0 + TOLERANCE):
             skipped[m] = f"refines {base}, which is not the best so far"
             continue
-        fitter = _TileFitter(capture, replace(job, model=m), compact=compact, width_terms=False)
+        fitter = TileFitter(capture, replace(job, model=m), compact=compact, width_terms=False)
         if base in done:
             ev = np.sum([fitter.tilt_evidence(r, d) for r, d in done[base][2]], axis=0)
             t, e, v = (float(x) for x in ev)

@@ -20,20 +20,32 @@ Observations are used by their status (:class:`jaxrefl.io.ObsStatus`):
 
 Pixels are taken in row-major order; :func:`pixel_block` returns pixels [start, stop) padded
 to ``size`` with weight-0 copies (so every block has one compiled shape; padding pixels come
-back MASKED and are dropped by the caller).
+back MASKED and are dropped by the caller). :func:`pixel_take` reads pixels at any indices,
+:func:`subsample` a random set of them, and :func:`stack_folds` repeats such data once per
+leave-one-photo-out fold (the model selection's and the discrepancy's held-out scores).
 """
 
 from __future__ import annotations
 
 from dataclasses import replace
 
+import equinox as eqx
+import jax
+import jax.numpy as jnp
 import numpy as np
 
 from jaxrefl._errors import JaxreflError
 from jaxrefl.fit import PixelData, pixel_data
 from jaxrefl.io import ObsStatus
 
-__all__ = ["is_colocated", "pixel_block", "pixel_take", "resolvable_alpha"]
+__all__ = [
+    "is_colocated",
+    "pixel_block",
+    "pixel_take",
+    "resolvable_alpha",
+    "stack_folds",
+    "subsample",
+]
 
 
 def is_colocated(capture, tol: float = 1e-9) -> bool:
@@ -169,3 +181,32 @@ def pixel_take(capture, pixels: np.ndarray, *, dtype=np.float32) -> PixelData:
         points=capture.points[rows, cols][None],
     )
     return pixel_block(line, 0, idx.size, dtype=dtype)
+
+
+def subsample(capture, n_pixels: int, seed: int, dtype) -> PixelData:
+    """PixelData of ``n_pixels`` random pixels (all where the capture has fewer), in
+    row-major order."""
+    _k, h, w, _c = capture.shape
+    total = h * w
+    pick = np.arange(total)
+    if total > n_pixels:
+        pick = np.sort(np.random.default_rng(seed).choice(total, n_pixels, replace=False))
+    return pixel_take(capture, pick, dtype=dtype)
+
+
+def stack_folds(data: PixelData, train: list[int], k: int, size: int):
+    """``data`` (n pixels) once per training photo j, each copy fitted without photo j, padded
+    to a multiple of ``size`` rows with unweighted rows. Returns (stacked data, (rows, K)
+    training mask, (rows,) the copy's held-out photo, -1 for padding)."""
+    n = data.obs.shape[0]
+    rows = -(-(n * len(train)) // size) * size
+    pad = rows - n * len(train)
+    idx = np.concatenate([np.tile(np.arange(n), len(train)), np.full(pad, n - 1)])
+    held = np.concatenate([np.repeat(np.asarray(train), n), np.full(pad, -1)])
+    stacked = jax.tree.map(lambda a: a[idx], data)
+    live = jnp.asarray(held >= 0, stacked.weight.dtype)[:, None, None]
+    stacked = eqx.tree_at(lambda d: d.weight, stacked, stacked.weight * live)
+    mask = np.zeros((rows, k), bool)
+    mask[:, train] = True
+    mask[held >= 0, held[held >= 0]] = False
+    return stacked, mask, held

@@ -34,7 +34,8 @@ import numpy as np
 
 from jaxrefl._errors import JaxreflError
 
-from ._job import COMPACT_MIN_PIXELS, CaptureFit, FitJob, fit_capture
+from ._job import COMPACT_MIN_PIXELS, fit_capture
+from ._job_types import CaptureFit, FitJob
 
 __all__ = ["LeaveOneOut", "leave_one_out"]
 

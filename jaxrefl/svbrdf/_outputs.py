@@ -36,7 +36,8 @@ from jaxrefl._jsonsafe import report_json
 
 from ._check import ModelCheck
 from ._data import pixel_block
-from ._job import CaptureFit, status_meanings
+from ._job_types import CaptureFit
+from ._maps import status_meanings
 from ._models import CAPTURE_MODELS
 
 __all__ = ["predict_photos", "write_outputs"]

@@ -53,7 +53,7 @@ import numpy as np
 from jaxrefl import brdf
 from jaxrefl._errors import JaxreflError
 
-from ._data import pixel_take
+from ._data import subsample
 
 __all__ = ["PoolChoice", "choose_pooled"]
 
@@ -208,17 +208,6 @@ def _population(alpha, data, train):
     return u.reshape(c, n_px).T, jnp.sum(e * e, (0, 1)) / jnp.maximum(n, 1.0), n
 
 
-def _subsample(capture, n_pixels: int, seed: int, dtype):
-    """PixelData of ``n_pixels`` random pixels (all where the capture has fewer), in
-    row-major order."""
-    _k, h, w, _c = capture.shape
-    total = h * w
-    pick = np.arange(total)
-    if total > n_pixels:
-        pick = np.sort(np.random.default_rng(seed).choice(total, n_pixels, replace=False))
-    return pixel_take(capture, pick, dtype=dtype)
-
-
 def choose_pooled(
     capture,
     train: np.ndarray,
@@ -242,7 +231,7 @@ def choose_pooled(
             f"error; {capture.source or 'the capture'} has {int(train.sum())}: fit it with "
             "lambert (or model auto, which chooses among the models its photos allow)"
         )
-    data = _subsample(capture, n_pixels, seed, dtype)
+    data = subsample(capture, n_pixels, seed, dtype)
     tr = jnp.asarray(train)
 
     def score(alpha: float, on: float) -> float:

@@ -41,7 +41,7 @@ import numpy as np
 from jaxrefl import fit
 from jaxrefl import posterior as jp
 
-from ._job import CaptureFit
+from ._job_types import CaptureFit
 
 __all__ = ["ALPHA_FLOOR_LOG_STD", "F0_FLOOR_STD", "MIN_PIXELS", "population_priors"]
 

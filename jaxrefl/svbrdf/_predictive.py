@@ -72,11 +72,12 @@ import numpy as np
 from scipy import stats
 
 from jaxrefl._errors import JaxreflError
-from jaxrefl.io import corr_name
+from jaxrefl.io import corr_name, map_name
 
 from ._check import PPC_ALPHA, ModelCheck, bound_bits, check_counts, ppc_failed
-from ._data import pixel_block
-from ._job import CaptureFit, _TileFitter, map_name
+from ._data import pixel_block, stack_folds, subsample
+from ._job_types import CaptureFit
+from ._tile_fitter import TileFitter
 
 __all__ = [
     "LEVELS",
@@ -254,7 +255,7 @@ def _fit_arrays(cf: CaptureFit, space) -> tuple[np.ndarray, np.ndarray, np.ndarr
     return np.asarray(cf.theta, np.float64), std, corr
 
 
-def _noise_var(fitter: _TileFitter, noise_map: np.ndarray, mu: np.ndarray) -> np.ndarray:
+def _noise_var(fitter: TileFitter, noise_map: np.ndarray, mu: np.ndarray) -> np.ndarray:
     """(N, K, C) noise variance of each prediction: the fit's noise model at the predicted
     radiance, times the pixel's estimated scale s^2 (or the known variance itself)."""
     s2 = np.asarray(noise_map, np.float64).reshape(-1, 1, 1) ** 2
@@ -284,7 +285,7 @@ def predictive(
             f"the fit has {cf.theta.shape[0]} pixels and the capture {h * w}: predict the "
             "capture the fit was made of"
         )
-    fitter = _TileFitter(
+    fitter = TileFitter(
         capture, cf.job, pooled=cf.extra.get("pooled"), compact=False, width_terms=False
     )
     space = fitter.space
@@ -417,24 +418,21 @@ def estimate_discrepancy(
     dark pixels and too narrow for bright ones. None (the default): True exactly when the
     fit's noise is one known variance for the capture (``pooled``), False where each pixel
     has its own estimate (the per-pixel models)."""
-    from ._auto import _stack
-    from ._pooled import _subsample
-
     if bins < 1:
         raise JaxreflError(f"bins must be >= 1, got {bins}")
     k = capture.n_photos
     train = [i for i in range(k) if i not in cf.job.holdout]
     if len(train) < 2:
         return Discrepancy.zero()
-    fitter = _TileFitter(
+    fitter = TileFitter(
         capture, cf.job, pooled=cf.extra.get("pooled"), compact=False, width_terms=False
     )
     if replace_noise is None:
         replace_noise = fitter.known_noise is not None
     per = max(256, max_pixels // len(train))
-    data = _subsample(capture, per, seed, cf.job.dtype)
+    data = subsample(capture, per, seed, cf.job.dtype)
     size = cf.job.tile_pixels
-    stacked, mask, held = _stack(data, train, k, size)
+    stacked, mask, held = stack_folds(data, train, k, size)
     e2s, vs, mus, rows_f = [], [], [], []
     for s in range(0, mask.shape[0], size):
         part = slice(s, s + size)
