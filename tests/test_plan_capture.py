@@ -1,7 +1,9 @@
 """Capture planning for a flash capture (jaxrefl.svbrdf._plan): the Fisher information of a
-new photo against finite differences of its log-likelihood (uncensored and censored), a
-highlight on the sample against one beside it, censoring at saturation, and
-``jaxrefl fit --photos`` followed by ``jaxrefl plan`` writing plan.json."""
+new photo against finite differences of its log-likelihood (uncensored and censored), the
+predictive variance with a shared parameter against the inverse of the joint precision, a
+highlight on the sample against one beside it (both criteria), censoring at saturation, the
+fit's estimated flash moving the candidates', and ``jaxrefl fit --photos`` followed by
+``jaxrefl plan`` writing plan.json."""
 
 from __future__ import annotations
 
@@ -17,6 +19,7 @@ from scipy.special import log_ndtr
 from jaxrefl import svbrdf
 from jaxrefl.cli import main
 from jaxrefl.demo import demo_scene, photograph_maps
+from jaxrefl.svbrdf._plan import CRITERIA
 
 MODEL, SPACE = svbrdf.capture_model("ggx")
 SIZE = 8
@@ -165,17 +168,90 @@ def truth_fit():
     return _truth_fit()
 
 
-def test_highlight_beside_the_sample_scores_below_one_crossing_it(truth_fit):
+@pytest.mark.parametrize("criterion", CRITERIA)
+def test_highlight_beside_the_sample_scores_below_one_crossing_it(truth_fit, criterion):
     fit, cap = truth_fit
-    plan = svbrdf.plan_next(fit, cap, svbrdf.listed_candidates(cap, [ON, OFF]))
+    options = svbrdf.PlanOptions(criterion=criterion)
+    plan = svbrdf.plan_next(fit, cap, svbrdf.listed_candidates(cap, [ON, OFF]), options)
     rows = {tuple(r["position"]): r for r in plan.ranking()}
     on, off = rows[tuple(ON)], rows[tuple(OFF)]
     assert on["highlight_on_sample"] and not off["highlight_on_sample"]
-    assert plan.best == 0
+    assert plan.best == 0 and plan.criterion == criterion
     assert on["gain"] > 2 * off["gain"] > 0
+    assert 0 < on["variance_reduction"] < 1 and on["information"] > off["information"]
     assert on["share_informed"] > off["share_informed"]
     # No shared parameter in the per-pixel ggx model: the gain is the pixels'.
     assert plan.shared == () and np.all(plan.gain_shared == 0)
+    assert plan.light == "fixed"
+
+
+def test_predictive_variance_with_a_shared_parameter_matches_the_joint_inverse():
+    """The block-arrow form (pixels' blocks, their coupling to one shared parameter, the
+    Schur complement) against the dense joint precision inverted, scale_up 1 and 2."""
+    from jaxrefl.svbrdf._plan_info import predictive_variance
+
+    rng = np.random.default_rng(1)
+    n, p, s = 5, 3, 1
+    q = p + s
+    blocks = []
+    for _ in range(n):
+        x = rng.standard_normal((6, q))
+        blocks.append(x.T @ x)
+    prec = np.stack(blocks)
+    g = rng.standard_normal((n, 4, q))
+    moment = np.einsum("ncp,ncq->npq", g, g)
+    tau = 0.3
+    for scale_up in (1.0, 2.0):
+        # The dense joint precision of scale_up copies of every pixel.
+        copies = int(scale_up)
+        size = n * copies * p + s
+        joint = np.zeros((size, size))
+        joint[-s:, -s:] = tau * np.eye(s)
+        want = 0.0
+        for c in range(copies):
+            for i in range(n):
+                o = (c * n + i) * p
+                joint[o : o + p, o : o + p] = prec[i, :p, :p] + tau * np.eye(p)
+                joint[o : o + p, -s:] = prec[i, :p, p:]
+                joint[-s:, o : o + p] = prec[i, p:, :p]
+                joint[-s:, -s:] += prec[i, p:, p:]
+        cov = np.linalg.inv(joint)
+        for c in range(copies):
+            for i in range(n):
+                idx = [*range((c * n + i) * p, (c * n + i + 1) * p), *range(size - s, size)]
+                want += np.trace(cov[np.ix_(idx, idx)] @ moment[i])
+        got = predictive_variance(
+            prec[:, :p, :p] + tau * np.eye(p),
+            prec[:, :p, p:],
+            prec[:, p:, p:],
+            moment,
+            tau,
+            scale_up,
+        )
+        np.testing.assert_allclose(got, want, rtol=1e-10)
+
+
+def test_the_fits_estimated_flash_moves_the_candidates_flash(truth_fit):
+    """A fit whose report's light has an offset (the sample frame): stated candidates get
+    it, placed ones keep theirs; the plan scores with the moved flash."""
+    fit, cap = truth_fit
+    offset = [1.5, -0.5, 0.2]
+    light = {"mode": "offset", "asked": "offset", "frame": "sample", "offset_cm": offset}
+    light["photo_gain"] = [1.0] * cap.n_photos
+    moved = dataclasses.replace(fit, report={"light": light})
+    cands = svbrdf.listed_candidates(cap, [ON, OFF])
+    plan = svbrdf.plan_next(moved, cap, cands)
+    assert plan.light == "offset"
+    np.testing.assert_allclose(plan.candidates.light_pos, cands.light_pos + np.asarray(offset))
+    # The same flash given as placed: the same scores.
+    placed = svbrdf.listed_candidates(cap, [ON, OFF], cands.light_pos + np.asarray(offset))
+    again = svbrdf.plan_next(moved, cap, placed)
+    np.testing.assert_allclose(again.candidates.light_pos, placed.light_pos)
+    np.testing.assert_allclose(again.gain, plan.gain, rtol=1e-9)
+    # A fixed light leaves the stated flash where it is, and scores differ.
+    fixed = svbrdf.plan_next(fit, cap, cands)
+    np.testing.assert_allclose(fixed.candidates.light_pos, cands.light_pos)
+    assert not np.allclose(fixed.gain, plan.gain, rtol=1e-6)
 
 
 def test_censoring_lowers_the_gain_of_a_candidate_that_saturates(truth_fit):

@@ -1,26 +1,32 @@
-"""Where to take the next photo: candidate positions ranked by expected information gain.
+"""Where to take the next photo: candidate positions ranked by what a photo there teaches.
 
     jaxrefl plan FIT_DIR --out PLAN_DIR [--candidates-from CAPTURE --photos 1,2,4,7]
-                 [--positions FILE] [--max-pixels N] [--top N] [--no-censoring]
+                 [--positions FILE] [--criterion variance|information] [--max-pixels N]
+                 [--top N] [--no-censoring]
 
 FIT_DIR is the output folder of ``jaxrefl fit`` (its maps.exr and report.json; the capture
 is read again from the path, photo subset, resolution and downsampling report.json
 records: :func:`jaxrefl.svbrdf.read_fit`). Each candidate camera-and-flash position is
-scored by the expected information gain of a photo taken there about the fit's parameters
-(:func:`jaxrefl.svbrdf.plan_next`: the linearised Fisher information of the new photo
-with censoring at saturation, added to the fit's Laplace precision; ``pooled``'s shared
-width counted once). Candidates: by default a grid over the hemisphere at the capture's
-distance; ``--positions FILE`` a text file of camera positions, one ``x,y,z`` per line
-(capture units, the sample frame: origin its centre, +z its normal); ``--candidates-from
-CAPTURE --photos 1,2,4,7`` the camera and flash positions of those photos of a capture
-(sequential use: fit with ``jaxrefl fit CAPTURE --photos 0,3,5,6,8``, plan over the
-others, take the best, fit again).
+scored (:func:`jaxrefl.svbrdf.plan_next`, the linearised Fisher information of the new photo
+with censoring at saturation added to the fit's Laplace precision, ``pooled``'s shared
+width counted once) by the expected reduction of the predictive variance of renderings at
+the candidates (``--criterion variance``, the default: how much better the fit would
+predict a photo taken at any of them) or by the expected information gain about the
+parameters (``--criterion information``). Where the fit estimated the flash (``jaxrefl fit
+--light``), the candidates' flash gets the estimated offset. Candidates: by default a grid
+over the hemisphere at the capture's distance; ``--positions FILE`` a text file of camera
+positions, one ``x,y,z`` per line (capture units, the sample frame: origin its centre, +z
+its normal); ``--candidates-from CAPTURE --photos 1,2,4,7`` the camera and flash positions
+of those photos of a capture (sequential use: fit with ``jaxrefl fit CAPTURE --photos
+0,3,5,6,8``, plan over the others, take the best, fit again).
 
 Writes PLAN_DIR/plan.json (``ranking``: one entry per candidate, best first, with ``photo``
-for photos of a capture or ``position`` for grid and listed ones, ``gain`` in nats and
-``share_informed``, the share of pixels whose posterior volume it shrinks by 10% or more),
-PLAN_DIR/highlights.png (the sample with where the highlight of the best candidates would
-fall) and PLAN_DIR/positions.png (the candidates seen from above, coloured by gain).
+for photos of a capture or ``position`` for grid and listed ones, ``gain`` (the criterion's:
+the share of the predictive variance removed, or nats), ``variance_reduction``,
+``information`` in nats and ``share_informed``, the share of pixels whose posterior volume
+it shrinks by 10% or more), PLAN_DIR/highlights.png (the sample with where the highlight of
+the best candidates would fall) and PLAN_DIR/positions.png (the candidates seen from above,
+coloured by gain).
 """
 
 from __future__ import annotations
@@ -32,7 +38,7 @@ from jaxrefl._errors import JaxreflError
 
 from ._main import check_out_dir, photo_indices, positive_int
 
-HELP = "rank candidate positions for the next photo by expected information gain"
+HELP = "rank candidate positions for the next photo by what a photo there teaches the fit"
 
 
 def _photos(text: str) -> tuple[int, ...]:
@@ -67,6 +73,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         type=positive_int,
         default=4096,
         help="pixels sampled to score each candidate",
+    )
+    p.add_argument(
+        "--criterion",
+        choices=("variance", "information"),
+        default="variance",
+        help="rank by the expected reduction of the predictive variance of renderings at the "
+        "candidates (default) or by the expected information gain about the parameters",
     )
     p.add_argument("--top", type=positive_int, default=3, help="candidates drawn in highlights.png")
     p.add_argument(
@@ -108,12 +121,15 @@ def run(args: argparse.Namespace) -> int:
         candidates = svbrdf.listed_candidates(capture, _positions(args.positions))
     else:
         candidates = svbrdf.hemisphere_candidates(capture)
-    options = svbrdf.PlanOptions(max_pixels=args.max_pixels, censoring=not args.no_censoring)
+    options = svbrdf.PlanOptions(
+        max_pixels=args.max_pixels, censoring=not args.no_censoring, criterion=args.criterion
+    )
     plan = svbrdf.plan_next(result, capture, candidates, options)
     files = svbrdf.write_plan(plan, capture, args.out, top=args.top, fit_dir=args.fit_dir)
     print(
         f"{len(candidates)} candidates scored on {plan.pixels_sampled} of {plan.pixels} pixels"
         + (f"; shared: {', '.join(plan.shared)}" if plan.shared else "")
+        + (f"; flash placed by the fit's light ({plan.light})" if plan.light != "fixed" else "")
     )
     for rank, row in enumerate(plan.ranking()[: args.top], start=1):
         where = (
@@ -122,7 +138,8 @@ def run(args: argparse.Namespace) -> int:
             else "position " + ", ".join(f"{v:.1f}" for v in row["position"])
         )
         print(
-            f"{rank}. {where}: gain {row['gain']:.2f} nats, informs "
+            f"{rank}. {where}: removes {row['variance_reduction']:.1%} of the predictive "
+            f"variance, {row['information']:.2f} nats, informs "
             f"{row['share_informed']:.0%} of pixels, highlight at "
             f"({row['highlight'][0]:.1f}, {row['highlight'][1]:.1f})"
             + ("" if row["highlight_on_sample"] else " (beside the sample)")

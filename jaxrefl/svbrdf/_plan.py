@@ -1,14 +1,28 @@
-"""Where to take the next photo: candidate camera-and-flash positions ranked by information.
+"""Where to take the next photo: candidate camera-and-flash positions ranked by what a
+photo there is expected to teach the fit.
 
-Criterion (Bayesian D-optimal design, Chaloner & Verdinelli 1995, section 2.2; the
-capture-wide form of :func:`jaxrefl.measured.rank_candidates`): the expected information
-gain of a new photo c about the parameters of the fit,
+Criterion (``PlanOptions.criterion``; both linearised at the fit's theta, Bayesian design,
+Chaloner & Verdinelli 1995):
 
-    gain_c = 1/2 ln det(A + F_c) - 1/2 ln det(A) = 1/2 ln det(I + Sigma F_c)     [nats]
+* ``variance`` (the default; V- or I-optimal design, Atkinson, Donev & Tobias 2007, ch.
+  10): the expected reduction of the predictive variance of reference renderings, summed
+  over pixels, reference renderings and channels, as a share of its current value,
 
-the mutual information between the photo and the parameters under the linearised model:
-by how much (a factor exp(-gain_c)) the volume of the posterior shrinks. (The measured
-planner's ``gain`` is the log-volume ratio of the precision, twice this.)
+      gain_c = [V(A) - V(A + F_c)] / V(A),   V(A) = sum_r sum_i sum_ch g_r^T A^-1 g_r
+
+  with g_r = dy_r / dtheta the Jacobian of the rendering of pixel i under reference r
+  (radiance units, :func:`._plan_info.predictive_variance`). The reference renderings are
+  the candidates themselves (or ``reference``): the views and flash positions the capture
+  could have, so the criterion is the expected reduction of the squared error with which
+  the fit predicts a photo taken at any of them; it weighs each pixel and parameter by how
+  much it changes a rendering, in the units of the photos, where the information counts
+  every identified direction of every pixel alike (a nat on a dark pixel's albedo the same
+  as on a highlight's width).
+* ``information`` (D-optimal; the capture-wide form of
+  :func:`jaxrefl.measured.rank_candidates`): the expected information gain about the
+  parameters, gain_c = 1/2 ln det(A + F_c) - 1/2 ln det(A) nats, the mutual information
+  between the photo and the parameters (a factor exp(-gain_c) on the posterior's volume).
+  It is computed for every criterion (``Plan.information``).
 
 * A, the current posterior precision, is the fit's Laplace one (:func:`jaxrefl.fit.laplace`):
   per pixel J^T J / s^2 of the fit's residual (its noise model, robust loss, censoring and
@@ -32,13 +46,22 @@ planner's ``gain`` is the log-volume ratio of the precision, twice this.)
 
       ln det = sum_i ln det A_i + ln det(S),   S = tau^-2 + sum_i (c_i - b_i^T A_i^-1 b_i)
 
-  (the Schur complement), so gain = sum_i gain_i + 1/2 [ln det S_after - ln det S_before]:
-  ``gain_pixels`` the pixels' part (given the width), ``gain_shared`` the width's.
+  (the Schur complement), so information = sum_i gain_i + 1/2 [ln det S_after - ln det
+  S_before]: ``gain_pixels`` the pixels' part (given the width), ``gain_shared`` the
+  width's; the predictive variance carries the width's variance S^-1 into every pixel's
+  rendering the same way.
+* The light: where the fit estimated the flash (``FitJob.light``, the report's ``light``),
+  the precision is that of the photos as the fit placed their flash, and candidates with
+  the flash where the capture states it get the estimated offset (:mod:`._plan_light`).
 * Pixels are a random sample of ``max_pixels`` of those with an estimate (the same sample
   for every candidate); sums over pixels are scaled by (pixels with an estimate) /
   (sampled), an unbiased estimate of the full sum. ``share_informed`` is the share of the
-  sampled pixels whose own gain (given the shared width) is at least
+  sampled pixels whose own information gain (given the shared width) is at least
   :data:`INFORMED_GAIN` (their posterior volume shrinks by 10% or more).
+
+What neither criterion sees: the model's own error (a bias, e.g. the relief of an embossed
+sample that a per-pixel lobe on a flat normal cannot render) is not reduced by any photo,
+and the linearisation takes the fit's theta for the truth.
 
 Candidates (:class:`Candidates`): a grid over the hemisphere at the capture's distance
 (:func:`hemisphere_candidates`), listed positions (:func:`listed_candidates`) or the
@@ -59,20 +82,27 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
-from scipy.special import log_ndtr, ndtr
 
-from jaxrefl import fit
 from jaxrefl._errors import JaxreflError
 
-from ._data import pixel_take
 from ._job import CaptureFit
-from ._models import TWO_STAGE, capture_model
+from ._plan_info import (
+    _candidate_geometry,
+    _logdet,
+    _order,
+    _prediction_jacobian,
+    _state,
+    censoring_factor,
+    photo_information,
+    predictive_variance,
+    schur,
+)
+from ._plan_light import fit_light, orientations, place_flash
 
 __all__ = [
+    "CRITERIA",
     "INFORMED_GAIN",
     "Candidates",
     "Plan",
@@ -88,12 +118,11 @@ __all__ = [
 # A pixel is "informed" by a photo whose gain for it is at least this many nats: its
 # posterior volume shrinks by 10% (exp(-gain) = 0.9) or more.
 INFORMED_GAIN = -math.log(0.9)
+# The criteria of PlanOptions.criterion (module docstring), the default first.
+CRITERIA = ("variance", "information")
 # tan of the half-vector angle, per unit alpha, where a GGX lobe falls to half its peak
 # (module docstring): sqrt(sqrt(2) - 1).
 _HALF_PEAK = math.sqrt(math.sqrt(2.0) - 1.0)
-# Standardised distances to the censoring bounds are clipped here: beyond 30 sigma the
-# normal's tail terms are 0 to float64 precision (and inf - inf would make NaN).
-_Z_MAX = 30.0
 
 
 @dataclass(frozen=True)
@@ -107,12 +136,16 @@ class PlanOptions:
                  :func:`jaxrefl.measured.rank_candidates`)
     censoring:   whether a new observation may saturate or clip dark (the Tobit factor);
                  False scores every observation as uncensored
+    criterion:   what ranks the candidates (:data:`CRITERIA`, module docstring):
+                 ``variance`` the expected reduction of the reference renderings'
+                 predictive variance, ``information`` the expected information gain
     """
 
     max_pixels: int = 4096
     seed: int = 0
     prior_width: float = 3.0
     censoring: bool = True
+    criterion: str = "variance"
 
     def __post_init__(self) -> None:
         if self.max_pixels < 1:
@@ -120,6 +153,11 @@ class PlanOptions:
         if not (math.isfinite(self.prior_width) and self.prior_width > 0):
             raise JaxreflError(
                 f"PlanOptions.prior_width must be a finite std > 0, got {self.prior_width}"
+            )
+        if self.criterion not in CRITERIA:
+            raise JaxreflError(
+                f"PlanOptions.criterion must be one of {', '.join(CRITERIA)}, not "
+                f"{self.criterion!r}"
             )
 
 
@@ -130,7 +168,10 @@ class Candidates:
     camera_pos, light_pos: (M, 3); light_power: (M, C) the flash's intensity (the
     capture's units); photos: the photo index of each candidate where they are photos of a
     capture (``jaxrefl plan --candidates-from``), else None; kind: ``"grid"``, ``"listed"``
-    or ``"photos"``.
+    or ``"photos"``; flash: ``"stated"`` where the flash is where the capture states it
+    (moved by a fit's estimated light, :mod:`._plan_light`), ``"placed"`` where it is
+    given; orientation: (M, 3, 3) camera-to-sample rotations of photo candidates where the
+    capture gives them (the frame of an estimated flash offset), else None.
     """
 
     camera_pos: np.ndarray
@@ -138,6 +179,8 @@ class Candidates:
     light_power: np.ndarray
     photos: tuple[int, ...] | None = None
     kind: str = "listed"
+    flash: str = "stated"
+    orientation: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         cam = np.atleast_2d(np.asarray(self.camera_pos, np.float64))
@@ -158,6 +201,12 @@ class Candidates:
         power = np.broadcast_to(power.reshape(-1, power.shape[-1]) if power.ndim else power, (m, 3))
         if self.photos is not None and len(self.photos) != m:
             raise JaxreflError(f"{len(self.photos)} photo indices for {m} candidates")
+        if self.flash not in ("stated", "placed"):
+            raise JaxreflError(f"Candidates.flash must be 'stated' or 'placed', not {self.flash!r}")
+        if self.orientation is not None and np.shape(self.orientation) != (m, 3, 3):
+            raise JaxreflError(
+                f"Candidates.orientation must be (M, 3, 3), got {np.shape(self.orientation)}"
+            )
         object.__setattr__(self, "camera_pos", cam)
         object.__setattr__(self, "light_pos", light)
         object.__setattr__(self, "light_power", np.array(power))
@@ -191,8 +240,9 @@ def listed_candidates(capture, camera_pos, light_pos=None) -> Candidates:
     ``light_pos`` (M, 3), or at the capture's offset from the lens; the capture's flash
     intensity."""
     cam = np.atleast_2d(np.asarray(camera_pos, np.float64))
-    light = cam + _flash_offset(capture) if light_pos is None else light_pos
-    return Candidates(cam, light, _power(capture), kind="listed")
+    if light_pos is None:
+        return Candidates(cam, cam + _flash_offset(capture), _power(capture), kind="listed")
+    return Candidates(cam, light_pos, _power(capture), kind="listed", flash="placed")
 
 
 def hemisphere_candidates(
@@ -231,218 +281,32 @@ def photo_candidates(capture, photos=None) -> Candidates:
         raise JaxreflError(f"candidate photos {bad or idx} out of range: the capture has {k}")
     if capture.light_pos is None:
         raise JaxreflError("capture planning needs a point light (a flash)")
+    rot = orientations(capture)
     return Candidates(
         capture.camera_pos[idx],
         capture.light_pos[idx],
         np.asarray(capture.light_power, np.float64)[idx],
         photos=tuple(idx),
         kind="photos",
+        orientation=None if rot is None else rot[idx],
     )
-
-
-# ------------------------------------------------------------------------ information
-def censoring_factor(mean, std, saturation_level=np.inf, dark_level=-np.inf) -> np.ndarray:
-    """lambda in (0, 1]: the Fisher information about the mean of a normal observation
-    N(mean, std^2) recorded censored above ``saturation_level`` and below ``dark_level``
-    (a Tobit observation), as a share of the uncensored 1 / std^2. With
-    a = (dark - mean)/std, b = (sat - mean)/std and phi, Phi the standard normal's density
-    and distribution,
-
-        lambda = Phi(b) - Phi(a) - b phi(b) + a phi(a) + phi(b)^2 / (1 - Phi(b))
-                 + phi(a)^2 / Phi(a)
-
-    (the expected squared score: the integral of z^2 phi over the uncensored range, and each
-    censored outcome's probability times its squared score)."""
-    mean = np.asarray(mean, np.float64)
-    std = np.asarray(std, np.float64)
-    b = np.clip((saturation_level - mean) / std, -_Z_MAX, _Z_MAX)
-    a = np.clip((dark_level - mean) / std, -_Z_MAX, _Z_MAX)
-    log_phi_b = -0.5 * b * b - 0.5 * math.log(2 * math.pi)
-    log_phi_a = -0.5 * a * a - 0.5 * math.log(2 * math.pi)
-    inner = ndtr(b) - ndtr(a) - b * np.exp(log_phi_b) + a * np.exp(log_phi_a)
-    tails = np.exp(2 * log_phi_b - log_ndtr(-b)) + np.exp(2 * log_phi_a - log_ndtr(a))
-    # Round-off can leave a hair outside (0, 1]; the factor is a share of the information.
-    return np.clip(inner + tails, 0.0, 1.0)
-
-
-def photo_information(
-    jac, mean, var, saturation_level=np.inf, dark_level=-np.inf, *, censoring: bool = True
-) -> np.ndarray:
-    """(..., P, P) Fisher information of one photo's observations of a pixel about theta:
-    sum_c lambda_c j_c j_c^T / var_c, from the Jacobian ``jac`` (..., C, P) of the predicted
-    radiance ``mean`` (..., C) with noise variance ``var`` (..., C), lambda the censoring
-    factor (:func:`censoring_factor`; 1 with ``censoring=False``)."""
-    jac = np.asarray(jac, np.float64)
-    var = np.asarray(var, np.float64)
-    lam = (
-        censoring_factor(mean, np.sqrt(var), saturation_level, dark_level)
-        if censoring
-        else np.ones_like(var)
-    )
-    return np.einsum("...cp,...cq,...c->...pq", jac, jac, lam / var)
-
-
-def _logdet(a: np.ndarray) -> np.ndarray:
-    sign, ld = np.linalg.slogdet(a)
-    # A precision that lost positive definiteness to round-off has no volume.
-    return np.where(sign > 0, ld, -np.inf)
-
-
-@eqx.filter_jit
-def _residual_jacobian(res, theta, data):
-    """(n, rows, P) Jacobian of the fit's residual of every pixel at its theta."""
-    return jax.vmap(jax.jacfwd(res))(theta, data)
-
-
-@eqx.filter_jit
-def _prediction_jacobian(model, space, inverse, theta, wi, wo, scale):
-    """((n, C, P) Jacobian, (n, C) value) of each pixel's predicted radiance under one new
-    photo (directions (n, 3), scale = E cos_i (n, C)); theta's entries in the order whose
-    inverse permutation is ``inverse``."""
-
-    def pred(t, wi1, wo1, s1):
-        params = space.to_natural(t[inverse][None, :])
-        return model.eval(params, wi1[None], wo1[None])[0] * s1
-
-    return jax.vmap(jax.jacfwd(pred))(theta, wi, wo, scale), jax.vmap(pred)(theta, wi, wo, scale)
-
-
-# ------------------------------------------------------------------------ the fit's state
-@dataclass(frozen=True)
-class _State:
-    """What the plan needs of a fit, on the sampled pixels: the model with its shared
-    parameters free, theta (n, P + S), the first P entries per pixel, the last S shared."""
-
-    model: Any
-    space: fit.ParamSpace
-    noise: fit.NoiseModel
-    theta: np.ndarray
-    s2: np.ndarray  # (n,) Laplace noise scale
-    pixels: np.ndarray  # (n,) row-major indices
-    n_est: int  # pixels with an estimate
-    n_shared: int
-    shared: tuple[str, ...]
-    precision: np.ndarray  # (n, P + S, P + S) per pixel, without the weak prior
-
-
-def _fit_noise(capture_fit: CaptureFit, noise_std: np.ndarray):
-    """(noise model of the fit's residual, whether the Laplace step estimated its scale)."""
-    job, noise = capture_fit.job, capture_fit.job.config.noise
-    pooled = capture_fit.extra.get("pooled")
-    unknown = isinstance(noise, fit.GaussianNoise) and noise.sigma is None
-    if unknown and pooled is not None and pooled.alpha is not None:
-        # An array, not a float: equinox's jit would compile again for every value.
-        return fit.GaussianNoise(sigma=jnp.asarray(float(pooled.sigma))), False
-    if unknown and job.model in TWO_STAGE:
-        # The tilted fit's scale: one value for the capture (empirical Bayes), in the map.
-        good = noise_std[np.isfinite(noise_std) & (noise_std > 0)]
-        sigma = float(np.median(good)) if good.size else 1.0
-        return fit.GaussianNoise(sigma=jnp.asarray(sigma)), False
-    return noise, True
-
-
-def _prior(capture_fit: CaptureFit, space: fit.ParamSpace) -> fit.GaussianPrior | None:
-    job, pooled = capture_fit.job, capture_fit.extra.get("pooled")
-    if pooled is not None and pooled.alpha is not None:
-        chans = [lab.split(".", 1)[1] for lab in space.labels if lab.startswith("specular.")]
-        return fit.gaussian_prior(
-            space,
-            {
-                f"specular.{ch}": (mu, sd)
-                for ch, mu, sd in zip(chans, pooled.prior_mean, pooled.prior_std, strict=True)
-            },
-        )
-    if job.model in TWO_STAGE:
-        t = float(job.tilt_std)
-        return fit.gaussian_prior(space, {"tilt_x": (0.0, t), "tilt_y": (0.0, t)})
-    return None
-
-
-def _state(capture_fit: CaptureFit, capture, options: PlanOptions) -> _State:
-    model, space = capture_fit.model()
-    h, w = capture_fit.maps["status"].shape
-    k, hc, wc, c = capture.shape
-    if (hc, wc) != (h, w):
-        raise JaxreflError(
-            f"the capture's photos are {hc} x {wc} pixels, the fit's maps {h} x {w}: give the "
-            "capture the fit was made from (same resolution and downsampling)"
-        )
-    theta_all = np.asarray(capture_fit.theta, np.float64)
-    ok = np.all(np.isfinite(theta_all), axis=-1)
-    if not np.any(ok):
-        raise JaxreflError("the fit has no pixel with an estimate: nothing to plan from")
-    est = np.flatnonzero(ok)
-    rng = np.random.default_rng(options.seed)
-    take = np.sort(rng.choice(est, min(options.max_pixels, est.size), replace=False))
-    dtype = capture_fit.job.dtype
-    nat = space.to_natural(jnp.asarray(theta_all[take], dtype))
-    shared: tuple[str, ...] = ()
-    pooled = capture_fit.extra.get("pooled")
-    if pooled is not None and pooled.alpha is not None:
-        # The shared width becomes a free parameter of the same model (counted once).
-        model, space = capture_model(
-            "ggx_rgb", c, alpha_min=min(float(capture_fit.extra["alpha_min"]), pooled.alpha)
-        )
-        shared = ("alpha",)
-    theta = np.asarray(space.from_natural(nat, dtype=dtype), np.float64)
-    noise_std = np.asarray(capture_fit.maps["noise_std"], np.float64).reshape(-1)
-    noise, estimated = _fit_noise(capture_fit, noise_std)
-    if estimated:
-        s = noise_std[take]
-        med = np.median(noise_std[np.isfinite(noise_std) & (noise_std > 0)])
-        # A pixel without a noise estimate (n <= P) takes the capture's median scale.
-        s = np.where(np.isfinite(s) & (s > 0), s, med if np.isfinite(med) else 1.0)
-        s2 = s * s
-    else:
-        s2 = np.ones(take.size)
-    res = fit.make_residual(
-        model, space, noise, capture_fit.job.config.loss, _prior(capture_fit, space)
-    )
-    data = pixel_take(capture, take, dtype=dtype)
-    train = np.ones(k)
-    train[list(capture_fit.job.holdout)] = 0.0
-    data = eqx.tree_at(
-        lambda d: d.weight, data, data.weight * jnp.asarray(train, data.weight.dtype)[None, :, None]
-    )
-    jac = _residual_jacobian(res, jnp.asarray(theta, dtype), data)
-    jac = np.asarray(jac, np.float64)
-    jac = np.where(np.isfinite(jac), jac, 0.0)  # a non-finite row carries no information
-    precision = np.einsum("nrp,nrq->npq", jac, jac) / s2[:, None, None]
-    return _State(
-        model=model,
-        space=space,
-        noise=noise,
-        theta=_shared_last(space, theta, shared),
-        s2=s2,
-        pixels=take,
-        n_est=int(est.size),
-        n_shared=sum(space.index(nm).stop - space.index(nm).start for nm in shared),
-        shared=shared,
-        precision=_shared_last(space, precision, shared, matrix=True),
-    )
-
-
-def _order(space: fit.ParamSpace, shared: tuple[str, ...]) -> np.ndarray:
-    """theta entries with the shared parameters' last."""
-    last = [j for n in shared for j in range(space.index(n).start, space.index(n).stop)]
-    return np.array([j for j in range(space.size) if j not in last] + last, int)
-
-
-def _shared_last(space, x, shared, matrix=False):
-    o = _order(space, shared)
-    return x[:, o][:, :, o] if matrix else x[:, o]
 
 
 # ------------------------------------------------------------------------ the plan
 @dataclass(frozen=True)
 class Plan:
-    """Candidates ranked by expected information gain (module docstring).
+    """Candidates ranked by the criterion (module docstring).
 
-    candidates:     the :class:`Candidates` scored
-    gain:           (M,) nats, gain_pixels + gain_shared
-    gain_pixels:    (M,) the per-pixel parameters' part (given the shared ones)
+    candidates:     the :class:`Candidates` scored (with the fit's flash where it placed one)
+    criterion:      the ranking's (:data:`CRITERIA`)
+    gain:           (M,) the criterion's score: ``variance`` the share of the reference
+                    renderings' predictive variance a photo there is expected to remove,
+                    ``information`` nats
+    variance_reduction: (M,) that share, for either criterion
+    information:    (M,) nats, gain_pixels + gain_shared
+    gain_pixels:    (M,) the information's per-pixel part (given the shared parameters)
     gain_shared:    (M,) the shared parameters' part (0 where none is shared)
-    share_informed: (M,) share of pixels whose own gain is >= :data:`INFORMED_GAIN`
+    share_informed: (M,) share of pixels whose own information gain is >= :data:`INFORMED_GAIN`
     order:          (M,) candidate indices, best first
     highlight:      (M, 2) where each candidate's highlight falls (capture units)
     highlight_radius: (M,) the radius of a lobe of the fit's median width there (0: none)
@@ -450,10 +314,14 @@ class Plan:
     shared:         names of the parameters shared by every pixel
     side:           the sample's side (capture units): a highlight is on the sample where
                     both |x| and |y| are below side / 2
+    light:          the fit's light mode the plan used (``fixed``: as the capture states)
     """
 
     candidates: Candidates
+    criterion: str
     gain: np.ndarray
+    variance_reduction: np.ndarray
+    information: np.ndarray
     gain_pixels: np.ndarray
     gain_shared: np.ndarray
     share_informed: np.ndarray
@@ -464,6 +332,7 @@ class Plan:
     pixels: int
     shared: tuple[str, ...]
     side: float
+    light: str = "fixed"
 
     @property
     def best(self) -> int:
@@ -472,8 +341,9 @@ class Plan:
 
     def ranking(self) -> list[dict[str, Any]]:
         """One dict per candidate, best first: ``photo`` (photo candidates) or ``position``
-        (camera position, capture units), ``light_position``, ``gain``, ``gain_pixels``,
-        ``gain_shared``, ``share_informed``, ``highlight`` (x, y) and ``highlight_on_sample``."""
+        (camera position, capture units), ``light_position``, ``gain`` (the criterion's),
+        ``variance_reduction``, ``information``, ``gain_pixels``, ``gain_shared``,
+        ``share_informed``, ``highlight`` (x, y) and ``highlight_on_sample``."""
         cand = self.candidates
         out = []
         for m in self.order:
@@ -483,6 +353,8 @@ class Plan:
             row["position"] = [float(v) for v in cand.camera_pos[m]]
             row["light_position"] = [float(v) for v in cand.light_pos[m]]
             row["gain"] = float(self.gain[m])
+            row["variance_reduction"] = float(self.variance_reduction[m])
+            row["information"] = float(self.information[m])
             row["gain_pixels"] = float(self.gain_pixels[m])
             row["gain_shared"] = float(self.gain_shared[m])
             row["share_informed"] = float(self.share_informed[m])
@@ -492,108 +364,97 @@ class Plan:
         return out
 
 
-def _candidate_geometry(points: np.ndarray, cam: np.ndarray, light: np.ndarray, power):
-    """wi, wo (n, 3) and scale = E cos_i (n, C) of one candidate at ``points`` (n, 3)."""
-    d = light - points
-    r2 = np.sum(d * d, axis=-1)
-    wi = d / np.sqrt(r2)[:, None]
-    v = cam - points
-    wo = v / np.linalg.norm(v, axis=-1, keepdims=True)
-    # Light from below the plane does not reach the surface (as Capture does).
-    cos_i = np.maximum(wi[:, 2], 0.0)
-    return wi, wo, (power[None, :] / r2[:, None]) * cos_i[:, None]
-
-
 def plan_next(
     capture_fit: CaptureFit,
     capture,
     candidates: Candidates | None = None,
     options: PlanOptions | None = None,
+    reference: Candidates | None = None,
 ) -> Plan:
-    """Rank ``candidates`` (default: :func:`hemisphere_candidates` of ``capture``) by the
-    expected information gain of a photo taken there about the fit's parameters (module
-    docstring: the criterion, its linearisation and censoring, the shared parameters, the
-    pixel sample).
+    """Rank ``candidates`` (default: :func:`hemisphere_candidates` of ``capture``) by what a
+    photo taken there is expected to teach the fit (module docstring: the criteria, their
+    linearisation and censoring, the shared parameters, the light, the pixel sample).
 
     capture_fit: a :class:`CaptureFit` (:func:`fit_capture`, or read back from a fit's
                  folder with :func:`jaxrefl.svbrdf.read_fit`)
     capture:     the capture it was fitted to (its geometry, photos and saturation level;
-                 the fit's held-out photos are not counted as measured)
+                 the fit's held-out photos are not counted as measured), its flash as
+                 stated: an estimated light of the fit is applied here
+    reference:   the renderings whose predictive variance the ``variance`` criterion
+                 reduces (default: the candidates)
     """
     options = PlanOptions() if options is None else options
+    light = fit_light(capture_fit, capture)
+    train = np.ones(capture.n_photos, bool)
+    train[[i for i in capture_fit.job.holdout if 0 <= i < capture.n_photos]] = False
+    if light is not None:
+        capture = light.apply(capture)
     candidates = hemisphere_candidates(capture) if candidates is None else candidates
-    if candidates.light_power.shape[-1] != capture.shape[-1]:
-        raise JaxreflError(
-            f"candidate light_power has {candidates.light_power.shape[-1]} channels, the "
-            f"capture {capture.shape[-1]}"
-        )
-    st = _state(capture_fit, capture, options)
+    candidates = place_flash(candidates, light, capture, train)
+    reference = candidates if reference is None else place_flash(reference, light, capture, train)
+    for what, c in (("candidate", candidates), ("reference", reference)):
+        if c.light_power.shape[-1] != capture.shape[-1]:
+            raise JaxreflError(
+                f"{what} light_power has {c.light_power.shape[-1]} channels, the capture "
+                f"{capture.shape[-1]}"
+            )
+    st = _state(capture_fit, capture, options.max_pixels, options.seed)
     n, q = st.theta.shape
     s = st.n_shared
     p = q - s
     scale_up = st.n_est / n
-    eye_p = np.eye(p) / options.prior_width**2
-    a_pp = st.precision[:, :p, :p] + eye_p
+    tau = 1.0 / options.prior_width**2
+    a_pp = st.precision[:, :p, :p] + np.eye(p) * tau
+    a_ps, a_ss = st.precision[:, :p, p:], st.precision[:, p:, p:]
     ld_before = _logdet(a_pp)
     if s:
-        a_ps = st.precision[:, :p, p:]
-        schur_before = np.eye(s) / options.prior_width**2 + scale_up * np.sum(
-            st.precision[:, p:, p:] - np.swapaxes(a_ps, 1, 2) @ np.linalg.solve(a_pp, a_ps),
-            axis=0,
-        )
+        schur_before = _logdet(schur(a_pp, a_ps, a_ss, tau, scale_up)[None])[0]
     points = capture.points.reshape(-1, 3)[st.pixels].astype(np.float64)
     dtype = capture_fit.job.dtype
-    order = _order(st.space, st.shared)
-    inverse = np.argsort(order)
-    noise = st.noise
-    inverse_j = jnp.asarray(inverse)
+    inverse = jnp.asarray(np.argsort(_order(st.space, st.shared)))
     theta_j = jnp.asarray(st.theta, dtype)
-    m = len(candidates)
-    gain_px, gain_sh, informed = np.zeros(m), np.zeros(m), np.zeros(m)
-    for j in range(m):
-        wi, wo, sc = _candidate_geometry(
-            points, candidates.camera_pos[j], candidates.light_pos[j], candidates.light_power[j]
-        )
-        jac, mean = _prediction_jacobian(
-            st.model,
-            st.space,
-            inverse_j,
-            theta_j,
-            jnp.asarray(wi, dtype),
-            jnp.asarray(wo, dtype),
-            jnp.asarray(sc, dtype),
-        )
+
+    def photo(c: Candidates, j: int):
+        """(Jacobian (n, C, q), Fisher information (n, q, q)) of a photo at c[j]."""
+        wi, wo, sc = _candidate_geometry(points, c.camera_pos[j], c.light_pos[j], c.light_power[j])
+        args = (jnp.asarray(wi, dtype), jnp.asarray(wo, dtype), jnp.asarray(sc, dtype))
+        jac, mean = _prediction_jacobian(st.model, st.space, inverse, theta_j, *args)
         jac = np.nan_to_num(np.asarray(jac, np.float64))  # a non-finite row informs nothing
         mean = np.asarray(mean, np.float64)
-        std_model = np.asarray(noise.std(jnp.asarray(mean)), np.float64)
-        var = st.s2[:, None] * std_model**2
-        f = photo_information(
-            jac,
-            mean,
-            var,
-            capture.saturation_level,
-            capture.dark_level,
-            censoring=options.censoring,
-        )
-        f_pp = f[:, :p, :p]
-        g_i = 0.5 * (_logdet(a_pp + f_pp) - ld_before)
+        var = st.s2[:, None] * np.asarray(st.noise.std(jnp.asarray(mean)), np.float64) ** 2
+        sat, dark = capture.saturation_level, capture.dark_level
+        return jac, photo_information(jac, mean, var, sat, dark, censoring=options.censoring)
+
+    moment = np.zeros((n, q, q))
+    for j in range(len(reference)):
+        g = photo(reference, j)[0]
+        moment += np.einsum("ncp,ncq->npq", g, g)
+    v_before = predictive_variance(a_pp, a_ps, a_ss, moment, tau, scale_up)
+    m = len(candidates)
+    gain_px, gain_sh, informed, v_red = np.zeros(m), np.zeros(m), np.zeros(m), np.zeros(m)
+    for j in range(m):
+        f = photo(candidates, j)[1]
+        a_after = a_pp + f[:, :p, :p]
+        b_after, c_after = a_ps + f[:, :p, p:], a_ss + f[:, p:, p:]
+        g_i = 0.5 * (_logdet(a_after) - ld_before)
         gain_px[j] = scale_up * float(np.sum(g_i))
         informed[j] = float(np.mean(g_i >= INFORMED_GAIN))
         if s:
-            a_after = a_pp + f_pp
-            b_after = a_ps + f[:, :p, p:]
-            c_after = st.precision[:, p:, p:] + f[:, p:, p:]
-            schur_after = np.eye(s) / options.prior_width**2 + scale_up * np.sum(
-                c_after - np.swapaxes(b_after, 1, 2) @ np.linalg.solve(a_after, b_after), axis=0
-            )
-            gain_sh[j] = 0.5 * float(_logdet(schur_after[None])[0] - _logdet(schur_before[None])[0])
-    gain = gain_px + gain_sh
+            after = _logdet(schur(a_after, b_after, c_after, tau, scale_up)[None])[0]
+            gain_sh[j] = 0.5 * float(after - schur_before)
+        v_after = predictive_variance(a_after, b_after, c_after, moment, tau, scale_up)
+        v_red[j] = (v_before - v_after) / v_before if v_before > 0 else 0.0
+    info = gain_px + gain_sh
+    gain = v_red if options.criterion == "variance" else info
     alpha = _median_alpha(capture_fit)
     heights = 0.5 * (candidates.camera_pos[:, 2] + candidates.light_pos[:, 2])
     radius = heights * np.tan(_HALF_PEAK * alpha) if alpha is not None else np.zeros(m)
     return Plan(
         candidates=candidates,
+        criterion=options.criterion,
         gain=gain,
+        variance_reduction=v_red,
+        information=info,
         gain_pixels=gain_px,
         gain_shared=gain_sh,
         share_informed=informed,
@@ -604,6 +465,7 @@ def plan_next(
         pixels=st.n_est,
         shared=st.shared,
         side=float(capture.side),
+        light="fixed" if light is None else light.mode,
     )
 
 

@@ -11,9 +11,10 @@ downsampling the report's ``capture`` records.
 
 * ``plan.json``: ``ranking``, one entry per candidate, best first (:meth:`Plan.ranking`:
   ``photo`` for the photos of a capture, ``position`` the camera position (capture units,
-  the sample frame: origin its centre, +z its normal), ``light_position``, ``gain`` (nats),
-  ``gain_pixels``, ``gain_shared``, ``share_informed``, ``highlight`` and
-  ``highlight_on_sample``), with ``criterion``, ``candidates`` (their kind), ``pixels``,
+  the sample frame: origin its centre, +z its normal), ``light_position``, ``gain`` (the
+  criterion's), ``variance_reduction`` (a share), ``information`` (nats), ``gain_pixels``,
+  ``gain_shared``, ``share_informed``, ``highlight`` and ``highlight_on_sample``), with
+  ``criterion``, ``criterion_meaning``, ``light``, ``candidates`` (their kind), ``pixels``,
   ``pixels_sampled``, ``shared``, ``informed_gain``, ``units``, ``fit`` and ``capture``;
 * ``highlights.png``: the sample (the mean of the fitted photos) with where the highlight
   of each of the best ``top`` candidates would fall (a circle of the lobe's half-peak
@@ -41,6 +42,12 @@ from ._pooled import PoolChoice
 
 __all__ = ["read_fit", "write_plan"]
 
+_CRITERION = {
+    "variance": "expected reduction of the predictive variance of renderings at the "
+    "candidates, summed over pixels, renderings and channels, as a share of its value",
+    "information": "expected information gain about the fit's parameters, "
+    "0.5 ln det(I + Sigma F) in nats",
+}
 _NOISES = {"gaussian": fit.GaussianNoise, "shot": fit.ShotNoise}
 _LOSSES = {"l2": fit.L2, "huber": fit.Huber, "cauchy": fit.Cauchy}
 
@@ -169,10 +176,11 @@ def write_plan(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     doc = {
-        "criterion": "expected information gain of the new photo about the fit's parameters, "
-        "0.5 ln det(I + Sigma F) in nats, linearised at the fit (Fisher information with "
-        "Tobit censoring at saturation; shared parameters counted once; "
-        "jaxrefl.svbrdf.plan_next)",
+        "criterion": plan.criterion,
+        "criterion_meaning": _CRITERION[plan.criterion]
+        + " (linearised at the fit: Fisher information of the new photo with Tobit censoring "
+        "at saturation; shared parameters counted once; jaxrefl.svbrdf.plan_next)",
+        "light": plan.light,
         "candidates": plan.candidates.kind,
         "ranking": plan.ranking(),
         "pixels": plan.pixels,
@@ -181,7 +189,9 @@ def write_plan(
         "informed_gain": INFORMED_GAIN,
         "units": {
             "position": "capture units (cm), sample frame: origin its centre, +z its normal",
-            "gain": "nats (the posterior volume shrinks by exp(-gain))",
+            "gain": "the criterion's: variance, a share; information, nats",
+            "variance_reduction": "share of the reference renderings' predictive variance",
+            "information": "nats (the posterior volume shrinks by exp(-information))",
         },
         "fit": None if fit_dir is None else str(fit_dir),
         "capture": None if capture.source is None else str(capture.source),
@@ -243,7 +253,11 @@ def _positions_png(plan: Plan, capture, path: Path) -> Path:
     cand = plan.candidates
     fig, ax = plt.subplots(figsize=(6, 5.2))
     sc = ax.scatter(cand.camera_pos[:, 0], cand.camera_pos[:, 1], c=plan.gain, cmap="viridis", s=60)
-    fig.colorbar(sc, ax=ax, label="expected information gain (nats)")
+    label = {
+        "variance": "expected share of the predictive variance removed",
+        "information": "expected information gain (nats)",
+    }[plan.criterion]
+    fig.colorbar(sc, ax=ax, label=label)
     ax.scatter(
         capture.camera_pos[:, 0],
         capture.camera_pos[:, 1],
