@@ -285,6 +285,9 @@ def light_column(name: str, size: int, model: str) -> str:
             "",
         ],
     ]
+    ratio = est / fixed
+    worse = [int(i) for i in np.flatnonzero(ratio > 1.01)]
+    better = [int(i) for i in np.flatnonzero(ratio < 0.99)]
     kept = [lt["mode"] for lt in lights]
     offsets = [lt["offset_cm"] for lt in lights if lt["mode"] != "fixed"]
     text = [
@@ -295,6 +298,10 @@ def light_column(name: str, size: int, model: str) -> str:
         "",
         "auto kept " + ", ".join(f"{m} in {kept.count(m)} of {k} folds" for m in sorted(set(kept))),
     ]
+    text.append(
+        f"; per photo, estimated / fixed {np.nanmin(ratio):.3f} to {np.nanmax(ratio):.3f}; "
+        f"photos more than 1% worse: {worse or 'none'}, more than 1% better: {better or 'none'}"
+    )
     if offsets:
         o = np.asarray(offsets)
         text.append(

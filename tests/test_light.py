@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from jaxrefl import JaxreflError, svbrdf
-from jaxrefl.svbrdf import _light
+from jaxrefl.svbrdf import _light_prior, _light_problem
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import capture_family as cf
@@ -41,7 +41,7 @@ def offset_member() -> cf.RenderedMember:
 def test_offset_and_gains_recovered_with_calibrated_intervals_one_compile(offset_member):
     r0 = offset_member
     true_off = (r0.light_pos - r0.camera_pos)[0]
-    before = _light._res_jac._cache_size()
+    before = _light_problem._res_jac._cache_size()
     covered, iterations = [], 0
     for rep in range(REPEATS):
         r = r0.with_noise(1000 + rep)
@@ -66,7 +66,7 @@ def test_offset_and_gains_recovered_with_calibrated_intervals_one_compile(offset
     # Every optimiser step of every draw evaluated one compiled program (light values are
     # array arguments): at most one new compile (none where an earlier test compiled it).
     assert iterations > 10 * REPEATS
-    assert _light._res_jac._cache_size() - before <= 1
+    assert _light_problem._res_jac._cache_size() - before <= 1
 
 
 def test_auto_keeps_fixed_without_offset_and_estimates_with_one(offset_member):
@@ -111,6 +111,41 @@ def test_laplace_std_matches_mcmc(offset_member):
     assert np.all(np.abs(draws.mean(0) - est.offset_cm) < 0.5 * est.offset_std_cm)
 
 
+def test_light_draws_follow_the_laplace_and_apply(offset_member):
+    """Draws of (offset, gains) from the Laplace posterior: their mean and covariance in
+    (d, log g) match the estimate's, the training gains keep their geometric mean, a held-out
+    photo's gain follows its prior, and ``apply`` places each draw's flash."""
+    cap = offset_member.capture()
+    held = 8
+    est = svbrdf.estimate_light(cap, "offset+gains", (held,), n_pixels=HALF)
+    n = 4000
+    draws = svbrdf.light_draws(est, n, seed=3)
+    assert len(draws) == n
+    xs = np.stack([np.concatenate([d, np.log(g)]) for d, g in draws])
+    mean = np.concatenate([est.offset_cm, np.log(est.photo_gain)])
+    std = np.sqrt(np.diag(est.cov))
+    # the sample mean within 4 standard errors, the covariance within 10% of each std^2
+    # (the sample variance's relative sd is sqrt(2 / n) = 2.2%) and 0.1 in correlation
+    np.testing.assert_array_less(np.abs(xs.mean(0) - mean), 4 * std / np.sqrt(n) + 1e-12)
+    cov = np.cov(xs, rowvar=False)
+    np.testing.assert_allclose(np.diag(cov), np.diag(est.cov), rtol=0.1)
+    assert np.all(np.abs(cov - est.cov) <= 0.1 * np.outer(std, std) + 1e-15)
+    train = np.arange(cap.n_photos) != held
+    log_g = xs[:, 3:]
+    np.testing.assert_allclose(
+        log_g[:, train].mean(1), np.log(est.photo_gain[train]).mean(), atol=1e-9
+    )
+    assert abs(log_g[:, held].std() / _light_prior.GAIN_LOG_STD - 1) < 0.1
+    off, gain = draws[0]
+    moved = est.apply(cap, off, gain)
+    np.testing.assert_allclose(moved.light_pos, cap.light_pos + off)
+    np.testing.assert_allclose(moved.light_power, cap.light_power * gain[:, None])
+    # a fixed light has no spread: every draw is the stated light
+    fixed = svbrdf.estimate_light(cap, "fixed")
+    (d0, g0), *_ = svbrdf.light_draws(fixed, 2)
+    assert np.all(d0 == 0.0) and np.all(g0 == 1.0) and fixed.apply(cap, d0, g0) is cap
+
+
 def test_gain_prior_from_exif_and_without(tmp_path):
     from PIL import Image
 
@@ -133,7 +168,7 @@ def test_gain_prior_from_exif_and_without(tmp_path):
     prior = svbrdf.gain_prior(dataclasses.replace(cap, files=with_exif))
     rel = times / np.exp(np.mean(np.log(times)))
     np.testing.assert_allclose(np.exp(prior.log_mean), rel, rtol=1e-6)
-    assert prior.exposure is not None and prior.log_std == _light.GAIN_LOG_STD_EXIF
+    assert prior.exposure is not None and prior.log_std == _light_prior.GAIN_LOG_STD_EXIF
     assert prior.as_dict()["exif"] is True
     none = svbrdf.gain_prior(dataclasses.replace(cap, files=without))
     assert none.exposure is None and np.all(none.log_mean == 0.0)

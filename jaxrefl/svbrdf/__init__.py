@@ -73,6 +73,7 @@ from ._light import LightEstimate as LightEstimate
 from ._light import LightProblem as LightProblem
 from ._light import estimate_light as estimate_light
 from ._light import gain_prior as gain_prior
+from ._light import light_draws as light_draws
 from ._light import light_problem as light_problem
 from ._maps import status_meanings as status_meanings
 from ._models import CAPTURE_MODELS as CAPTURE_MODELS
