@@ -12,7 +12,7 @@ from fit_zoo import directions, problem_zoo
 
 import jaxrefl
 from jaxrefl import fit
-from jaxrefl.fit._init import _box_ls
+from jaxrefl.fit._box_ls import _box_ls
 
 
 def _ggx():

@@ -20,7 +20,9 @@ import numpy as np
 from test_svbrdf import _demo_capture
 
 from jaxrefl import fit
-from jaxrefl.fit._init import _box_ls, _fit_weights, _inset, _natural_base, grid_values
+from jaxrefl.fit._affine import grid_values
+from jaxrefl.fit._box_ls import _box_ls
+from jaxrefl.fit._init import _fit_weights, _inset, _natural_base
 from jaxrefl.svbrdf._data import pixel_block
 from jaxrefl.svbrdf._models import capture_model
 

@@ -28,6 +28,8 @@ and :func:`process_gather` coordinate; a process that stops makes the others'
 barrier raise :class:`ProcessGroupError`, and :func:`leave_group` ends them at once.
 """
 
+from ._affine import grid_values as grid_values
+from ._affine import linear_params as linear_params
 from ._backends import FitInfo as FitInfo
 from ._backends import JaxoptLM as JaxoptLM
 from ._backends import OptimistixLM as OptimistixLM
@@ -40,9 +42,7 @@ from ._distributed import process_barrier as process_barrier
 from ._distributed import process_gather as process_gather
 from ._distributed import process_share as process_share
 from ._init import diffuse_albedo as diffuse_albedo
-from ._init import grid_values as grid_values
 from ._init import initial_theta as initial_theta
-from ._init import linear_params as linear_params
 from ._laplace import CORR_NAN_FLAGS as CORR_NAN_FLAGS
 from ._laplace import STD_NAN_FLAGS as STD_NAN_FLAGS
 from ._laplace import LaplaceFlag as LaplaceFlag
@@ -85,6 +85,7 @@ from ._residual import gaussian_prior as gaussian_prior
 from ._residual import make_residual as make_residual
 from ._residual import pixel_data as pixel_data
 from ._residual import replace_params as replace_params
+from ._select import keep_lower as keep_lower
 from ._shard import device_count as device_count
 from ._shard import map_sharded as map_sharded
 from ._status import STATUS_MEANINGS as STATUS_MEANINGS

@@ -12,18 +12,19 @@ variable projection (Golub & Pereyra 1973) turns a P-dimensional search into a 1
 :func:`initial_theta`:
 
 1. Finds the free colour parameters in which the model is affine (:func:`linear_params`,
-   checked numerically on random directions and several values of the other parameters).
+   checked numerically on random directions and several values of the other parameters;
+   :mod:`._affine`).
 2. Grids the remaining free scalar parameter (``alpha``: ``grid_size`` = 12 log-spaced
    values in [0.01, 1]; ``alpha_u``/``alpha_v`` tied together; ``exponent``: [1, 1e4];
    ``sigma``: [0, 1.2] rad), solves the colour scales exactly within their bounds for every
    grid value (a box-constrained LS, exact for one or two parameters by enumerating the
-   active sets; more than two: unconstrained LS then clipping, not exact), then grids again
-   (``refine`` = 6 values strictly between the neighbours of the best value, equally spaced
-   in log alpha, so the fine spacing is 1/7 of the coarse one), and keeps the value of
-   lowest cost. The grids are that fine because the cost minimum in alpha of a rough,
-   strong lobe is only a few percent wide, and the profiled cost of a pixel seen from few
-   directions can have several minima within one coarse step: a coarser search starts
-   more GGX pixels in a different basin, which the fit then keeps.
+   active sets; more than two: unconstrained LS then clipping, not exact; :mod:`._box_ls`),
+   then grids again (``refine`` = 6 values strictly between the neighbours of the best
+   value, equally spaced in log alpha, so the fine spacing is 1/7 of the coarse one), and
+   keeps the value of lowest cost. The grids are that fine because the cost minimum in
+   alpha of a rough, strong lobe is only a few percent wide, and the profiled cost of a
+   pixel seen from few directions can have several minima within one coarse step: a
+   coarser search starts more GGX pixels in a different basin, which the fit then keeps.
 
    Cost per grid value: for alpha = a_g and zero colour scales the model gives f0 (K, C),
    and its derivative along each colour scale gives the basis functions F_j (exact, the
@@ -41,8 +42,9 @@ variable projection (Golub & Pereyra 1973) turns a P-dimensional search into a 1
    reweighted passes (iteratively reweighted least squares: weights psi(z)/z of the robust
    loss at the current residuals; saturated or dark observations join where the current
    prediction violates their bound) move it towards the robust, censored optimum. A value
-   on a bound starts 1e-4 of the range inside it, within the LM's bound test, so the LM
-   confirms it there instead of crawling towards it where the sigmoid has little slope.
+   on a bound starts ``_EXACT_MARGIN`` of the range inside it, within the LM's bound test,
+   so the LM confirms it there instead of crawling towards it where the sigmoid has little
+   slope.
 3. Otherwise (a parameter that is neither affine nor a gridable scalar, e.g. ``eta``,
    Lafortune lobes, a non-affine model) falls back to multi-start: the model defaults, with
    the closed-form diffuse albedo where there is one, and a few grid values of the first free
@@ -51,37 +53,33 @@ variable projection (Golub & Pereyra 1973) turns a P-dimensional search into a 1
 Observations are whitened by the noise model and weighted; censored (saturated / dark)
 observations are left out of the closed-form steps. The diffuse albedo of step 3 also
 leaves out the brightest ``exclude_brightest`` fraction of observations (they likely hold
-the highlight). Values on the edge of a bounded range are moved 1% of the range inside,
-where the sigmoid still has slope (a start *at* a bound has none). Fixed parameters keep
-their values; user bounds are respected.
+the highlight). Values on the edge of a bounded range are moved ``_EDGE_MARGIN`` of the
+range inside, where the sigmoid still has slope (a start *at* a bound has none). Fixed
+parameters keep their values; user bounds are respected.
 """
 
 from __future__ import annotations
-
-import math
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Float
+from jaxtyping import Array, Float
 
 from jaxrefl._errors import JaxreflError
-from jaxrefl.brdf import BRDF
 
+from ._affine import _EDGE_MARGIN, grid_values, linear_params
+from ._box_ls import _box_ls, _box_ls2
 from ._residual import L2, PixelData, Residual
 from ._transform import ParamSpace, ScaledSigmoid
 
-__all__ = ["diffuse_albedo", "grid_values", "initial_theta", "linear_params"]
+__all__ = ["diffuse_albedo", "initial_theta"]
 
-ALPHA_FAMILY = ("alpha", "alpha_u", "alpha_v")
-# Start this fraction of a bounded range inside its edges (the sigmoid's slope is 0.01 there).
-_EDGE_MARGIN = 1e-2
 # A model without a nonlinear parameter starts at its own problem's solution (module
 # docstring): its robust loss and censored rows by this many reweighted passes, and a value
 # on a bound of its range starts this fraction inside (within the LM's default bound test,
-# 1e-3 of the range, so a pixel whose optimum is on the bound is found there, not crawled
-# towards where the sigmoid has little slope).
+# ``LMOptions.bound_rtol``, so a pixel whose optimum is on the bound is found there, not
+# crawled towards where the sigmoid has little slope).
 _EXACT_PASSES = 2
 _EXACT_MARGIN = 1e-4
 # Pixels per block of the variable projection (its working set: G x K x C values a pixel);
@@ -93,179 +91,6 @@ _EXACT_CHUNK = 4096
 _VARPRO_ELEMS = 1 << 21
 # Pixels per chunk in the multi-start initialisation (bounds memory: G x (1 + m) x K x C each).
 _CHUNK = 2048
-
-
-def grid_values(name: str, space: ParamSpace, size: int = 8) -> np.ndarray:
-    """Natural grid values for a scalar parameter, inside its (user) bounds."""
-    q = space.model.param_spec(name)
-    if name in ALPHA_FAMILY:
-        g = np.geomspace(0.01, 1.0, size)
-    elif name == "exponent":
-        g = np.geomspace(1.0, 1e4, size)
-    elif name == "sigma":
-        g = np.linspace(0.0, 1.2, size)
-    elif float(np.asarray(q.default)) > 0:  # a scalar parameter's default is one number
-        g = float(np.asarray(q.default)) * np.geomspace(0.1, 10.0, size)
-    else:
-        g = np.asarray([float(np.asarray(q.default))])
-    s = space.index(name)
-    lo, hi = float(space.lower[s.start]), float(space.upper[s.start])
-    width = hi - lo if math.isfinite(hi - lo) else abs(lo) + 1.0
-    return np.unique(np.clip(g, lo + _EDGE_MARGIN * width, hi - _EDGE_MARGIN * width))
-
-
-def _test_directions(n: int = 24) -> tuple[np.ndarray, np.ndarray]:
-    rng = np.random.default_rng(12345)
-
-    def hemi(k):
-        v = rng.normal(size=(k, 3))
-        v[:, 2] = np.abs(v[:, 2]) + 0.05
-        return v / np.linalg.norm(v, axis=-1, keepdims=True)
-
-    return hemi(n), hemi(n)
-
-
-@eqx.filter_jit
-def _eval(model, p, wi, wo):
-    return model.eval(p, wi, wo)
-
-
-def _is_affine(model: BRDF, space: ParamSpace, names: tuple[str, ...]) -> bool:
-    """Numerically: is the model affine in the colour parameters ``names`` jointly?
-
-    f(x) at x = 0, the unit vectors and two random points, for the defaults and 3 grid values
-    of each other free scalar, on 24 random direction pairs (float32, one jitted call);
-    affine when f(x) = f(0) + sum_j x_j (f(e_j) - f(0)) to 1e-4 of the largest value.
-    """
-    if not names:
-        return True
-    m = len(names)
-    wi, wo = _test_directions()
-    base = {q.name: np.asarray(q.default, dtype=np.float32) for q in model.params}
-    for n, fixed in space.fixed.items():
-        base[n] = np.asarray(fixed, dtype=np.float32)
-    kinds = {q.name: q.kind for q in model.params}
-    nonlin = [b.name for b in space.blocks if b.name not in names and b.kind == "scalar"]
-    settings = [dict(base)]
-    for n in nonlin:
-        for v in grid_values(n, space, 3):
-            settings.append({**base, n: np.asarray(v, np.float32)})
-    rng = np.random.default_rng(7)
-    xs = np.concatenate([np.zeros((1, m)), np.eye(m), rng.uniform(0.1, 0.9, (2, m))])
-    rows = [(s, x) for s in settings for x in xs]
-    p: dict[str, np.ndarray] = {}
-    for k in base:
-        vals = [np.asarray(s[k], np.float32) for s, _ in rows]
-        v = np.stack(vals)  # (B, ...): colours (B,) or (B, C); scalars (B,); lobes (B, L, 4)
-        if kinds[k] == "color" and v.ndim == 1:
-            v = v[:, None]
-        p[k] = v[:, None]  # a unit axis to meet the direction axis
-    for j, n in enumerate(names):
-        p[n] = np.asarray([x[j] for _, x in rows], np.float32)[:, None, None]
-    f = _eval(model, p, jnp.asarray(wi[None], jnp.float32), jnp.asarray(wo[None], jnp.float32))
-    f = np.asarray(f[..., 0], np.float64).reshape(len(settings), len(xs), -1)
-    f0, units = f[:, :1], f[:, 1 : 1 + m] - f[:, :1]
-    lin = f0 + np.einsum("rj,sjk->srk", xs[1 + m :], units)
-    scale = np.max(np.abs(f0), axis=(1, 2)) + np.sum(np.max(np.abs(units), axis=2), axis=1)
-    err = np.max(np.abs(f[:, 1 + m :] - lin), axis=(1, 2))
-    return bool(np.all(err <= 1e-4 * scale + 1e-30))
-
-
-def linear_params(model: BRDF, space: ParamSpace) -> tuple[str, ...]:
-    """The free colour parameters (``albedo``, ``specular``) in which the model is affine
-    (jointly), checked numerically; the largest such set, albedo first."""
-    cands = tuple(
-        b.name for b in space.blocks if b.kind == "color" and b.name in ("albedo", "specular")
-    )
-    if _is_affine(model, space, cands):
-        return cands
-    for n in cands:
-        if _is_affine(model, space, (n,)):
-            return (n,)
-    return ()
-
-
-# ---------------------------------------------------------------------------- linear algebra
-def _quad(a, b, x):
-    """x^T A x - 2 b^T x over the trailing axes."""
-    ax = jnp.sum(a * x[..., None, :], axis=-1)
-    return jnp.sum(x * ax, axis=-1) - 2.0 * jnp.sum(b * x, axis=-1)
-
-
-def _box_ls(a: Array, b: Array, lo: ArrayLike, hi: ArrayLike) -> Array:
-    """argmin x^T A x - 2 b^T x subject to lo <= x <= hi (A PSD (..., m, m), b (..., m)).
-
-    m = 1, 2: exact (the optimum is interior or on an edge, where the 1-D problem is solved
-    by clipping). m > 2: ridge-regularised LS, then clipping (not exact).
-    """
-    m = b.shape[-1]
-    tiny = jnp.finfo(b.dtype).tiny
-    lo = jnp.asarray(lo, b.dtype)
-    hi = jnp.asarray(hi, b.dtype)
-    lead = (1,) * (b.ndim - 1)
-    if m == 1:
-        a11 = a[..., 0, 0]
-        # A basis function that is zero on every used observation: no information, lower bound.
-        x = jnp.where(a11 > tiny, b[..., 0] / jnp.where(a11 > tiny, a11, 1.0), lo[0])
-        return jnp.clip(x, lo[0], hi[0])[..., None]
-    if m > 2:
-        eye = jnp.eye(m, dtype=b.dtype)
-        # A 1e-6 relative ridge keeps collinear basis functions from a singular solve.
-        ridge = 1e-6 * jnp.mean(jnp.diagonal(a, axis1=-2, axis2=-1), axis=-1) + tiny
-        x = jnp.linalg.solve(a + ridge[..., None, None] * eye, b[..., None])[..., 0]
-        return jnp.clip(x, lo.reshape((*lead, m)), hi.reshape((*lead, m)))
-    x1, x2, _ = _box_ls2(a[..., 0, 0], a[..., 0, 1], a[..., 1, 1], b[..., 0], b[..., 1], lo, hi)
-    return jnp.stack([x1, x2], axis=-1)
-
-
-def _box_ls2(a11, a12, a22, b1, b2, lo, hi):
-    """The m = 2 case of :func:`_box_ls` on separate arrays: (x1, x2, q) with q the minimum
-    of x^T A x - 2 b^T x.
-
-    The minimiser is the interior solution of the 2 x 2 normal equations where that is well
-    conditioned and inside the box; otherwise it lies on an edge, where one coordinate is at
-    a bound and the other solves its 1-D problem (clipped into its range). The five
-    candidates (interior, four edges) are compared by q; elementwise arithmetic only (no
-    stacking, gathers or small matrices, which are slow on CPU), vectorised over any
-    leading axes.
-    """
-    dtype = b1.dtype
-    tiny = jnp.finfo(dtype).tiny
-    lo = [jnp.asarray(v, dtype) for v in (lo[0], lo[1])]
-    hi = [jnp.asarray(v, dtype) for v in (hi[0], hi[1])]
-
-    def quad(x1, x2):
-        return a11 * x1 * x1 + 2.0 * a12 * x1 * x2 + a22 * x2 * x2 - 2.0 * (b1 * x1 + b2 * x2)
-
-    det = a11 * a22 - a12 * a12
-    # Interior solution only where the 2 x 2 system is well conditioned.
-    ok = det > 1e-6 * a11 * a22 + tiny
-    det_s = jnp.where(ok, det, 1.0)
-    x1 = (a22 * b1 - a12 * b2) / det_s
-    x2 = (a11 * b2 - a12 * b1) / det_s
-    inside = ok & (x1 >= lo[0]) & (x1 <= hi[0]) & (x2 >= lo[1]) & (x2 <= hi[1])
-    q = jnp.where(inside, quad(x1, x2), jnp.inf)
-    # Edges: one coordinate at a bound, the other the clipped 1-D solution. A basis function
-    # that is zero on every used observation carries no information: its lower bound.
-    a11_s, a22_s = jnp.where(a11 > tiny, a11, 1.0), jnp.where(a22 > tiny, a22, 1.0)
-    for first in (True, False):
-        for v in (lo[0], hi[0]) if first else (lo[1], hi[1]):
-            if first:
-                e1 = v
-                e2 = jnp.where(a22 > tiny, (b2 - a12 * v) / a22_s, lo[1])
-                e2 = jnp.clip(e2, lo[1], hi[1])
-            else:
-                e2 = v
-                e1 = jnp.where(a11 > tiny, (b1 - a12 * v) / a11_s, lo[0])
-                e1 = jnp.clip(e1, lo[0], hi[0])
-            qe = quad(e1, e2)
-            better = qe < q  # strict: the first of equal candidates wins
-            x1, x2, q = (
-                jnp.where(better, e1, x1),
-                jnp.where(better, e2, x2),
-                jnp.where(better, qe, q),
-            )
-    return x1, x2, q
 
 
 # ---------------------------------------------------------------------------- per pixel
@@ -311,7 +136,7 @@ def _natural_base(space: ParamSpace, dtype) -> dict[str, Array]:
 
 
 def _inset(space: ParamSpace, name: str, x: Array, margin: float = _EDGE_MARGIN) -> Array:
-    """Move a value ``margin`` (1%) of its range inside a bounded range (module docstring)."""
+    """Move a value ``margin`` of its range inside a bounded range (module docstring)."""
     blk = space.blocks[space.free_names.index(name)]
     bij = blk.runs[0].bijection
     if isinstance(bij, ScaledSigmoid):
