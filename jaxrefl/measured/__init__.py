@@ -15,8 +15,9 @@ Quick use::
     post.summary(), jm.write_posterior(post, "out")      # posterior.nc, corner.png
 
 Parts: :mod:`._metrics` (cosine-weighted L2 of Ngan et al. 2005, log-space and relative
-L2), :mod:`._models` (the named model set), :mod:`._starts` (multi-start fits from
-data-driven, quasi-random and nested starts, and the certificate of the optimum), :mod:`._data`
+L2), :mod:`._models` (the named model set), :mod:`._starts` (multi-start fits, with
+:mod:`._start_options`; their starts from :mod:`._seeds`, data-driven and quasi-random, and
+:mod:`._nested`; the certificate of the optimum in :mod:`._certificate`), :mod:`._data`
 (reading, RGB conversion, angle limit), :mod:`._fit` (fit one model / all of them),
 :mod:`._retry` (float32 -> float64),
 :mod:`._plots` (measured vs fitted lobes), :mod:`._components` (models assembled from
@@ -27,6 +28,8 @@ planning by expected Fisher information), :mod:`._posterior` (a model's posterio
 material: emcee or HMC after the least-squares fit).
 """
 
+from ._certificate import Certificate as Certificate
+from ._certificate import certify as certify
 from ._compact import REASONS as REASONS
 from ._compact import Compacted as Compacted
 from ._compact import compact as compact
@@ -61,6 +64,8 @@ from ._models import build_model as build_model
 from ._models import fresnel_name as fresnel_name
 from ._models import fresnel_variant as fresnel_variant
 from ._models import resolve_models as resolve_models
+from ._nested import nested_model as nested_model
+from ._nested import nested_thetas as nested_thetas
 from ._plan import Ranking as Ranking
 from ._plan import greedy_design as greedy_design
 from ._plan import information as information
@@ -85,14 +90,10 @@ from ._retry import cost64 as cost64
 from ._retry import fit_pixels_retry as fit_pixels_retry
 from ._retry import float64_reasons as float64_reasons
 from ._retry import x64 as x64
-from ._starts import Certificate as Certificate
-from ._starts import LobeMoments as LobeMoments
-from ._starts import MultiStart as MultiStart
-from ._starts import certify as certify
+from ._seeds import LobeMoments as LobeMoments
+from ._seeds import lobe_moments as lobe_moments
+from ._seeds import random_thetas as random_thetas
+from ._seeds import seed_params as seed_params
+from ._seeds import start_thetas as start_thetas
+from ._start_options import MultiStart as MultiStart
 from ._starts import fit_multistart as fit_multistart
-from ._starts import lobe_moments as lobe_moments
-from ._starts import nested_model as nested_model
-from ._starts import nested_thetas as nested_thetas
-from ._starts import random_thetas as random_thetas
-from ._starts import seed_params as seed_params
-from ._starts import start_thetas as start_thetas

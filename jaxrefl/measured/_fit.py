@@ -1,7 +1,7 @@
 """Fit analytic models to one measured material and report error, parameters and time.
 
 :func:`fit_model` fits one model from a batch of starts solved together
-(:func:`~jaxrefl.measured._starts.fit_multistart`: the automatic start, starts read off
+(:func:`~jaxrefl.measured.fit_multistart`: the automatic start, starts read off
 the measured highlight and quasi-random ones, the best kept and certified; ``starts=None``
 fits the single automatic start with :func:`jaxrefl.fit.fit_samples`), by the lean batched
 Levenberg-Marquardt by default (a :class:`jaxrefl.fit.FitConfig` picks the solver, noise,
@@ -40,11 +40,14 @@ from jaxrefl.brdf import BRDF
 from jaxrefl.fit import FitConfig, FitResult, Status, fit_samples
 from jaxrefl.io import MeasuredBRDF
 
+from ._certificate import Certificate
 from ._data import restrict, to_rgb
 from ._metrics import METRICS, error_metrics, sample_weights, usable_samples
 from ._models import MODEL_DESCRIPTIONS, fresnel_name, resolve_models
+from ._nested import nested_model
 from ._retry import choose, float64_enabled, float64_reasons, x64
-from ._starts import Certificate, MultiStart, fit_multistart, nested_model
+from ._start_options import MultiStart
+from ._starts import fit_multistart
 
 __all__ = ["FitReport", "ModelFit", "fit_brdf", "fit_model", "predict"]
 

@@ -39,7 +39,7 @@ from ._data import load_measured, restrict, to_rgb
 from ._fit import ModelFit, fit_model
 from ._models import build_model
 from ._prune import measured_pixel_data
-from ._starts import MultiStart
+from ._start_options import MultiStart
 
 __all__ = ["BRDFPosterior", "sample_posterior", "write_posterior"]
 
