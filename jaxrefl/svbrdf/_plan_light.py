@@ -26,8 +26,6 @@ import numpy as np
 
 from jaxrefl._errors import JaxreflError
 
-from ._light import LightEstimate, light_problem
-
 __all__ = ["fit_light", "orientations", "place_flash"]
 
 
@@ -38,6 +36,8 @@ def orientations(capture) -> np.ndarray | None:
     k = capture.n_photos
     if capture.light_pos is None or capture.source is None:
         return None
+    from jaxrefl.svbrdf import light_problem
+
     with jax.enable_x64(True):
         problem = light_problem(capture, np.ones(k, bool), n_pixels=1)
     if not problem.frame.startswith("camera"):
@@ -45,10 +45,11 @@ def orientations(capture) -> np.ndarray | None:
     return np.asarray(problem.halves[0].rot, np.float64)
 
 
-def fit_light(capture_fit, capture) -> LightEstimate | None:
+def fit_light(capture_fit, capture) -> Any:
     """The light the fit estimated (its report's ``light``) as a
     :class:`~jaxrefl.svbrdf.LightEstimate` of ``capture``, or None where the fit kept the
-    stated light."""
+    stated light. (``jaxrefl.svbrdf``'s names are imported when called: this module is
+    imported by the package.)"""
     rep: dict[str, Any] | None = capture_fit.report.get("light")
     if not rep or rep.get("mode", "fixed") == "fixed":
         return None
@@ -59,6 +60,8 @@ def fit_light(capture_fit, capture) -> LightEstimate | None:
             f"the fit's light has an offset of shape {offset.shape} and {gains.size} photo "
             f"gains; the capture has {capture.n_photos} photos: give the capture it was fitted to"
         )
+    from jaxrefl.svbrdf import LightEstimate
+
     rot = orientations(capture) if str(rep.get("frame", "")).startswith("camera") else None
     return LightEstimate(
         mode=str(rep["mode"]),
@@ -70,10 +73,10 @@ def fit_light(capture_fit, capture) -> LightEstimate | None:
     )
 
 
-def place_flash(candidates, light: LightEstimate | None, capture, train) -> Any:
+def place_flash(candidates, light, capture, train) -> Any:
     """``candidates`` with the fit's estimated flash (module docstring); unchanged where
-    ``light`` is None or their flash is placed already. ``capture``: the fitted one (its
-    photos' orientations), ``train``: (K,) bool, its training photos."""
+    ``light`` (a :class:`~jaxrefl.svbrdf.LightEstimate`) is None or their flash is placed
+    already. ``capture``: the fitted one, ``train``: (K,) bool, its training photos."""
     if light is None or candidates.flash != "stated":
         return candidates
     m = len(candidates)
