@@ -43,9 +43,8 @@ from hypothesis import strategies as st
 from PIL import Image
 
 from jaxrefl import JaxreflError, brdf, fit, ps
-from jaxrefl.io import MeasuredDataError, read_cornell
+from jaxrefl.io import MeasuredDataError, load_capture, read_cornell, save_generic_capture
 from jaxrefl.io._capture import Capture, CaptureError
-from jaxrefl.io._capture_layouts import load_capture, save_generic_capture
 from jaxrefl.io._curet import read_curet_geometry
 from jaxrefl.io._photos import Photos, PNGError, read_png, write_png
 from jaxrefl.scene import planar_points

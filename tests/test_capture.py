@@ -18,8 +18,8 @@ import pytest
 from PIL import Image
 
 from jaxrefl import brdf
+from jaxrefl.io import load_capture, save_generic_capture
 from jaxrefl.io._capture import OBS_STATUS, Capture, CaptureError, ObsStatus, geometry_status
-from jaxrefl.io._capture_layouts import load_capture, save_generic_capture
 from jaxrefl.io._photos import read_png, unfilter, write_png
 from jaxrefl.scene import PinholeCamera, PointLight, planar_points, render
 

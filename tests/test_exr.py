@@ -9,7 +9,7 @@ import numpy as np
 import OpenEXR
 import pytest
 
-from jaxrefl.io import _exr
+from jaxrefl.io import _atomic, _exr
 from jaxrefl.io._exr import ExrFormatError, ExrImage, read_exr, write_exr, write_exr_rgb
 
 # name -> (size (H, W), channels, tiled, number of parts, pixel type of every channel)
@@ -329,7 +329,7 @@ def test_unwritable_folder_names_the_target(tmp_path, monkeypatch):
     def refuse(path, *args, **kwargs):
         raise PermissionError(13, "Permission denied", str(path))
 
-    monkeypatch.setattr(_exr.os, "open", refuse)  # a read-only folder (root ignores modes)
+    monkeypatch.setattr(_atomic.os, "open", refuse)  # a read-only folder (root ignores modes)
     target = tmp_path / "out.exr"
     with pytest.raises(PermissionError, match=r"cannot write out\.exr in .*Permission denied") as e:
         write_exr(target, {"Y": np.zeros((2, 2), np.float32)})

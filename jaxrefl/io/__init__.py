@@ -1,18 +1,23 @@
 """Files in and out: measured BRDF data (Cornell ASTM E1392, CURET, MERL binary), OpenEXR
-images and maps, and photographed captures of planar samples.
+images and maps, and photographed captures of planar samples; atomic writes
+(:func:`atomic_path`, :func:`atomic_write`, :func:`write_text_atomic`,
+:func:`save_npz_atomic`) for every file a resumable job or a result folder holds.
 
 Every reader returns data in the convention of :mod:`jaxrefl.brdf` (local frame, z = normal,
 directions away from the surface, f_r in 1/sr without the cosine) and raises
 :class:`MeasuredDataError` (a ``ValueError``) naming the file and the problem.
 """
 
+from ._atomic import atomic_path as atomic_path
+from ._atomic import atomic_write as atomic_write
+from ._atomic import write_text_atomic as write_text_atomic
 from ._capture import OBS_STATUS as OBS_STATUS
 from ._capture import Capture as Capture
 from ._capture import CaptureError as CaptureError
 from ._capture import ObsStatus as ObsStatus
 from ._capture_checks import CaptureWarning as CaptureWarning
 from ._capture_layouts import load_capture as load_capture
-from ._capture_layouts import save_generic_capture as save_generic_capture
+from ._capture_save import save_generic_capture as save_generic_capture
 from ._channels import corr_name as corr_name
 from ._channels import exr_channel as exr_channel
 from ._channels import exr_channels as exr_channels

@@ -2,7 +2,8 @@
 
 :func:`load_capture` recognises the layout of a folder by the file it finds first:
 
-``capture.json`` -- generic (ours, written by :func:`save_generic_capture`)::
+``capture.json`` -- generic (ours, written by :func:`~jaxrefl.io.save_generic_capture`,
+:mod:`._capture_save`)::
 
     {
       "images":   ["00.exr", "01.exr", ...],          # K files, relative to the folder
@@ -65,8 +66,6 @@ sane distance, light powers > 0, photos that measured something; what is merely 
 
 from __future__ import annotations
 
-import json
-import warnings
 from pathlib import Path
 from typing import Any
 
@@ -76,9 +75,17 @@ from jaxrefl._errors import JaxreflError
 
 from ._capture import Capture, CaptureError, geometry_status
 from ._capture_checks import Fields, check_geometry, check_photos
-from ._photos import Photos, read_pixels, response_for, write_png, x64
+from ._capture_fields import (
+    _get,
+    _light_power,
+    _positive,
+    _read_json,
+    _read_txt,
+    _vectors,
+)
+from ._photos import Photos, read_pixels, x64
 
-__all__ = ["load_capture", "save_generic_capture"]
+__all__ = ["load_capture"]
 
 _LAYOUTS = ("generic", "svbrdf-diff-renderer", "materialgan")
 _EXPECTED = (
@@ -87,90 +94,6 @@ _EXPECTED = (
     "light_power.txt, image_size.txt beside NN.png (MaterialGAN)"
 )
 _MG_FILES = ("camera_pos.txt", "light_pos.txt", "light_power.txt", "image_size.txt")
-
-
-# ----------------------------------------------------------------------------- fields
-def _read_json(path: Path) -> dict:
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise CaptureError(path, "file not found") from None
-    except json.JSONDecodeError as e:
-        raise CaptureError(
-            path, f"invalid JSON: {e.msg} (line {e.lineno}, column {e.colno})"
-        ) from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise CaptureError(path, f"cannot read: {e}") from None
-    if not isinstance(data, dict):
-        raise CaptureError(path, f"expected a JSON object at the top, got {type(data).__name__}")
-    return data
-
-
-def _get(data: dict, key: str, path: Path):
-    if key not in data:
-        raise CaptureError(path, f"missing key {key!r}", key)
-    return data[key]
-
-
-def _has_bool(value) -> bool:
-    """Whether a JSON value holds a boolean anywhere (``true`` is not the number 1)."""
-    if isinstance(value, (bool, np.bool_)):
-        return True
-    if isinstance(value, (list, tuple)):
-        return any(_has_bool(v) for v in value)
-    return False
-
-
-def _array(value, path: Path, field: str, shape_doc: str) -> np.ndarray:
-    if _has_bool(value):
-        raise CaptureError(path, f"expected {shape_doc} of numbers, got a boolean", field)
-    try:
-        a = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise CaptureError(path, f"expected {shape_doc} of numbers", field) from None
-    if not np.all(np.isfinite(a)):
-        raise CaptureError(path, "holds a non-finite number", field)
-    return a
-
-
-def _vectors(value, path: Path, field: str) -> np.ndarray:
-    a = _array(value, path, field, "a list of [x, y, z]")
-    if a.ndim != 2 or a.shape[1] != 3 or a.shape[0] == 0:
-        raise CaptureError(path, f"expected a list of [x, y, z], got shape {a.shape}", field)
-    return a
-
-
-def _positive(value, path: Path, field: str) -> float:
-    a = _array(value, path, field, "a number")
-    if a.size < 1 or not np.all(a.ravel() == a.ravel()[0]) or a.ravel()[0] <= 0:
-        raise CaptureError(path, f"expected one positive number, got {value!r}", field)
-    return float(a.ravel()[0])
-
-
-def _light_power(value, n: int, rows: np.ndarray, c: int, path: Path, field: str) -> np.ndarray:
-    """(K, C) powers of the photos ``rows`` from a scalar, per-channel, per-photo or (n, C) spec."""
-    a = _array(value, path, field, "a number or a list")
-    k = rows.size
-    if a.ndim == 0 or a.size == 1:
-        out = np.full((k, c), a.ravel()[0])
-    elif a.ndim == 1 and a.size == c:  # one value per channel (the public layouts)
-        out = np.broadcast_to(a, (k, c))
-    elif a.ndim == 1 and a.size == n:  # one value per photo
-        out = np.broadcast_to(a[rows, None], (k, c))
-    elif a.ndim == 2 and a.shape[0] == n and a.shape[1] in (1, c):
-        out = np.broadcast_to(a[rows], (k, c))
-    elif a.ndim == 2 and a.shape[0] == 1 and a.shape[1] in (1, c):
-        out = np.broadcast_to(a, (k, c))
-    else:
-        raise CaptureError(
-            path,
-            f"has shape {a.shape}; expected one number, {c} (one per channel), {n} (one per "
-            f"photo) or {n}x{c}",
-            field,
-        )
-    if np.any(out < 0):
-        raise CaptureError(path, "light power must be >= 0", field)
-    return np.array(out)
 
 
 def _finish(
@@ -222,7 +145,6 @@ def _finish(
     return cap
 
 
-# ----------------------------------------------------------------------------- layouts
 def _resolution_folder(ref: Path, resolution: int | None) -> tuple[Path, int]:
     found = (
         sorted((int(d.name), d) for d in ref.iterdir() if d.is_dir() and d.name.isdigit())
@@ -325,29 +247,6 @@ def _load_svbrdf(folder: Path, resolution, max_photos, file: str = "parameters.j
         fields=fields,
         meta=meta,
     )
-
-
-def _read_txt(path: Path) -> np.ndarray:
-    """The numbers of a MaterialGAN text file, one row per line; all must be finite."""
-    if not path.is_file():
-        raise CaptureError(path, "file not found (MaterialGAN layout)")
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", UserWarning)  # an empty file is reported below
-            a = np.loadtxt(path, delimiter=",", ndmin=2, dtype=np.float64, encoding="utf-8")
-    except (ValueError, UnicodeDecodeError) as e:
-        raise CaptureError(
-            path, f"expected comma-separated numbers, one line per photo: {e}"
-        ) from None
-    bad = ~np.isfinite(a)
-    if np.any(bad):
-        row, col = np.argwhere(bad)[0]
-        raise CaptureError(
-            path,
-            f"number {col + 1} is {a[row, col]}; every value must be a finite number",
-            f"line {row + 1}",
-        )
-    return a
 
 
 def _load_materialgan(folder: Path, resolution, max_photos) -> Capture:
@@ -600,101 +499,3 @@ def load_capture(
             )
         cap = cap.downsample(w // resolution)
     return cap
-
-
-# ----------------------------------------------------------------------------- writing
-def save_generic_capture(
-    folder: str | Path,
-    images,
-    *,
-    side: float,
-    light_power,
-    camera_pos,
-    light_pos=None,
-    light_dir=None,
-    transfer: Any = "linear",
-    file_format: str | None = None,
-    unit: str = "cm",
-    mask=None,
-    saturation: float | None = None,
-) -> Path:
-    """Write linear images and their geometry in the generic layout; returns capture.json.
-
-    ``images`` (K, H, W, C) linear values. ``file_format``: ``"exr"`` (float32; default
-    for ``transfer="linear"``), ``"png16"`` (default otherwise) or ``"png8"``: PNG values
-    are ``round(curve(x) * top)`` with the transfer's curve, clipped to [0, 1].
-    ``light_pos`` (K, 3) point lights or ``light_dir`` (K, 3) directional ones;
-    ``light_power`` broadcastable to (K, C); ``camera_pos`` (K, 3) or (3,) (one camera);
-    ``mask`` (H, W) bool, True = keep.
-    """
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
-    img = np.asarray(images, np.float64)
-    if img.ndim != 4:
-        raise JaxreflError(f"images must be (K, H, W, C), got {img.shape}")
-    k, h, w, c = img.shape
-    if (light_pos is None) == (light_dir is None):
-        raise JaxreflError("give exactly one of light_pos and light_dir")
-    geo = np.broadcast_to(np.asarray(light_pos if light_dir is None else light_dir, float), (k, 3))
-    power = np.asarray(light_power, float)
-    if power.ndim == 1 and power.size == k and k != c:  # one value per photo
-        power = power[:, None]
-    power = np.broadcast_to(power, (k, c))
-    cams = np.broadcast_to(np.asarray(camera_pos, float), (k, 3))
-    response, _ = response_for(transfer, folder / "capture.json")
-    fmt = file_format or ("exr" if str(transfer) == "linear" else "png16")
-    names = []
-    for i in range(k):
-        if fmt == "exr":
-            from ._exr import write_exr, write_exr_rgb
-
-            name = f"{i:02d}.exr"
-            if c == 3:
-                write_exr_rgb(folder / name, img[i].astype(np.float32))
-            elif c == 1:
-                write_exr(folder / name, {"Y": img[i, ..., 0].astype(np.float32)})
-            else:
-                raise JaxreflError(f"EXR photos need 1 or 3 channels, got {c}")
-        elif fmt in ("png8", "png16"):
-            import jax.numpy as jnp
-
-            if not np.all(np.isfinite(img[i])):
-                raise JaxreflError(f"photo {i} holds NaN/Inf, which a PNG cannot store")
-            top = 255 if fmt == "png8" else 65535
-            with x64():
-                enc = np.asarray(response.apply(jnp.asarray(img[i], jnp.float64)))
-            q = np.rint(np.clip(enc, 0.0, 1.0) * top).astype(np.uint8 if top == 255 else np.uint16)
-            name = f"{i:02d}.png"
-            write_png(folder / name, q)
-        else:
-            raise JaxreflError(f"file_format must be 'exr', 'png8' or 'png16', got {file_format!r}")
-        names.append(name)
-    if light_dir is None:
-        lights = [
-            {"type": "point", "position": p.tolist(), "power": e.tolist()}
-            for p, e in zip(geo, power, strict=True)
-        ]
-    else:
-        lights = [
-            {"type": "directional", "direction": d.tolist(), "irradiance": e.tolist()}
-            for d, e in zip(geo, power, strict=True)
-        ]
-    spec: dict[str, Any] = {
-        "images": names,
-        "transfer": transfer,
-        "side": float(side),
-        "unit": unit,
-        "lights": lights,
-        "cameras": [{"position": p.tolist()} for p in cams],
-    }
-    if mask is not None:
-        m = np.asarray(mask, bool)
-        if m.shape != (h, w):
-            raise JaxreflError(f"mask must be (H, W) = ({h}, {w}), got {m.shape}")
-        write_png(folder / "mask.png", m.astype(np.uint8) * 255)
-        spec["mask"] = "mask.png"
-    if saturation is not None:
-        spec["saturation"] = float(saturation)
-    out = folder / "capture.json"
-    out.write_text(json.dumps(spec, indent=2))
-    return out

@@ -26,17 +26,13 @@ user attributes that reuse them, and gives others, e.g. ``name``, a meaning): a 
 stored as is, any other JSON-serialisable value as JSON text, its key listed in the
 attribute ``jaxrefl:json`` so that :attr:`ExrImage.metadata` decodes it back exactly. The
 standard attributes ``capDate`` and ``utcOffset`` (OpenEXR ``ImfStandardAttributes``) and
-``software`` are added. Writes are atomic: a temporary file in the target directory, then
-``os.replace``; on any failure the temporary file is removed and an existing file at the
-target path is left untouched.
+``software`` are added. Writes are atomic (:func:`~jaxrefl.io.atomic_path`): on any failure
+an existing file at the target path is left untouched.
 """
 
 from __future__ import annotations
 
 import json
-import os
-import secrets
-import stat
 import time
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
@@ -48,6 +44,8 @@ import numpy as np
 import OpenEXR
 
 from jaxrefl._errors import JaxreflError
+
+from ._atomic import atomic_path
 
 __all__ = ["ExrFormatError", "ExrImage", "read_exr", "write_exr", "write_exr_rgb"]
 
@@ -389,28 +387,11 @@ def _write_file(exr_file: OpenEXR.File, path: Path) -> None:
 
 
 def _atomic_write(exr_file: OpenEXR.File, path: Path) -> None:
-    if not path.parent.is_dir():
-        raise FileNotFoundError(2, f"no directory {path.parent} to write {path.name} in", str(path))
-    tmp = path.parent / f".{path.name}.{os.getpid()}-{secrets.token_hex(4)}.tmp"
-    try:
-        os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))  # umask applies
-    except OSError as e:  # the error names the file asked for, not the temporary one
-        raise type(e)(
-            e.errno, f"cannot write {path.name} in {path.parent}: {e.strerror}", str(path)
-        ) from None
-    try:
-        if path.exists():
-            os.chmod(tmp, stat.S_IMODE(path.stat().st_mode))
+    with atomic_path(path) as tmp:
         try:
             _write_file(exr_file, tmp)
         except (RuntimeError, OpenEXR.error) as e:
             raise OSError(f"could not write EXR {path}: {e}") from e
-        with open(tmp, "rb+") as fh:
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
 
 
 def write_exr(
