@@ -50,7 +50,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -61,7 +60,7 @@ import numpy as np
 
 from jaxrefl import brdf
 from jaxrefl._errors import JaxreflError
-from jaxrefl.io import map_key
+from jaxrefl.io import map_key, write_text_atomic
 
 __all__ = [
     "F0_DIELECTRIC",
@@ -523,13 +522,6 @@ def gltf_document(tex: Textures, side: float = 1.0, name: str = "jaxrefl_fit") -
     }
 
 
-def _atomic_text(path: Path, text: str) -> Path:
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    tmp.write_text(text)
-    os.replace(tmp, path)
-    return path
-
-
 def write_mitsuba(
     fit: str | Path | Mapping[str, np.ndarray],
     out_dir: str | Path,
@@ -540,7 +532,7 @@ def write_mitsuba(
     fit (a ``jaxrefl fit`` folder, a ``maps.exr`` or a maps dict) in ``out_dir``; returns
     the paths written. Render with ``mitsuba scene.xml`` or ``mi.load_file``."""
     tex = write_textures(fit, out_dir, bits)
-    xml = _atomic_text(tex.folder / "scene.xml", mitsuba_xml(tex, view))
+    xml = write_text_atomic(tex.folder / "scene.xml", mitsuba_xml(tex, view))
     return [*(tex.folder / f for f in tex.files.values()), xml]
 
 
@@ -553,5 +545,7 @@ def write_gltf(
     """The textures and ``material.gltf`` (:func:`gltf_document`) of a fit in ``out_dir``;
     returns the paths written."""
     tex = write_textures(fit, out_dir, bits)
-    doc = _atomic_text(tex.folder / "material.gltf", json.dumps(gltf_document(tex, side), indent=1))
+    doc = write_text_atomic(
+        tex.folder / "material.gltf", json.dumps(gltf_document(tex, side), indent=1)
+    )
     return [*(tex.folder / f for f in tex.files.values()), doc]

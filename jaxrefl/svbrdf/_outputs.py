@@ -23,7 +23,6 @@ observations, linear radiance).
 
 from __future__ import annotations
 
-import os
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -33,6 +32,7 @@ import numpy as np
 
 from jaxrefl import fit
 from jaxrefl._jsonsafe import report_json
+from jaxrefl.io import write_text_atomic
 
 from ._check import ModelCheck
 from ._data import pixel_block
@@ -41,12 +41,6 @@ from ._maps import status_meanings
 from ._models import CAPTURE_MODELS
 
 __all__ = ["predict_photos", "write_outputs"]
-
-
-def _atomic_text(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    tmp.write_text(text)
-    os.replace(tmp, path)
 
 
 def write_maps(result: CaptureFit, path: Path) -> Path:
@@ -275,7 +269,7 @@ def write_outputs(result: CaptureFit, capture, out_dir: str | Path, previews: bo
         files["previews"] = [str(p) for p in write_previews(result, capture, out)]
     report = dict(result.report)
     report["files"] = files
-    _atomic_text(out / "report.json", report_json(report, default=_json_default))
+    write_text_atomic(out / "report.json", report_json(report, default=_json_default))
     files["report"] = str(out / "report.json")
     return files
 
