@@ -1,8 +1,8 @@
 """JAX's persistent compilation cache for the command line, and the time spent compiling.
 
-Every command that runs JAX compiles its programs (XLA) before it computes anything: 25 to
-60 s for a capture fit on a CPU. The compiled programs are kept on disk by JAX's persistent
-compilation cache, so a second identical run loads them instead:
+Every command that runs JAX compiles its programs (XLA) before it computes anything, which
+is much of a small job's time (``docs/benchmarks.md``). The compiled programs are kept on
+disk by JAX's persistent compilation cache, so a second identical run loads them instead:
 
 - on by default, in ``$XDG_CACHE_HOME/jaxrefl/jax`` (``~/.cache/jaxrefl/jax`` when
   ``XDG_CACHE_HOME`` is unset);
@@ -15,13 +15,10 @@ tracing, lowering and XLA compilation, or loading from the cache) and counts cac
 for the one ``compiling ...`` line each command prints.
 
 :func:`prefer_loop_emitters` has XLA's CPU backend generate the command's programs with its
-loop emitters (``--xla_cpu_use_fusion_emitters=false`` in ``XLA_FLAGS``) rather than its
-newer fusion emitters: they compile a capture fit's programs in less time and the fit runs
-slightly faster (``docs/benchmarks.md``, fit throughput), with the same IEEE arithmetic.
-Measured trade-off: ``jaxrefl sample``'s uncertainty maps of the real captures (exact Gibbs)
-are faster with them, while float64 HMC (the sampler where no Gibbs sampler applies) is
-slower. A value
-of that option the user set in ``XLA_FLAGS`` is kept; GPU backends ignore it.
+loop emitters (:data:`LOOP_EMITTERS` in ``XLA_FLAGS``) rather than its newer fusion
+emitters, because they compile the commands' programs in less time with the same IEEE
+arithmetic (``docs/benchmarks.md`` records the setting of each run). A value of that option
+the user set in ``XLA_FLAGS`` is kept; GPU backends ignore it.
 """
 
 from __future__ import annotations
@@ -96,10 +93,9 @@ def enable_compile_cache(off: bool = False) -> Path | None:
     import jax
 
     jax.config.update("jax_compilation_cache_dir", str(path))
-    # JAX keeps only programs that took >= 1 s to compile by default; the fit's many smaller
-    # programs add up to most of its start-up (the demo's second run at 32 x 32: 17 s with
-    # every program kept, 27 s with those over 0.1 s), and an entry costs tens of kB. JAX's
-    # own environment variable, when set, decides.
+    # Every program is kept, not only those over JAX's default minimum compile time: a fit's
+    # many small programs add up to most of its start-up. JAX's own environment variable,
+    # when set, decides.
     if "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS" not in os.environ:
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     return path

@@ -141,9 +141,9 @@ def fit_normal_brdf(
 
     ``init``: ``"diffuse"`` (default: the robust Lambertian albedo and the model's other
     defaults) or ``"grid"`` (:func:`jaxrefl.fit.initial_theta` at n0: closed-form colours
-    on a roughness grid; compiles for about twice as long; on the UW gray sphere it was
-    not better). Pixels are fitted ``batch`` at a time (the last batch padded with empty
-    pixels), so every capture size reuses one compiled solver. ``select`` (e.g. 0.5): keep
+    on a roughness grid, a larger program to compile). Pixels are fitted ``batch`` at a
+    time (the last batch padded with empty pixels), so every capture size reuses one
+    compiled solver. ``select`` (e.g. 0.5): keep
     the robust Lambertian normal where the fitted BRDF does not lower the cost below
     ``select`` times that of the Lambertian start (a lobe explaining little is likelier to
     be absorbing a model error than a highlight); None keeps every fitted normal.
