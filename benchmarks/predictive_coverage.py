@@ -300,7 +300,7 @@ def _prior_line(summary: dict) -> str:
     f0 = summary["specular"]
     sd = np.sqrt(np.diag(np.asarray(f0["cov"])))
     return (
-        f"population of {summary['pixels']} reliable pixels: F0 mean "
+        f"population of {summary['pixels']} fitted pixels: F0 mean "
         f"{np.round(f0['mean'], 3).tolist()}, std {np.round(sd, 3).tolist()}; alpha median "
         f"{summary['alpha']['median']:.3f}, log std {summary['alpha']['log_std']:.2f}"
     )

@@ -22,8 +22,8 @@ of HMC, exact for ``pooled``, with the lobe width from its collapsed marginal fo
 per-pixel models (:mod:`jaxrefl.posterior._width_gibbs`),
 ``--rerun-rhat``: the max R-hat above which a pixel runs the longer second pass, 0 for
 none, ``--seed``). The noise scale is unknown (sampled per pixel, Jeffreys prior). The
-lobe's priors (``--priors``) are by default estimated from the pixels whose Laplace is
-reliable (:func:`jaxrefl.svbrdf.population_priors`); ``default`` takes the model's own.
+lobe's priors (``--priors``) are by default estimated from the population of fitted
+pixels (:func:`jaxrefl.svbrdf.population_priors`); ``default`` takes the model's own.
 Writes OUT_DIR/uncertainty.exr (mean, std, q05, q95 per parameter, method, R-hat, ESS) and
 OUT_DIR/posterior.nc (ArviZ InferenceData of the MCMC pixels, with observed data and
 posterior predictive draws) by :func:`jaxrefl.svbrdf.write_uncertainty`, and

@@ -175,6 +175,7 @@ def fit_capture(
         job=job,
         tiles_computed=len(todo),
         tiles_loaded=loaded,
+        light=light,
         extra={
             "channels": c,
             "sse": cat["sse"],

@@ -8,7 +8,7 @@ planning) import the types and never each other.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import jax.numpy as jnp
 import numpy as np
@@ -18,6 +18,9 @@ from jaxrefl._errors import JaxreflError
 from jaxrefl._names import LIGHT_CHOICES
 
 from ._models import ALPHA_RANGE, capture_model
+
+if TYPE_CHECKING:
+    from ._light import LightEstimate
 
 __all__ = ["DEFAULT_LOSS", "CaptureFit", "FitJob"]
 
@@ -140,6 +143,8 @@ class CaptureFit:
              model cannot be right, :mod:`jaxrefl.svbrdf._check`), ``noise_std``
              (estimated), ``cost``, ``n_used``, ``iterations``
     report:  what ``report.json`` holds (timings, counts, held-out error, model)
+    light:   the light the pixels were fitted under (:class:`jaxrefl.svbrdf.LightEstimate`;
+             ``light.apply(capture)`` places it); None: as the capture states it
     """
 
     maps: dict[str, np.ndarray]
@@ -150,6 +155,7 @@ class CaptureFit:
     tiles_computed: int = 0
     tiles_loaded: int = 0
     extra: dict[str, Any] = field(default_factory=dict)
+    light: LightEstimate | None = None
 
     def model(self) -> tuple[brdf.BRDF, Any]:
         """(model, parameter space) the pixels were fitted with (for ``pooled``: the choice

@@ -10,14 +10,20 @@ F0 the uncertainty map's 90% intervals of alpha then cover the truth on a minori
 pixels).
 
 :func:`population_priors` replaces the default priors of the lobe by empirical Bayes
-estimates (Robbins 1956; Efron & Morris 1973) from the pixels whose Laplace approximation
-the fit calls reliable (flag 0: a lobe the data pin down), which are exactly the pixels an
-uncertainty map does not sample:
+estimates (Robbins 1956; Efron & Morris 1973) from the fitted values of every pixel the fit
+gave an estimate (a finite optimum and noise scale), not only of the pixels whose Laplace
+approximation it calls reliable. Whether a lobe is identified depends on the lobe itself
+(a broad, dim lobe trades against the albedo; a narrow one between the photos is missed),
+so the reliable pixels are a sample selected by the very parameters the prior describes:
+their population sits where lobes are easy to see, and as a prior it pulls the pixels an
+uncertainty map samples (exactly the unreliable ones) towards it, away from their truth.
+The fitted values of all pixels carry each fit's estimation error, which widens the
+population estimate (a conservative prior) instead of biasing it:
 
 - ``specular`` (F0, grey or per channel): :class:`~jaxrefl.posterior.MultivariateNormal`
-  with the reliable pixels' mean and covariance of the fitted F0, plus
+  with the fitted pixels' mean and covariance of the fitted F0, plus
   :data:`F0_FLOOR_STD`^2 on the diagonal (a numerical floor, kept small: see there), in
-  units of the noise (``noise_ref`` the reliable pixels' median noise std: N(m, (s /
+  units of the noise (``noise_ref`` the fitted pixels' median noise std: N(m, (s /
   s_ref)^2 S), the conjugate form the width sampler draws exactly). Channels that move
   together in the population (a grey dielectric, a gold's tint) keep doing so in the
   prior, which removes the volume of the coloured directions the data do not see.
@@ -26,7 +32,7 @@ uncertainty map does not sample:
 
 The albedo keeps its uniform prior: the diffuse term is seen in every photo. Models without
 a free per-pixel ``alpha`` (``lambert``, ``pooled``) keep the defaults. With fewer than
-:data:`MIN_PIXELS` reliable pixels there is no population to estimate: the defaults again.
+:data:`MIN_PIXELS` fitted pixels there is no population to estimate: the defaults again.
 The population is one Gaussian: a capture of two very different materials, both flagged
 where unseen, gets a prior that spans both (its covariance), not a mixture.
 """
@@ -49,7 +55,7 @@ __all__ = ["ALPHA_FLOOR_LOG_STD", "F0_FLOOR_STD", "MIN_PIXELS", "population_prio
 # fewer is mostly noise).
 MIN_PIXELS = 30
 # Std added to every F0 channel of the population prior: keeps its covariance positive
-# definite where the reliable pixels' F0 does not vary (all at a bound, say). It is kept
+# definite where the fitted pixels' F0 does not vary (all at a bound, say). It is kept
 # below the F0 a fit resolves: the fitted values' covariance already holds each fit's own
 # estimation noise, and a wider floor costs dark lobes prior mass. Where the population is
 # grey, F0 near 0 needs every channel's deviation from grey to stay above 0 (the box's
@@ -66,19 +72,18 @@ def population_priors(
 ) -> tuple[dict[str, jp.Prior], dict[str, Any]]:
     """(priors by parameter name, summary) of the capture fit ``cf`` (module docstring).
     The priors are empty (the defaults apply) where the model has no free ``alpha`` or
-    fewer than :data:`MIN_PIXELS` pixels are reliable; the summary says which and from how
+    fewer than :data:`MIN_PIXELS` pixels were fitted; the summary says which and from how
     many pixels (JSON-ready)."""
     space = cf.model()[1] if space is None else space
     names = [b.name for b in space.blocks]
     if "alpha" not in names or "specular" not in names:
         return {}, {"source": "default", "why": "the model has no per-pixel lobe to pool"}
     theta = np.asarray(cf.theta, np.float64)
-    flag = np.asarray(cf.maps["laplace_flag"]).reshape(-1)
     noise = np.asarray(cf.maps["noise_std"], np.float64).reshape(-1)
-    ok = (flag == 0) & np.all(np.isfinite(theta), -1) & np.isfinite(noise) & (noise > 0)
+    ok = np.all(np.isfinite(theta), -1) & np.isfinite(noise) & (noise > 0)
     n = int(np.sum(ok))
     if n < MIN_PIXELS:
-        why = f"{n} reliable pixels (fewer than {MIN_PIXELS})"
+        why = f"{n} fitted pixels (fewer than {MIN_PIXELS})"
         return {}, {"source": "default", "why": why, "pixels": n}
     x = np.asarray(space.natural_vector(jnp.asarray(theta[ok])), np.float64)
     spec = space.index("specular")

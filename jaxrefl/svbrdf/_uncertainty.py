@@ -17,7 +17,7 @@ where Laplace is not to be trusted.
    the fit estimated the pixel's noise scale, as the sampled posterior does), MCMC on the
    flagged pixels and an audit sample. The posterior is the fitted model's with Gaussian
    noise of unknown scale per pixel (Jeffreys prior); the lobe's priors are by default
-   estimated from the pixels whose Laplace is reliable (:func:`population_priors`:
+   estimated from the population of fitted pixels (:func:`population_priors`:
    empirical Bayes, so that a pixel whose highlight no photo saw is not pushed onto a
    bright, rough lobe by the volume of a uniform prior), the others are
    :func:`jaxrefl.posterior.default_priors`; the chains start from theta* and the
@@ -459,6 +459,9 @@ def uncertainty_maps(
         choice["capped_share_after"] = _model_choice(cf, wider)["capped_share"]
     t_fit = time.perf_counter() - t0
     say(f"fit: model {cf.job.model} ({choice['why']}), {t_fit:.1f} s")
+    if cf.light is not None and cf.light.mode != "fixed":
+        d = ", ".join(f"{v:+.2f}" for v in cf.light.offset_cm)
+        say(f"light: {cf.light.mode}, flash offset ({d}) cm ({cf.light.frame})")
     t_pri = time.perf_counter()
     lp, prior_summary = map_posterior(cf, priors)
     t_pri = time.perf_counter() - t_pri
@@ -467,7 +470,9 @@ def uncertainty_maps(
     # (weight 0: still in the data, for posterior predictive draws of them).
     train = np.ones(capture.n_photos, bool)
     train[list(job.holdout)] = False
-    data = pixel_block(capture, 0, h * w, photos=train, dtype=np.float64)
+    # The posterior sees the light the fit estimated (FitJob.light), as the fit did.
+    lit = capture if cf.light is None else cf.light.apply(capture)
+    data = pixel_block(lit, 0, h * w, photos=train, dtype=np.float64)
     theta_std = laplace_theta_std(cf, lp.space)
     noise0 = cf.maps["noise_std"].reshape(-1)
     noise0 = np.where(np.isfinite(noise0) & (noise0 > 0), noise0, _NOISE_START)
