@@ -244,6 +244,21 @@ def test_auto_chooses_the_shared_coloured_lobe_and_never_sees_held_out_photos(au
     assert res.report["heldout_rmse"] < 0.5 * lam.report["heldout_rmse"]
 
 
+def test_the_pooled_fit_runs_and_records_its_own_settings(auto_fit):
+    """The pooled fit runs with the selection's noise scale, its Huber loss and fused LM
+    rounds: what the resume manifest records (``TileFitter.settings``), not the job's."""
+    from jaxrefl.svbrdf._tile_fitter import TileFitter
+
+    cap, cf = auto_fit
+    ran = TileFitter(cap, cf.job, pooled=cf.extra["pooled"], compact=False).settings()
+    assert cf.job.config.noise.sigma is None
+    sigma = pytest.approx(cf.extra["pooled"].sigma, rel=1e-6)
+    assert ran["config"]["noise"] == {"type": "gaussian", "sigma": sigma}
+    assert ran["config"]["loss"]["type"] == "huber"
+    assert ran["config"]["solver"]["host_fused"] and not ran["config"]["solver"]["compact_stages"]
+    assert "tilted_solver" not in ran
+
+
 def test_auto_leaves_out_what_a_matte_capture_does_not_need(shared_lobe_capture):
     from jaxrefl.svbrdf import choose_model
 

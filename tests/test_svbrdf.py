@@ -208,7 +208,7 @@ def test_score_test_of_the_slopes_sees_a_tilt_and_nothing_else(amplitude):
     the cost drop of one Gauss-Newton step in every parameter, less that of a step in the
     flat parameters alone (block inversion of J^T J)."""
     from jaxrefl.svbrdf._score_test import score_test
-    from jaxrefl.svbrdf._tile_fitter import TileFitter, extend_start
+    from jaxrefl.svbrdf._tile_fitter import STAGE2_ITERS, TileFitter, extend_start
 
     cap = _tilted_capture(amplitude, noise=1e-6)
     flat = TileFitter(cap, svbrdf.FitJob(**_F64_JOB))
@@ -216,6 +216,7 @@ def test_score_test_of_the_slopes_sees_a_tilt_and_nothing_else(amplitude):
     train = np.ones((64, cap.n_photos), bool)
     _, _, r1, fit_data = flat.score(data, train)
     tilted = TileFitter(cap, svbrdf.FitJob(**{**_F64_JOB, "model": "ggx_normal"}))
+    assert tilted.settings()["tilted_solver"]["max_iters"] == STAGE2_ITERS
     t, e, v = tilted.tilt_evidence(r1, fit_data)
     assert 120 < e <= 128  # about 2 a pixel: the prior is weak against noise of 1e-6
     if amplitude == 0.0:
@@ -504,6 +505,9 @@ def test_interrupted_run_resumes_without_recomputing(tmp_path):
     assert manifest["job"]["config"]["noise"] == {"type": "gaussian", "sigma": None}
     assert manifest["job"]["config"]["loss"] == {"type": "l2"}
     assert manifest["job"]["config"]["dtype"] == "float32"
+    # Beside the job, the settings that ran: this small job's lean LM is one plain loop.
+    assert manifest["job"]["config"]["solver"]["compact_stages"]
+    assert manifest["ran"]["config"]["solver"]["compact_stages"] == []
     # A job with shot noise resumes its own tiles, and refuses the same job with another gain.
     shot_dir = tmp_path / "shot"
     shot_job = replace(job, config=job.config.replace(noise=shot))

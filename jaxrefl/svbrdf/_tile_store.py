@@ -1,8 +1,8 @@
 """A capture fit's tiles on disk: written as they finish, read back by a rerun or another process.
 
 With an ``out_dir``, each finished tile is written to ``out_dir/tiles/tile_NNNNN.npz``
-(:func:`jaxrefl.io.save_npz_atomic`: a tile file is complete or absent) beside a
-``manifest.json`` naming the job, the capture and the fit settings that ran
+beside a ``manifest.json`` (both written atomically: a file there is complete or absent)
+naming the job, the capture and the fit settings that ran
 (:meth:`jaxrefl.svbrdf._tile_fitter.TileFitter.settings`). A rerun with the same job and
 capture loads the tiles already there and computes only the missing ones (none is lost, none
 recomputed); a different job or capture in the same folder is refused with a message, and a
@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -34,7 +33,7 @@ import numpy as np
 
 from jaxrefl._errors import JaxreflError
 from jaxrefl.fit import process_barrier, process_gather
-from jaxrefl.io import save_npz_atomic
+from jaxrefl.io import save_npz_atomic, write_text_atomic
 
 from ._job_types import FitJob
 from ._tile_fitter import STAGES, TileFitter
@@ -141,9 +140,7 @@ def _prepare_dir(out_dir: Path, new_manifest: dict[str, Any], restart: bool) -> 
         return tiles
     for old_tile in tiles.glob("tile_*.npz"):
         old_tile.unlink()
-    tmp = mpath.with_suffix(".tmp")
-    tmp.write_text(json.dumps(new_manifest, indent=2))
-    os.replace(tmp, mpath)
+    write_text_atomic(mpath, json.dumps(new_manifest, indent=2))
     return tiles
 
 
