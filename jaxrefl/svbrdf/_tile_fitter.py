@@ -325,25 +325,28 @@ def extend_start(r1, space, dtype, tilt) -> np.ndarray:
     return theta
 
 
+# The fields of a fit result that go with each pixel's candidate (beside its cost).
+_PER_PIXEL = ("params", "theta", "status", "iterations", "n_used")
+
+
 def _keep_lower(a, b):
-    """Per pixel, the fit result of lower cost (a NaN cost never wins)."""
-    ca, cb = np.asarray(a.cost), np.asarray(b.cost)
-    take_b = np.isfinite(cb) & ~(ca <= cb)
-
-    def pick(x, y):
-        m = jnp.asarray(take_b).reshape(take_b.shape + (1,) * (jnp.ndim(x) - 1))
-        return jnp.where(m, y, x)
-
-    fields = ("params", "theta", "status", "cost", "iterations", "n_used")
-    out = {f: jax.tree.map(pick, getattr(a, f), getattr(b, f)) for f in fields}
+    """Per pixel, the fit result of lower cost (:func:`jaxrefl.fit.keep_lower`: a NaN cost
+    never wins)."""
     la, lb = a.linearisation, b.linearisation
     # The curvature goes with the theta it was taken at; without both there is none.
-    same = la is not None and lb is not None
-    if same and fit.same_residual(la.residual, lb.residual):
-        lin = replace(la, jtj=pick(la.jtj, lb.jtj), active=pick(la.active, lb.active))
-    else:
-        lin = None
-    return replace(a, **out, linearisation=lin)
+    same = la is not None and lb is not None and fit.same_residual(la.residual, lb.residual)
+
+    def candidate(r):
+        out = {f: getattr(r, f) for f in _PER_PIXEL}
+        if same:
+            out["jtj"], out["active"] = r.linearisation.jtj, r.linearisation.active
+        return out
+
+    cost, kept = fit.keep_lower(a.cost, candidate(a), b.cost, candidate(b))
+    lin = None
+    if same:
+        lin = replace(la, jtj=kept.pop("jtj"), active=kept.pop("active"))
+    return replace(a, **kept, cost=cost, linearisation=lin)
 
 
 @eqx.filter_jit
