@@ -23,6 +23,7 @@ __all__ = [
     "CAPTURE_MODELS",
     "FAMILIES",
     "LIGHT_CHOICES",
+    "LIGHT_DEFAULT",
     "MEASURED_MODELS",
     "canonical",
     "describe",
@@ -31,6 +32,8 @@ __all__ = [
 #: What a capture fit does with its flash (``jaxrefl fit --light``, ``svbrdf.FitJob.light``):
 #: as stated, its offset from the lens estimated, the offset and a gain per photo, or auto.
 LIGHT_CHOICES: tuple[str, ...] = ("fixed", "offset", "offset+gains", "auto")
+#: The flash of ``jaxrefl fit`` and ``jaxrefl sample`` when ``--light`` is not given.
+LIGHT_DEFAULT = "fixed"
 
 #: BRDF families of :func:`jaxrefl.brdf.get` -> one line.
 FAMILIES: dict[str, str] = {

@@ -70,7 +70,14 @@ from typing import Any
 
 from jaxrefl._errors import JaxreflError
 from jaxrefl._map_defaults import MAP_AUDIT, MAP_CHUNK, MAP_SAMPLER, RERUN_RHAT
-from jaxrefl._names import CAPTURE_MODELS, MEASURED_MODELS, PRIOR_SOURCES, canonical
+from jaxrefl._names import (
+    CAPTURE_MODELS,
+    LIGHT_CHOICES,
+    LIGHT_DEFAULT,
+    MEASURED_MODELS,
+    PRIOR_SOURCES,
+    canonical,
+)
 
 from ._distributed import add_distributed_arguments, distributed_from_args
 from ._main import (
@@ -128,6 +135,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         choices=["auto", *sorted(CAPTURE_MODELS)],
         help="capture model (jaxrefl models NAME describes one); auto (default): the "
         "candidate that best predicts held-out training photos, as jaxrefl fit",
+    )
+    p.add_argument(
+        "--light",
+        default=LIGHT_DEFAULT,
+        choices=LIGHT_CHOICES,
+        help=f"a capture's flash, as jaxrefl fit --light (default {LIGHT_DEFAULT}): the "
+        "posterior is sampled under the light the fit estimated",
     )
     p.add_argument(
         "--mcmc",
@@ -355,7 +369,7 @@ def _run_capture(args, path: Path, opts, dist) -> dict:
     from jaxrefl.io import load_capture
 
     stages = _Stages(args.quiet)
-    job = svbrdf.FitJob(model=args.model, config=fit_config(dtype="float64"))
+    job = svbrdf.FitJob(model=args.model, config=fit_config(dtype="float64"), light=args.light)
     options = jp.AdaptiveOptions(
         mcmc=args.mcmc,
         audit=args.audit,

@@ -163,7 +163,7 @@ class CaptureUncertainty:
 
     def report(self) -> dict[str, Any]:
         """JSON-ready summary: model and size, noise, priors and the parameters' bounds,
-        the sampler settings of both passes, the fit's status and flag counts,
+        the sampler settings of both passes, the fit's status and flag counts, the light,
         :meth:`UncertaintyMap.report`, timings."""
         o = self.options
         lp = self.posterior
@@ -193,6 +193,8 @@ class CaptureUncertainty:
                 for k in ("status_counts", "laplace_flag_counts", "misspecified_counts")
             },
             "model_choice": dict(self.model_choice),
+            # the flash the posterior was sampled under (FitJob.light; the fit's estimate)
+            "light": self.fit.report.get("light"),
             "uncertainty": self.map.report(),
             # pixels of uncertainty.exr whose non-finite values no method code explains
             "nonfinite_counts": self.nonfinite_counts(),
