@@ -155,7 +155,7 @@ def test_cli_sample_capture_end_to_end(tmp_path):
     assert u["method_counts"]["mcmc"] + u["method_counts"]["mcmc_audit"] == 16
     assert u["mcmc"]["max_rhat"]["median"] < 1.2
     # --gibbs-sweeps 2 by default: Lambert's posterior is linear-Gaussian, drawn by Gibbs
-    assert u["timings"]["sampler"] == "gibbs" and rep["sampler"]["gibbs_sweeps"] == 2
+    assert u["timings"]["sampler"] == "gibbs" and rep["sampler"]["gibbs"]["sweeps"] == 2
     n_above = u["mcmc"]["pixels_rhat_above_1.1"]
     assert n_above <= u["mcmc"]["pixels_rhat_above_1.01"] and n_above < 8
     im = read_exr(out / "uncertainty.exr")
@@ -193,7 +193,7 @@ def test_cli_sample_capture_end_to_end(tmp_path):
 
     # The library call behind it gives the same maps and report as a typed result.
     # the command's sampler is the library's map default with the flags given
-    hmc = replace(jp.MAP_OPTIONS, num_warmup=60, num_samples=60, num_chains=2)
+    hmc = replace(jp.UNCERTAINTY_MAP_HMC, num_warmup=60, num_samples=60, num_chains=2)
     options = jp.AdaptiveOptions(mcmc="all", hmc=hmc)
     job = svbrdf.FitJob(model="lambert", config=fit.FitConfig(dtype=np.float64))
     res = svbrdf.uncertainty_maps(load_capture(cap).crop(2, 6, 2, 6), job, options)
@@ -290,17 +290,17 @@ def test_adaptive_chunks_have_one_shape_and_map_back(lambert, monkeypatch):
     pixels, one compiled program for the map), and each pixel's summary comes from its own
     draws (the sampler is replaced by a stand-in whose draws sit at the start point: no
     compilation)."""
-    from jaxrefl.posterior import _adaptive
+    from jaxrefl.posterior import _chunks
 
     lp, data, r, lap = lambert
     calls = []
 
-    def fake(lp_, sub, th0, *, theta_std, normals, options, seed):
+    def fake(lp_, sub, th0, *, theta_std, normals, options, gibbs, seed):
         th0 = np.asarray(th0)
         calls.append((sub.obs.shape, th0.copy(), seed))
         return _draws_at_start(lp_, th0, options, seed)
 
-    monkeypatch.setattr(_adaptive, "sample_pixels", fake)
+    monkeypatch.setattr(_chunks, "sample_pixels", fake)
     opts = jp.HMCOptions(num_warmup=5, num_samples=30, num_chains=2)
     th, sd, flag = np.asarray(r.theta), np.asarray(lap.theta_std), np.asarray(lap.flag)
     th = th.copy()
@@ -330,16 +330,16 @@ def test_chunks_sampled_in_threads_give_the_map_of_a_loop(lambert, monkeypatch):
     chunk runs alone on the calling thread (it compiles the program the others reuse)."""
     import threading
 
-    from jaxrefl.posterior import _adaptive
+    from jaxrefl.posterior import _chunks
 
     lp, data, r, lap = lambert
     where: dict[int, list] = {}
 
-    def fake(lp_, sub, th0, *, theta_std, normals, options, seed):
+    def fake(lp_, sub, th0, *, theta_std, normals, options, gibbs, seed):
         where[workers].append((seed, threading.current_thread()))
         return _draws_at_start(lp_, np.asarray(th0), options, seed)
 
-    monkeypatch.setattr(_adaptive, "sample_pixels", fake)
+    monkeypatch.setattr(_chunks, "sample_pixels", fake)
     th, sd, flag = np.asarray(r.theta), np.asarray(lap.theta_std), np.asarray(lap.flag)
     maps = {}
     opts = jp.HMCOptions(num_warmup=5, num_samples=20, num_chains=2)
@@ -363,7 +363,7 @@ def test_chunks_sampled_in_threads_give_the_map_of_a_loop(lambert, monkeypatch):
 def test_chunk_count_fills_whole_rounds_of_workers():
     """After the first chunk (alone: it compiles), chunks run ``workers`` at a time; their
     count is rounded up so that no round is left with an idle worker."""
-    from jaxrefl.posterior._adaptive import _chunk_size
+    from jaxrefl.posterior._chunks import chunk_size as _chunk_size
 
     assert _chunk_size(22979, 2048, 128) == 1920  # 12 chunks
     assert _chunk_size(22979, 2048, 128, workers=2) == 1792  # 13: the first, then 6 pairs
@@ -394,7 +394,7 @@ def test_second_pass_reruns_the_pixels_whose_chains_disagree(lambert, monkeypatc
     longer pass (longer_options: twice the warm-up, thin 4, no jitter) from first-pass draws,
     chain c from first-pass chain c, with the draws' std as the initial metric; its summaries and
     draws replace the first's and the report says what it changed (stand-in sampler)."""
-    from jaxrefl.posterior import _adaptive
+    from jaxrefl.posterior import _chunks
 
     lp, data, r, lap = lambert
     th, sd, flag = np.asarray(r.theta), np.asarray(lap.theta_std), np.asarray(lap.flag)
@@ -402,7 +402,7 @@ def test_second_pass_reruns_the_pixels_whose_chains_disagree(lambert, monkeypatc
     apart = [1, 4]  # these pixels' first-pass chains sit 1 apart
     calls = []
 
-    def fake(lp_, sub, th0, *, theta_std, normals, options, seed):
+    def fake(lp_, sub, th0, *, theta_std, normals, options, gibbs, seed):
         th0, theta_std = np.asarray(th0), np.asarray(theta_std)
         calls.append((th0.copy(), theta_std.copy(), options))
         rng = np.random.default_rng(seed)
@@ -420,7 +420,7 @@ def test_second_pass_reruns_the_pixels_whose_chains_disagree(lambert, monkeypatc
             x, x, lp_.labels, st, "hmc", run_s=1.0, extra={"no_estimate": np.zeros(n, bool)}
         )
 
-    monkeypatch.setattr(_adaptive, "sample_pixels", fake)
+    monkeypatch.setattr(_chunks, "sample_pixels", fake)
     opts = jp.HMCOptions(num_warmup=5, num_samples=30, num_chains=2)
     # Threshold 1.1: the agreeing stand-in chains are 60 noise draws a pixel, whose R-hat
     # can pass 1.05 by chance; the chains 1 apart are far above either.
@@ -464,16 +464,17 @@ def test_adaptive_options_are_one_checked_immutable_object():
     assert (o.mcmc, o.audit, o.hmc, o.rerun_rhat, o.chunk, o.seed) == (
         jp.MCMCPixels.FLAGGED,
         0.02,
-        jp.MAP_OPTIONS,
+        jp.UNCERTAINTY_MAP_HMC,
         1.05,
         2048,
         0,
     )
-    assert o.keep_samples and o.second_pass == jp.longer_options(jp.MAP_OPTIONS)
+    assert o.keep_samples and o.second_pass == jp.longer_options(jp.UNCERTAINTY_MAP_HMC)
     # one map default, said once (jaxrefl._map_defaults) for the library and the command
-    from jaxrefl._map_defaults import MAP_SAMPLER
+    from jaxrefl._map_defaults import MAP_GIBBS, MAP_SAMPLER
 
     assert all(getattr(o.hmc, k) == v for k, v in MAP_SAMPLER.items())
+    assert o.gibbs == jp.UNCERTAINTY_MAP_GIBBS == jp.GibbsOptions(**MAP_GIBBS)
     assert (o.hmc.num_warmup, o.hmc.num_samples, o.hmc.num_chains) == (100, 100, 2)
     assert jp.AdaptiveOptions(mcmc="all").mcmc is jp.MCMCPixels.ALL
     for bad, match in (
@@ -532,13 +533,13 @@ def test_chunk_folder_resumes_without_sampling_again(lambert, monkeypatch, tmp_p
     rerun reads them and samples nothing, with the same map; another seed, or another box
     of the parameters, matches none of them (stand-in sampler whose chains disagree on some
     pixels: a second pass runs)."""
-    from jaxrefl.posterior import _adaptive
+    from jaxrefl.posterior import _chunks
 
     lp, data, r, lap = lambert
     th, sd, flag = np.asarray(r.theta), np.asarray(lap.theta_std), np.asarray(lap.flag)
     calls = []
 
-    def fake(lp_, sub, th0, *, theta_std, normals, options, seed):
+    def fake(lp_, sub, th0, *, theta_std, normals, options, gibbs, seed):
         calls.append(seed)
         th0 = np.asarray(th0)
         rng = np.random.default_rng(seed)
@@ -554,7 +555,7 @@ def test_chunk_folder_resumes_without_sampling_again(lambert, monkeypatch, tmp_p
             x, x, lp_.labels, st, "hmc", tuning, run_s=1.0, extra={"no_estimate": np.zeros(n, bool)}
         )
 
-    monkeypatch.setattr(_adaptive, "sample_pixels", fake)
+    monkeypatch.setattr(_chunks, "sample_pixels", fake)
     opts = jp.HMCOptions(num_warmup=5, num_samples=30, num_chains=2)
     o = jp.AdaptiveOptions(mcmc="all", hmc=opts, chunk=4, seed=7, workers=1)
     folder = tmp_path / "mcmc"
@@ -586,14 +587,14 @@ def test_second_pass_of_an_untuned_sampler_reuses_the_first_pass_program(lambert
     the width sampler's program, not a constant) and a new seed, in chunks padded to the
     first pass's size: the same compiled program (stand-in sampler). HMC and exact Gibbs
     keep longer_options."""
-    from jaxrefl.posterior import _adaptive
+    from jaxrefl.posterior import _chunks
 
     lp, data, r, lap = lambert
     th, sd, flag = np.asarray(r.theta), np.asarray(lap.theta_std), np.asarray(lap.flag)
     start = np.asarray(lp.init_theta(th))
     calls = []
 
-    def fake(lp_, sub, th0, *, theta_std, normals, options, seed):
+    def fake(lp_, sub, th0, *, theta_std, normals, options, gibbs, seed):
         th0 = np.asarray(th0)
         calls.append((th0.shape, options, seed))
         rng = np.random.default_rng(seed)
@@ -616,8 +617,8 @@ def test_second_pass_of_an_untuned_sampler_reuses_the_first_pass_program(lambert
             extra={"no_estimate": np.zeros(x.shape[0], bool)},
         )
 
-    monkeypatch.setattr(_adaptive, "sample_pixels", fake)
-    opts = jp.HMCOptions(num_warmup=5, num_samples=30, num_chains=2, gibbs_sweeps=2)
+    monkeypatch.setattr(_chunks, "sample_pixels", fake)
+    opts = jp.HMCOptions(num_warmup=5, num_samples=30, num_chains=2)
     o = jp.AdaptiveOptions(mcmc="all", hmc=opts, chunk=4, seed=7, rerun_rhat=1.1, workers=1)
     u = jp.adaptive_uncertainty(lp, data, th, sd, flag, o)
     assert len(calls) == 3 and u.timings["sampler"] == "gibbs_mh"
@@ -629,7 +630,7 @@ def test_second_pass_of_an_untuned_sampler_reuses_the_first_pass_program(lambert
     for method in ("hmc", "gibbs"):  # these keep longer_options for the second pass
         calls.clear()
         monkeypatch.setattr(
-            _adaptive,
+            _chunks,
             "sample_pixels",
             lambda *a, method=method, **k: replace(fake(*a, **k), method=method),
         )
@@ -645,20 +646,20 @@ def test_time_limit_leaves_laplace_pixels_marked_and_a_pass_says_what_it_does(la
     ``log`` hears each pass's start, its progress every HEARTBEAT_S and its end."""
     import time
 
-    from jaxrefl.posterior import _adaptive
+    from jaxrefl.posterior import _chunks
 
     lp, data, r, lap = lambert
     theta, theta_std = np.asarray(r.theta), np.asarray(lap.theta_std)
     flag = np.asarray(lap.flag)
     opts = jp.AdaptiveOptions(
         mcmc="all",
-        hmc=replace(jp.MAP_OPTIONS, num_warmup=20, num_samples=20, batch_size=2),
+        hmc=replace(jp.UNCERTAINTY_MAP_HMC, num_warmup=20, num_samples=20, batch_size=2),
         chunk=2,
         rerun_rhat=None,
         workers=1,
     )
     lines: list[str] = []
-    monkeypatch.setattr(_adaptive, "HEARTBEAT_S", 0.01)
+    monkeypatch.setattr(_chunks, "HEARTBEAT_S", 0.01)
     # past already: nothing is sampled, every pixel keeps its Laplace summary
     u0 = jp.adaptive_uncertainty(
         lp, data, theta, theta_std, flag, opts, deadline=time.perf_counter() - 1.0, log=lines.append
@@ -675,7 +676,7 @@ def test_time_limit_leaves_laplace_pixels_marked_and_a_pass_says_what_it_does(la
     # ahead: the first chunk runs; it is timed as a slow one, so the next, which would end
     # past the deadline, is not started
     lines.clear()
-    monkeypatch.setattr(_adaptive._Pace, "took", lambda self, s: setattr(self, "last_s", 1e6))
+    monkeypatch.setattr(_chunks._Pace, "took", lambda self, s: setattr(self, "last_s", 1e6))
     u1 = jp.adaptive_uncertainty(
         lp,
         data,
@@ -746,10 +747,10 @@ def test_cli_sample_prints_its_stages_without_a_terminal_and_stops_at_its_time_l
     assert (out / "fit").is_dir()  # the resumable work stays for the rerun
 
 
-def test_map_widens_grey_ggx_where_most_pixels_pile_at_its_f0_cap():
-    """uncertainty_maps: a ggx fit of a metal (F0 up to 0.9) piles most pixels at the 0.25
-    cap, so the map is fitted and sampled with ggx_rgb and model_choice says why; a
-    dielectric keeps the ggx it was given."""
+def test_map_widens_grey_ggx_where_pixels_pile_at_its_f0_cap():
+    """uncertainty_maps: a ggx fit of a metal (F0 up to 0.9) piles pixels at the 0.25 cap
+    (more than WIDEN_SHARE of them), so the map is fitted and sampled with ggx_rgb and
+    model_choice says why; a dielectric keeps the ggx it was given."""
     import sys
     from pathlib import Path
 

@@ -72,8 +72,10 @@ __all__ = [
 NOISE = "Gaussian, unknown scale per pixel (Jeffreys prior)"
 #: Models whose fit may pile against a cap that another candidate lifts -> that candidate.
 WIDER: dict[str, str] = {"ggx": "ggx_rgb"}
-#: Share of fitted pixels at the cap above which the map's model is widened.
-WIDEN_SHARE = 0.5
+#: Share of fitted pixels at the cap above which the map's model is widened: a capped
+#: pixel's interval cannot reach a truth above the cap, and a 90% interval map is held to
+#: 85-95% coverage, so more than 5% capped pixels would put the map outside it.
+WIDEN_SHARE = 0.05
 _NOISE_START = 1e-2  # the chains' starting noise scale where the fit gave none
 _PPC_DRAWS = 50  # posterior predictive draws per MCMC pixel in posterior.nc
 LOG_LIKELIHOOD_MAX = 20_000_000  # pointwise log-likelihood values in posterior.nc (float32: 80 MB)
@@ -168,7 +170,7 @@ class CaptureUncertainty:
         o = self.options
         lp = self.posterior
         # the second pass's settings, also where rerun_rhat turns it off; the first pass's
-        # where its samplers had nothing to tune (jaxrefl.posterior._adaptive.UNTUNED)
+        # where its samplers had nothing to tune (jaxrefl.posterior._adaptive_options.UNTUNED)
         second = jp.longer_options(o.hmc) if o.rerun_hmc is None else o.rerun_hmc
         if self.map.timings.get("rerun_settings") == "untuned":
             second = jp.untuned_rerun(o.hmc)
@@ -185,7 +187,7 @@ class CaptureUncertainty:
                 lab: [float(a), float(b)]
                 for lab, a, b in zip(lp.space.labels, lp.space.lower, lp.space.upper, strict=True)
             },
-            "sampler": {**vars(o.hmc)},
+            "sampler": {**vars(o.hmc), "gibbs": None if o.gibbs is None else {**vars(o.gibbs)}},
             "second_pass": {"rerun_rhat": o.rerun_rhat, "options": {**vars(second)}},
             # misspecified pixels (jaxrefl.svbrdf._check): their intervals are not calibrated
             "fit_report": {
