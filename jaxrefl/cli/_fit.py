@@ -30,7 +30,7 @@ import shutil
 from pathlib import Path
 
 from jaxrefl._errors import JaxreflError
-from jaxrefl._names import CAPTURE_MODELS, LIGHT_CHOICES, canonical
+from jaxrefl._names import CAPTURE_MODELS, LIGHT_CHOICES, LIGHT_DEFAULT, canonical
 
 from ._distributed import add_distributed_arguments, distributed_from_args
 from ._main import check_out_dir, photo_indices, positive_float, positive_int
@@ -149,11 +149,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--light",
-        default="fixed",
+        default=LIGHT_DEFAULT,
         choices=LIGHT_CHOICES,
-        help="the flash: fixed (as the capture states it; default), offset (its offset from "
-        "the lens estimated), offset+gains (and a gain per photo), auto: what held-out "
-        "observations support",
+        help=f"the flash (default {LIGHT_DEFAULT}): fixed (as the capture states it), offset "
+        "(its offset from the lens estimated), offset+gains (and a gain per photo), auto: "
+        "what held-out observations support",
     )
     p.add_argument("--restart", action="store_true", help="ignore tiles of an earlier run")
     p.add_argument(

@@ -15,7 +15,7 @@ import numpy as np
 
 from jaxrefl import brdf, fit
 from jaxrefl._errors import JaxreflError
-from jaxrefl._names import LIGHT_CHOICES
+from jaxrefl._names import LIGHT_CHOICES, LIGHT_DEFAULT
 
 from ._models import ALPHA_RANGE, capture_model
 
@@ -68,11 +68,12 @@ class FitJob:
                 ``tilt_x``, ``tilt_y`` (MAP fit; 0.1 is about 6 degrees). Without it the
                 slopes of a real capture overfit: a tilt turns a highlight seen in one
                 photo into a steep normal rather than a brighter lobe.
-    light:      the flash as the capture states it (``fixed``, the default here), or
-                estimated first (:func:`jaxrefl.svbrdf.estimate_light`): ``offset`` (its
-                offset from the lens), ``offset+gains`` (and a gain per photo), ``auto``
-                (whichever held-out observations support; ``jaxrefl fit``'s default); the
-                report's ``light`` says what and why
+    light:      the flash as the capture states it (``fixed``), or estimated first
+                (:func:`jaxrefl.svbrdf.estimate_light`): ``offset`` (its offset from the
+                lens), ``offset+gains`` (and a gain per photo), ``auto`` (whichever
+                held-out observations support); default ``jaxrefl._names.LIGHT_DEFAULT``,
+                also ``jaxrefl fit``'s and ``jaxrefl sample``'s; the report's ``light``
+                says what and why
     """
 
     model: str = "auto"
@@ -81,7 +82,7 @@ class FitJob:
     config: fit.FitConfig = field(default_factory=fit.FitConfig)
     alpha_min: float | None = None
     tilt_std: float = 0.1
-    light: str = "fixed"
+    light: str = LIGHT_DEFAULT
 
     def __post_init__(self) -> None:
         if self.light not in LIGHT_CHOICES:
