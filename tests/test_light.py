@@ -48,19 +48,19 @@ def test_offset_and_gains_recovered_with_calibrated_intervals_one_compile(offset
         est = svbrdf.estimate_light(r.capture(), "offset+gains", n_pixels=HALF)
         assert est.mode == "offset+gains"
         # in the sample plane within 1 mm, gains within 2%, on every noise draw; the
-        # out-of-plane z is held by its prior (OFFSET_PRIOR_CM): within 3 of its std
+        # out-of-plane z is not estimated: it keeps its prior (OFFSET_PRIOR_CM)
         err = est.offset_cm - true_off
         assert np.all(np.abs(err[:2]) < 0.1), err
-        assert abs(err[2]) < 3 * est.offset_std_cm[2], err
+        assert err[2] == 0.0 and est.offset_std_cm[2] == _light_problem.OFFSET_PRIOR_CM[2]
         assert np.all(np.abs(est.photo_gain / r.photo_gain - 1) < 0.02)
         iv = est.interval90()
         lo, hi = np.asarray(iv["offset_cm"])
         g_lo, g_hi = np.asarray(iv["photo_gain"])
-        covered += list((lo <= true_off) & (true_off <= hi))
+        covered += list(((lo <= true_off) & (true_off <= hi))[:2])
         covered += list((g_lo <= r.photo_gain) & (r.photo_gain <= g_hi))
         iterations += est.iterations
     rate = float(np.mean(covered))
-    # 120 intervals: at 90% the rate lies in [0.8, 0.98] (binomial sd 0.027, more with the
+    # 110 intervals: at 90% the rate lies in [0.8, 0.98] (binomial sd 0.027, more with the
     # correlation of one draw's intervals), at 70% below 0.8 by several sd.
     assert 0.8 <= rate <= 0.98, rate
     # Every optimiser step of every draw evaluated one compiled program (light values are
@@ -74,11 +74,12 @@ def test_auto_keeps_fixed_without_offset_and_estimates_with_one(offset_member):
     est = svbrdf.estimate_light(at_lens, "auto", n_pixels=HALF)
     assert est.mode == "fixed"
     assert set(est.cv_rmse) == {"fixed", "offset", "offset+gains"}
-    assert est.why.startswith("lowest held-out RMSE") and "fixed" in est.why
+    assert est.why.startswith("held-out RMSE") and "offset does not beat fixed" in est.why
     assert est.apply(at_lens) is at_lens
     off = svbrdf.estimate_light(offset_member.capture(), "auto", n_pixels=HALF)
     assert off.mode == "offset+gains"
-    assert off.cv_rmse["offset+gains"] < 0.5 * off.cv_rmse["fixed"]
+    # each held-out photo predicted at its prior gain: the gains' spread stays in the score
+    assert off.cv_rmse["offset+gains"] < 0.9 * off.cv_rmse["fixed"]
     d = off.as_dict()
     for key in ("offset_cm", "offset_std_cm", "photo_gain", "photo_gain_std", "why"):
         assert d[key] is not None
@@ -87,7 +88,7 @@ def test_auto_keeps_fixed_without_offset_and_estimates_with_one(offset_member):
 
 
 def test_laplace_std_matches_mcmc(offset_member):
-    """emcee over the offset (the gains fixed), the profiled posterior the Laplace
+    """emcee over the offset's x and y (the gains fixed), the profiled posterior the Laplace
     approximates: std within 25% and the means within 0.5 std."""
     cap = offset_member.capture()
     est = svbrdf.estimate_light(cap, "offset", n_pixels=HALF)
@@ -99,16 +100,17 @@ def test_laplace_std_matches_mcmc(offset_member):
         theta, _r, _j, _it = problem.solve("offset", [0, 1], weights, theta0=theta0)
         rng = np.random.default_rng(0)
         walkers = 6
-        start = theta + 0.5 * est.offset_std_cm * rng.standard_normal((walkers, 3))
+        std = est.offset_std_cm[:2]
+        start = theta + 0.5 * std * rng.standard_normal((walkers, 2))
         sampler = emcee.EnsembleSampler(
-            walkers, 3, lambda t: problem.log_posterior(t, "offset", weights), vectorize=True
+            walkers, 2, lambda t: problem.log_posterior(t, "offset", weights), vectorize=True
         )
         sampler.random_state = np.random.RandomState(1).get_state()  # reproducible moves
         sampler.run_mcmc(start, 160, progress=False)
     draws = sampler.get_chain(discard=40, flat=True)
-    ratio = draws.std(0) / est.offset_std_cm
+    ratio = draws.std(0) / std
     assert np.all((ratio > 0.75) & (ratio < 1.25)), ratio
-    assert np.all(np.abs(draws.mean(0) - est.offset_cm) < 0.5 * est.offset_std_cm)
+    assert np.all(np.abs(draws.mean(0) - est.offset_cm[:2]) < 0.5 * std)
 
 
 def test_light_draws_follow_the_laplace_and_apply(offset_member):

@@ -20,8 +20,9 @@ flash output from shot to shot. The capture-level light parameters are
   A held-out photo keeps its prior gain: estimating it would use the photo.
 * Prior on ``d``: N(0, diag(``OFFSET_PRIOR_CM``)^2): a flash within a few cm of the lens in
   x and y, within a few mm of the lens's plane in z (the phone's normal in either frame,
-  when the phone faces the sample). z changes every photo's irradiance nearly alike, which
-  the maps absorb: the photos alone pin it to a few mm at best.
+  when the phone faces the sample). x and y are estimated; z is not: it changes every
+  photo's irradiance nearly alike, which the maps absorb, so the photos pin it only through
+  what the model misses, and it keeps its prior (mean 0, its std in the covariance).
 
 Estimation: each pixel's albedo, F0 and GGX width profiled out on a pixel subsample,
 Levenberg-Marquardt on the light, a noise scale linear in the prediction
@@ -55,7 +56,13 @@ from jaxrefl._errors import JaxreflError
 from jaxrefl._names import LIGHT_CHOICES
 
 from ._light_prior import GainPrior, gain_prior
-from ._light_problem import SELECTION_PIXELS, LightProblem, light_problem
+from ._light_problem import (
+    ESTIMATED_OFFSET,
+    OFFSET_PRIOR_CM,
+    SELECTION_PIXELS,
+    LightProblem,
+    light_problem,
+)
 
 __all__ = [  # the problem's and the prior's public names are re-exported from here
     "LIGHT_CHOICES",
@@ -71,6 +78,9 @@ __all__ = [  # the problem's and the prior's public names are re-exported from h
 
 LIGHT_MODES: tuple[str, ...] = LIGHT_CHOICES[:3]  # the estimates; "auto" picks one
 _Z90 = 1.6448536269514722  # the standard normal's 95% quantile: a central 90% interval
+# A more complex light must lower the held-out squared error by this many standard errors of
+# the paired per-pixel difference: a one-sided test at about 2.3% (:func:`choose_light`).
+CHOICE_Z = 2.0
 
 
 @dataclass(frozen=True)
@@ -200,6 +210,9 @@ def _final(problem: LightProblem, mode: str, asked: str, cv: dict, why: str) -> 
     held = 3 + np.flatnonzero(~problem.train)
     if mode == "offset+gains":
         cov[held, held] = problem.prior.log_std**2
+    # The offset's components not estimated keep their prior (independent of the rest).
+    for i in range(ESTIMATED_OFFSET, 3):
+        cov[i, i] = OFFSET_PRIOR_CM[i] ** 2
     std = np.sqrt(np.maximum(np.diag(cov), 0.0))
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = cov / np.outer(std, std)
@@ -229,23 +242,41 @@ def _final(problem: LightProblem, mode: str, asked: str, cv: dict, why: str) -> 
     )
 
 
-def choose_light(problem: LightProblem) -> tuple[str, dict[str, float]]:
+def choose_light(problem: LightProblem) -> tuple[str, dict[str, float], str]:
     """Score ``fixed``, ``offset`` and ``offset+gains`` by the cross-fitted held-out RMSE
-    (module docstring); returns the simplest within the tolerance of the best, and scores."""
-    cv: dict[str, float] = {}
+    (module docstring). A candidate is kept over the simpler ones only where it wins by more
+    than the tolerance and by more than :data:`CHOICE_Z` standard errors of the paired
+    per-pixel difference of held-out squared errors (the score's own noise: the pixels are
+    the replicates). Returns the choice, the RMSEs and the margins' account."""
+    per: dict[str, np.ndarray] = {}
+    cnt = np.zeros(0)
     for mode in LIGHT_MODES:
-        sse = cnt = 0.0
+        parts, counts = [], []
         for fit_half, score_half in ((0, 1), (1, 0)):
             if mode == "fixed":
                 theta = np.zeros(0)
             else:
                 theta = problem.solve(mode, [fit_half], problem.unit_weights([fit_half]))[0]
             s, n = problem.loo_sse(theta, mode, fit_half, score_half)
-            sse, cnt = sse + s, cnt + n
-        cv[mode] = float(np.sqrt(sse / cnt)) if cnt > 0 else float("inf")
-    best = min(cv.values())
-    chosen = next(m for m in LIGHT_MODES if cv[m] <= best * (1.0 + _tolerance()))
-    return chosen, cv
+            parts.append(s)
+            counts.append(n)
+        per[mode] = np.concatenate(parts)
+        cnt = np.concatenate(counts)
+    total = float(cnt.sum())
+    cv = {m: float(np.sqrt(v.sum() / total)) if total > 0 else float("inf") for m, v in per.items()}
+    chosen = "fixed"
+    notes = []
+    for mode in LIGHT_MODES[1:]:
+        diff = per[chosen] - per[mode]  # > 0 where the candidate predicts better
+        se = float(np.sqrt(diff.size * np.var(diff)))
+        gain = float(diff.sum())
+        margin = max(CHOICE_Z * se, per[chosen].sum() * (1.0 - 1.0 / (1.0 + _tolerance()) ** 2))
+        won = gain > margin
+        verdict = "beats" if won else "does not beat"
+        notes.append(f"{mode} {verdict} {chosen} by {gain / max(se, 1e-300):.1f} standard errors")
+        if won:
+            chosen = mode
+    return chosen, cv, "; ".join(notes)
 
 
 def estimate_light(
@@ -279,12 +310,12 @@ def estimate_light(
     with jax.enable_x64(True):
         problem = light_problem(capture, train, n_pixels=n_pixels, seed=seed)
         if light == "auto":
-            chosen, cv = choose_light(problem)
-            ranked = sorted(cv.items(), key=lambda kv: kv[1])
+            chosen, cv, margins = choose_light(problem)
             why = (
-                f"lowest held-out RMSE over {n_train} training photos, light fitted on one half "
+                f"held-out RMSE over {n_train} training photos, light fitted on one half "
                 "of the pixels and scored on the other: "
-                + ", ".join(f"{m} {r:.5f}" for m, r in ranked)
+                + ", ".join(f"{m} {r:.5f}" for m, r in cv.items())
+                + f"; {margins}"
             )
             if chosen != "fixed":
                 why += f" ({cv[chosen] / cv['fixed']:.2f} x fixed's)"

@@ -20,7 +20,9 @@ freedom sqrt(n / (n - M)), give a noise scale linear in the prediction, sigma(y)
 Held-out score (:meth:`LightProblem.loo_sse`): under a light, one GGX width shared by every
 pixel (the ``pooled`` model's lobe) is fitted on one half of the pixels, and the other half's
 training photos are predicted one at a time from the others (leave-one-photo-out), each
-pixel's coefficients fitted on the other photos. Two nuisance models, each where it holds:
+pixel's coefficients fitted on the other photos, the predicted photo at its prior gain (a
+photo the fit did not see has no estimated gain: scoring it at its estimated one would
+credit the gains with what no held-out photo gets). Two nuisance models, each where it holds:
 
 * the estimate needs each pixel's own width: a light fitted under one shared width absorbs
   the widths' spatial variation (on generated captures with widths varying 5-fold, an
@@ -54,6 +56,11 @@ __all__ = ["LightData", "LightProblem", "light_problem"]
 # plane of the phone's back (z, the normal of that plane when the phone faces the sample,
 # moves the flash by the lens bump's millimetres at most).
 OFFSET_PRIOR_CM = (3.0, 3.0, 0.3)
+# The offset's components the photos estimate: x and y. z is held at its prior (mean 0, std
+# OFFSET_PRIOR_CM[2]): it moves every photo's irradiance nearly alike, which the maps absorb,
+# so what pulls it is whatever the model misses (on a real capture, centimetres against a
+# flash known from the phone's build to lie within millimetres of the lens's plane).
+ESTIMATED_OFFSET = 2
 ALPHA_MAX = 1.0
 WIDTHS = 16  # the grid of log widths a pixel's lobe (or the shared one) is first sought among
 REFINE_STEPS = 3
@@ -252,21 +259,24 @@ def _shared_sse(x, d: LightData, w):
 
 
 @jax.jit
-def _loo_sse(x, la, d: LightData, train):
-    """Leave-one-photo-out squared error and count over the training photos ``train`` (K,)
-    under the light x and the shared width exp(la), unweighted (radiance units): each
-    pixel's coefficients fitted on the other training photos."""
+def _loo_sse(x, la, d: LightData, train, log_g_prior):
+    """Each pixel's leave-one-photo-out squared error and count (N,) over the training photos
+    ``train`` (K,) under the light x and the shared width exp(la), unweighted (radiance
+    units): each pixel's coefficients fitted on the other training photos, the held-out photo
+    predicted at its prior log gain ``log_g_prior`` (K,), as a fit predicts a photo it did
+    not see."""
     k = train.shape[0]
     base = d.usable * train[None, :, None]
 
     def fold(j):
         held = (jnp.arange(k) == j)[None, :, None]
-        pred = _predict_shared(x, la, d, base * (1.0 - held))
+        x_j = x.at[3 + j].set(log_g_prior[j])
+        pred = _predict_shared(x_j, la, d, base * (1.0 - held))
         e = (pred - d.obs) * d.usable * held * train[j]
-        return jnp.sum(e * e), jnp.sum(d.usable * held) * train[j]
+        return jnp.sum(e * e, (1, 2)), jnp.sum(d.usable * held, (1, 2)) * train[j]
 
     sse, n = jax.lax.map(fold, jnp.arange(k))
-    return jnp.sum(sse), jnp.sum(n)
+    return jnp.sum(sse, 0), jnp.sum(n, 0)
 
 
 def _light_data(capture, pick: np.ndarray, rot: np.ndarray, alphas) -> LightData:
@@ -306,11 +316,12 @@ class LightProblem:
 
     def embed(self, mode: str) -> tuple[np.ndarray, np.ndarray]:
         """(x0 (3 + K,), A (3 + K, P)): x = x0 + A theta for the mode's free parameters theta:
-        the offset (3), then K_train - 1 coordinates of the training log gains in the
-        subspace that keeps their sum (an orthonormal basis: the prior stays isotropic)."""
+        the offset's x and y (:data:`ESTIMATED_OFFSET`), then K_train - 1 coordinates of the
+        training log gains in the subspace that keeps their sum (an orthonormal basis: the
+        prior stays isotropic)."""
         k = self.k
         x0 = np.concatenate([np.zeros(3), self.prior.log_mean])
-        cols = [] if mode == "fixed" else [np.eye(3 + k)[:, :3]]
+        cols = [] if mode == "fixed" else [np.eye(3 + k)[:, :ESTIMATED_OFFSET]]
         idx = np.flatnonzero(self.train)
         if mode == "offset+gains" and idx.size > 1:
             # The last K_train - 1 columns of a QR basis of [1, I] span the sum-zero subspace.
@@ -323,9 +334,9 @@ class LightProblem:
 
     def prior_precision(self, mode: str) -> np.ndarray:
         _x0, a = self.embed(mode)
-        n_off = 3 if mode != "fixed" else 0
+        n_off = ESTIMATED_OFFSET if mode != "fixed" else 0
         p = np.full(a.shape[1], 1.0 / self.prior.log_std**2)
-        p[:n_off] = 1.0 / np.asarray(OFFSET_PRIOR_CM) ** 2
+        p[:n_off] = 1.0 / np.asarray(OFFSET_PRIOR_CM[:n_off]) ** 2
         return p
 
     def unit_weights(self, halves: list[int]) -> list[jax.Array]:
@@ -366,7 +377,7 @@ class LightProblem:
             r_n, j_n = self.residuals(theta + step, mode, halves, weights)
             c_n = float(r_n @ r_n)
             if np.isfinite(c_n) and c_n < cost:
-                done = cost - c_n <= 1e-12 * cost
+                done = cost - c_n <= 1e-9 * cost
                 theta, r, jac, cost = theta + step, r_n, j_n, c_n
                 lam = max(lam / 3.0, 1e-9)
                 if done:
@@ -414,11 +425,13 @@ class LightProblem:
             ws.append(w / jnp.asarray(sig**2))
         return ws, (c0, c1)
 
-    def loo_sse(self, theta, mode: str, fit_half: int, score_half: int) -> tuple[float, float]:
-        """The held-out score of the light z0 + A theta (module docstring): the shared width
+    def loo_sse(
+        self, theta, mode: str, fit_half: int, score_half: int
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The held-out score of the light x0 + A theta (module docstring): the shared width
         that fits ``fit_half``'s training photos best under that light (the grid's best, then
-        one parabolic step), then the leave-one-photo-out squared error and its count on
-        ``score_half`` with that width."""
+        one parabolic step), then each pixel's leave-one-photo-out squared error and its
+        count (N,) on ``score_half`` with that width."""
         x0, a = self.embed(mode)
         x = jnp.asarray(x0 + a @ theta)
         w = self.unit_weights([fit_half])[0]
@@ -432,8 +445,10 @@ class LightProblem:
             # No upward curvature: the grid's best stays.
             if curv > 0:
                 la += float(np.clip(0.5 * h * (errs[i - 1] - errs[i + 1]) / curv, -h, h))
-        s, n = _loo_sse(x, la, self.halves[score_half], jnp.asarray(self.train))
-        return float(s), float(n)
+        s, n = _loo_sse(
+            x, la, self.halves[score_half], jnp.asarray(self.train), jnp.asarray(x0[3:])
+        )
+        return np.asarray(s), np.asarray(n)
 
     def log_posterior(self, thetas: np.ndarray, mode: str, weights) -> np.ndarray:
         """Log posterior (up to a constant) of a batch of theta (B, P) on both halves with the
