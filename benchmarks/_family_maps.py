@@ -1,16 +1,17 @@
 """Uncertainty maps of the capture family and the real captures, one row per capture.
 
 Each capture goes through :func:`jaxrefl.svbrdf.uncertainty_maps` with its defaults, the
-path ``jaxrefl sample CAPTURE`` takes (``auto`` model, :data:`jaxrefl.posterior.MAP_OPTIONS`,
-population priors, a second pass above R-hat 1.05): the generated members of
-``benchmarks/capture_family.py`` (their light written at the lens, as a user's layout says,
-whatever the true flash offset) and the real ``bath_tile`` and ``yellow_box``. Printed per
-capture: the model chosen, the stage times (the fit with its model choice, the MCMC first
-and second passes, the whole call), the MCMC pixel count and the share of them with max
-R-hat <= 1.05 and, for the generated captures, the share of pixels whose 90% interval
-covers the truth, per parameter (albedo R, F0 R, alpha), over all pixels and split by the
-fit's misspecification flag. The targets: at most 120 s a map with the compile
-cache warm, 180 s cold; R-hat <= 1.05 on 99% of the MCMC pixels; coverage 85-95%.
+path ``jaxrefl sample CAPTURE`` takes (``auto`` model, the defaults of
+:class:`jaxrefl.posterior.AdaptiveOptions`, population priors, a second pass above R-hat
+1.05): the generated members of ``benchmarks/capture_family.py`` (their light written at
+the lens, as a user's layout says, whatever the true flash offset) and the real
+``bath_tile`` and ``yellow_box``. Printed per capture: the model chosen, the stage times
+(the fit with its model choice, the MCMC first and second passes, the whole call), the MCMC
+pixel count and the share of them with max R-hat <= 1.05 and, for the generated captures,
+the share of pixels whose 90% interval covers the truth, per parameter (albedo R, F0 R,
+alpha), over all pixels and split by the fit's misspecification flag. The targets: at most
+120 s a map with the compile cache warm, 180 s cold; R-hat <= 1.05 on 99% of the MCMC
+pixels; coverage 85-95%.
 
 ``posterior_speed.py --only-family`` and ``predictive_coverage.py --only-family`` both run
 it (their sections of docs/benchmarks.md get the same table).

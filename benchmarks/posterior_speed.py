@@ -9,7 +9,7 @@
    time (compilation excluded and printed apart). Target: batched >= 5x emcee.
 2. Laplace vs NUTS: ratio of marginal standard deviations on the pixels Laplace flags
    reliable (identifiable), median and 5-95% range per parameter.
-3. Wall time of an adaptive uncertainty map (Laplace everywhere, ``MAP_OPTIONS`` on the
+3. Wall time of an adaptive uncertainty map (Laplace everywhere, ``UNCERTAINTY_MAP_HMC`` on the
    flagged pixels and a 2% audit: HMC, or the Gibbs samplers where the posterior allows;
    fixed-size chunks of at most ``--map-chunk`` pixels, the default number at once; the
    second pass on the pixels left above R-hat 1.05; the priors and Laplace marginals of
@@ -217,7 +217,7 @@ def part_map(args):
 
 
 def map_run(args, cap, name):
-    """Adaptive uncertainty map (MAP_OPTIONS, fixed-size chunks) of a capture. The fit is
+    """Adaptive uncertainty map (UNCERTAINTY_MAP_HMC, fixed-size chunks) of a capture. The fit is
     of the whole capture, once, compile included (the model choice is made once per capture
     on a fixed-size sample of pixels, so its time does not scale with the rows). With
     ``--map-rows R`` the posterior is of the first R rows only, run twice (the first run's
@@ -247,7 +247,7 @@ def map_run(args, cap, name):
             theta,
             theta_std,
             flag,
-            jp.AdaptiveOptions(hmc=jp.MAP_OPTIONS, chunk=args.map_chunk, keep_samples=False),
+            jp.AdaptiveOptions(chunk=args.map_chunk, keep_samples=False),
             noise_scale=np.where(noise0 > 0, noise0, 1e-2),
             dof=dof,
             progress=True,
@@ -264,14 +264,16 @@ def map_run(args, cap, name):
     m = u.report()
     tm = u.timings
     n_mc = m["mcmc"]["pixels"]
-    workers = jp.default_workers()
-    o = jp.MAP_OPTIONS
+    from jaxrefl.posterior._workers import default_workers
+
+    workers = default_workers()
+    o, g = jp.UNCERTAINTY_MAP_HMC, jp.UNCERTAINTY_MAP_GIBBS
     print(
         f"\nadaptive uncertainty map, {name}, rows 0-{rows - 1} of {h_full} x {w} "
         f"(K = {cap.shape[0]}), float64, {o.num_chains} chains of {o.num_samples} draws: "
         f"HMC ({o.num_warmup} warm-up, {o.num_integration_steps} leapfrog) or, where the "
-        f"posterior allows, Gibbs ({o.gibbs_warmup} warm-up intervals; exact Gibbs "
-        f"{o.gibbs_sweeps} sweeps, the width sampler {o.width_scans or o.gibbs_sweeps} "
+        f"posterior allows, Gibbs ({g.warmup(o.num_warmup)} warm-up intervals; exact Gibbs "
+        f"{g.sweeps} sweeps, the width sampler {g.scans} "
         f"scan(s) between draws); chunks of {tm.get('mcmc_chunk_size', 0)} pixels, "
         f"{workers} at once; sampler: {tm.get('sampler', '-')}:"
     )
@@ -411,7 +413,7 @@ def _timed_call(f, *a) -> float:
 
 def part_mixing(args) -> None:
     """MCMC mixing on the Laplace-flagged pixels of a small demo capture under variants of
-    ``MAP_OPTIONS`` (same pixels, same seed): in the fit's coordinates does a longer or
+    ``UNCERTAINTY_MAP_HMC`` (same pixels, same seed): in the fit's coordinates does a longer or
     wider run, or a start clipped into [-4, 4], fix the R-hat of the map's MCMC pixels? And
     in the non-centred coordinates (``reparam``, :mod:`jaxrefl.posterior._reparam`), at
     which trajectory length?"""
@@ -435,7 +437,7 @@ def part_mixing(args) -> None:
     s0 = np.where(noise0 > 0, noise0, 1e-2)
     sub = jax.tree.map(lambda v: v[sel], svbrdf.pixel_block(cap, 0, n, dtype=np.float64))
     sd = np.concatenate([tsd, np.ones((sel.size, 1))], -1)
-    m = jp.MAP_OPTIONS
+    m, gibbs = jp.UNCERTAINTY_MAP_HMC, jp.UNCERTAINTY_MAP_GIBBS
     rep = dataclasses.replace
     # The reference variant: the fit's theta (no reparametrisation) and 8 leapfrog steps.
     fit8 = rep(m, reparam="none", num_integration_steps=8)
@@ -448,13 +450,15 @@ def part_mixing(args) -> None:
         ("fit's theta, 32 leapfrog", theta[sel], rep(m, reparam="none")),
         ("non-centred albedo, 8 leapfrog", theta[sel], rep(m, num_integration_steps=8)),
         ("non-centred albedo, 16 leapfrog", theta[sel], rep(m, num_integration_steps=16)),
-        ("non-centred albedo, 32 leapfrog (MAP_OPTIONS)", theta[sel], m),
+        ("non-centred albedo, 32 leapfrog (UNCERTAINTY_MAP_HMC)", theta[sel], m),
     ]
     rows = []
     first = None
     for name, th, opts in variants:
         x0 = lp.init_theta(jnp.asarray(th), noise_scale=s0)
-        smp = jp.sample_pixels(lp, sub, x0, theta_std=sd, options=opts, seed=1, timing=True)
+        smp = jp.sample_pixels(
+            lp, sub, x0, theta_std=sd, options=opts, gibbs=gibbs, seed=1, timing=True
+        )
         dg = jp.diagnostics(smp)
         r = dg["max_rhat"]
         if opts is m:
@@ -486,7 +490,7 @@ def part_mixing(args) -> None:
 
 
 def _second_pass(lp, sub, sd, x0, smp, r, m) -> None:
-    """The second pass of ``adaptive_uncertainty`` on the pixels that MAP_OPTIONS left
+    """The second pass of ``adaptive_uncertainty`` on the pixels that UNCERTAINTY_MAP_HMC left
     above R-hat 1.1: restarted from the LM optimum or from first-pass draws (chain c from
     first-pass chain c, the draws' std as the initial metric), at which length."""
     import dataclasses
@@ -495,7 +499,7 @@ def _second_pass(lp, sub, sd, x0, smp, r, m) -> None:
 
     bad = np.flatnonzero(~(r <= 1.1))
     if bad.size == 0:
-        print("\n(no pixel above R-hat 1.1 after MAP_OPTIONS: no second pass)")
+        print("\n(no pixel above R-hat 1.1 after UNCERTAINTY_MAP_HMC: no second pass)")
         return
     rng = np.random.default_rng(0)
     rs = [_restarts(smp, int(j), m.num_chains, rng) for j in bad]
@@ -515,7 +519,9 @@ def _second_pass(lp, sub, sd, x0, smp, r, m) -> None:
         if (wf, thin) == (2, 4):
             assert o == jp.longer_options(m)
         t0 = time.perf_counter()
-        s2 = jp.sample_pixels(lp, sub_b, xx, theta_std=ss, options=o, seed=2)
+        s2 = jp.sample_pixels(
+            lp, sub_b, xx, theta_std=ss, options=o, gibbs=jp.UNCERTAINTY_MAP_GIBBS, seed=2
+        )
         wall = time.perf_counter() - t0
         g = jp.diagnostics(s2)
         rr = g["max_rhat"]
@@ -531,8 +537,8 @@ def _second_pass(lp, sub, sd, x0, smp, r, m) -> None:
             ]
         )
     print(
-        f"\nsecond pass on the {bad.size} of {r.size} pixels above R-hat 1.1 after MAP_OPTIONS "
-        "(wall s includes compilation):"
+        f"\nsecond pass on the {bad.size} of {r.size} pixels above R-hat 1.1 after "
+        "UNCERTAINTY_MAP_HMC (wall s includes compilation):"
     )
     cols = ["restart", "max R-hat median", "q90", "share < 1.1", "min bulk ESS median"]
     print(table([*cols, "px w/ div.", "wall s"], rows))

@@ -321,7 +321,7 @@ def synthetic_map(size: int, model: str) -> None:
     job = FitJob(model=model, holdout=(SYN_HELD,), config=fit.FitConfig(dtype=np.float64))
     # the sampler settings of `jaxrefl sample`'s defaults (4 chains of 500 draws; the Gibbs
     # samplers where the posterior allows), its default priors (population_priors)
-    opts = jp.AdaptiveOptions(hmc=jp.HMCOptions(gibbs_sweeps=2))
+    opts = jp.AdaptiveOptions(hmc=jp.HMCOptions(), gibbs=jp.GibbsOptions(sweeps=2))
     cu = uncertainty_maps(cap, job, opts)
     wall = time.perf_counter() - t0
     flag = predictive(cap, cu.fit).misspecified

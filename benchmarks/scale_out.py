@@ -8,7 +8,7 @@ Two jobs on the procedural demo capture (``jaxrefl demo``: 9 flash photos, 8-bit
 * the fit (:func:`jaxrefl.svbrdf.fit_capture`, ``--model``, float32, tiles of 4096
   pixels) of a ``--fit-size`` square capture;
 * the adaptive uncertainty map (:func:`jaxrefl.svbrdf.uncertainty_maps`: the float64 fit,
-  Laplace, then MCMC with :data:`jaxrefl.posterior.MAP_OPTIONS` on the flagged pixels and
+  Laplace, then MCMC with :data:`jaxrefl.posterior.UNCERTAINTY_MAP_HMC` on the flagged pixels and
   a 2% audit, no second pass; ``--warmup`` / ``--samples`` shorten its chains) of a
   ``--post-size`` square capture, its MCMC pixels in chunks of ``--chunk`` (the chunks are
   what the processes share); ``--post-rows R`` maps the first R rows of that capture only.
@@ -77,7 +77,7 @@ cap_dir, out, model, coord, n, pid, chunk, rows, warmup, samples = sys.argv[1:]
 dist = None if coord == "-" else fit.Distributed(coord, int(n), int(pid))
 if dist is not None:
     dist.initialize()
-hmc = dataclasses.replace(jp.MAP_OPTIONS, num_warmup=int(warmup), num_samples=int(samples))
+hmc = dataclasses.replace(jp.UNCERTAINTY_MAP_HMC, num_warmup=int(warmup), num_samples=int(samples))
 opts = jp.AdaptiveOptions(hmc=hmc, rerun_rhat=None, chunk=int(chunk),
                           keep_samples=False)
 job = svbrdf.FitJob(model=model, config=fit.FitConfig(dtype=np.float64))
@@ -184,10 +184,10 @@ def main() -> int:
     ap.add_argument("--model", default="ggx")
     ap.add_argument("--chunk", type=int, default=512, help="MCMC pixels per chunk")
     ap.add_argument(
-        "--warmup", type=int, default=None, help="MCMC warm-up steps (default: MAP_OPTIONS')"
+        "--warmup", type=int, default=None, help="MCMC warm-up steps (default: the map's)"
     )
     ap.add_argument(
-        "--samples", type=int, default=None, help="MCMC kept steps (default: MAP_OPTIONS')"
+        "--samples", type=int, default=None, help="MCMC kept steps (default: the map's)"
     )
     ap.add_argument(
         "--post-rows", type=int, default=None, help="the uncertainty map of the first rows only"
@@ -196,10 +196,10 @@ def main() -> int:
     a = ap.parse_args()
     counts = [int(v) for v in a.processes.split(",")]
     a.post_rows = a.post_size if a.post_rows is None else min(a.post_rows, a.post_size)
-    from jaxrefl.posterior import MAP_OPTIONS
+    from jaxrefl.posterior import UNCERTAINTY_MAP_HMC
 
-    a.warmup = MAP_OPTIONS.num_warmup if a.warmup is None else a.warmup
-    a.samples = MAP_OPTIONS.num_samples if a.samples is None else a.samples
+    a.warmup = UNCERTAINTY_MAP_HMC.num_warmup if a.warmup is None else a.warmup
+    a.samples = UNCERTAINTY_MAP_HMC.num_samples if a.samples is None else a.samples
     tmp = Path(tempfile.mkdtemp(prefix="scale_out_"))
     try:
         fit_cap, post_cap = _demo(tmp, a.fit_size), _demo(tmp, a.post_size)
@@ -244,15 +244,16 @@ def main() -> int:
     print(table(head, rows))
     p = posts[min(posts)]
     short = ""
-    if (a.warmup, a.samples) != (MAP_OPTIONS.num_warmup, MAP_OPTIONS.num_samples):
-        full = MAP_OPTIONS.num_warmup + MAP_OPTIONS.num_samples
+    if (a.warmup, a.samples) != (UNCERTAINTY_MAP_HMC.num_warmup, UNCERTAINTY_MAP_HMC.num_samples):
+        full = UNCERTAINTY_MAP_HMC.num_warmup + UNCERTAINTY_MAP_HMC.num_samples
         short = (
-            f"; MAP_OPTIONS itself runs {MAP_OPTIONS.num_warmup} and "
-            f"{MAP_OPTIONS.num_samples}, about {full / (a.warmup + a.samples):.1f}x the MCMC time"
+            f"; UNCERTAINTY_MAP_HMC itself runs {UNCERTAINTY_MAP_HMC.num_warmup} and "
+            f"{UNCERTAINTY_MAP_HMC.num_samples}, about {full / (a.warmup + a.samples):.1f}x "
+            "the MCMC time"
         )
     print(
         f"\nThe uncertainty map samples {p['mcmc_pixels']} pixels in {p['chunks']} chunks "
-        f"(MAP_OPTIONS with {a.warmup} warm-up and {a.samples} kept steps, no second "
+        f"(UNCERTAINTY_MAP_HMC with {a.warmup} warm-up and {a.samples} kept steps, no second "
         f"pass{short}). This machine has {os.cpu_count()} cores and is "
         "shared: other work ran beside these runs wherever the load average exceeds the "
         "processes' own (about the cores they keep busy), and slowed them."

@@ -1,25 +1,27 @@
 """The uncertainty map's default settings, said once and importable without JAX.
 
-One map, one default: :class:`jaxrefl.posterior.AdaptiveOptions` (whose ``hmc`` default is
-:data:`jaxrefl.posterior.MAP_OPTIONS`, built from :data:`MAP_SAMPLER`), ``jaxrefl sample
-CAPTURE`` (its ``--warmup``, ``--samples``, ``--chains``, ``--gibbs-sweeps``, ``--audit``,
-``--chunk`` and ``--rerun-rhat`` defaults) and the docs read these values, so a notebook
-user and a command-line user get the same map from the same capture. The command line
-imports this module without importing JAX (``jaxrefl --help`` stays fast).
+One map, one default: :class:`jaxrefl.posterior.AdaptiveOptions` (whose ``hmc`` and
+``gibbs`` defaults are :data:`jaxrefl.posterior.UNCERTAINTY_MAP_HMC`, built from
+:data:`MAP_SAMPLER`, and :data:`jaxrefl.posterior.UNCERTAINTY_MAP_GIBBS`, from
+:data:`MAP_GIBBS`), ``jaxrefl sample CAPTURE`` (its ``--warmup``, ``--samples``,
+``--chains``, ``--gibbs-sweeps``, ``--audit``, ``--chunk`` and ``--rerun-rhat``
+defaults) and the docs read these values, so a notebook user and a command-line user get
+the same map from the same capture. The command line imports this module without
+importing JAX (``jaxrefl --help`` stays fast).
 
 The sampler's targets are a std and 5% / 95% quantiles per pixel, not tail probabilities:
-2 chains of 100 warm-up and 100 kept steps; HMC with 32 leapfrog steps where HMC runs;
-Gibbs sampling where the posterior allows it (2 scans between kept draws), the width
-sampler's joint move once per kept draw (``width_scans``). Pixels whose chains disagree
-(max split R-hat above :data:`RERUN_RHAT`) run a second pass
-(:func:`jaxrefl.posterior.longer_options` or :func:`jaxrefl.posterior.untuned_rerun`).
+a few short chains; HMC where it runs; Gibbs sampling where the posterior allows it (exact
+Gibbs ``sweeps`` scans between kept draws, the width sampler's joint move ``width_scans``
+times per kept draw). Pixels whose chains disagree (max split R-hat above
+:data:`RERUN_RHAT`) run a second pass (:func:`jaxrefl.posterior.longer_options` or
+:func:`jaxrefl.posterior.untuned_rerun`).
 """
 
 from __future__ import annotations
 
 from typing import Any
 
-__all__ = ["MAP_AUDIT", "MAP_CHUNK", "MAP_SAMPLER", "RERUN_RHAT"]
+__all__ = ["MAP_AUDIT", "MAP_CHUNK", "MAP_GIBBS", "MAP_SAMPLER", "RERUN_RHAT"]
 
 #: Keyword arguments of :class:`jaxrefl.posterior.HMCOptions` for an uncertainty map.
 MAP_SAMPLER: dict[str, Any] = {
@@ -28,9 +30,9 @@ MAP_SAMPLER: dict[str, Any] = {
     "num_chains": 2,
     "num_integration_steps": 32,
     "batch_size": 128,
-    "gibbs_sweeps": 2,
-    "width_scans": 1,
 }
+#: Keyword arguments of :class:`jaxrefl.posterior.GibbsOptions` for an uncertainty map.
+MAP_GIBBS: dict[str, Any] = {"sweeps": 2, "width_scans": 1}
 #: Share of the pixels Laplace calls reliable that are also sampled, to audit it.
 MAP_AUDIT = 0.02
 #: MCMC pixels per compiled sampler call.

@@ -186,7 +186,7 @@ def test_mcmc_chunks_on_two_devices_equal_one_device():
         jax.config.update("jax_enable_x64", True)
         from jaxrefl import brdf, fit
         from jaxrefl import posterior as jp
-        from jaxrefl.posterior import _batched
+        from jaxrefl.posterior import _hmc as _batched
         assert jax.device_count() == 2
 
         sigma, n, k = 0.02, 6, 6

@@ -120,12 +120,13 @@ def test_population_priors_of_a_grey_capture(grey_capture, monkeypatch):
     post = lp_map.space
     std = np.concatenate([svbrdf.laplace_theta_std(cf, post)[rows], np.ones((rows.size, 1))], 1)
     theta = svbrdf.fit_theta(cf, post)[rows]
-    opts = jp.HMCOptions(num_warmup=50, num_samples=200, num_chains=2, gibbs_sweeps=1)
+    opts = jp.HMCOptions(num_warmup=50, num_samples=200, num_chains=2)
+    gibbs = jp.GibbsOptions(sweeps=1)
     spread, err, alpha = {}, {}, {}
     for name, chosen in (("default", {}), ("population", priors)):
         lp = jp.log_posterior(model, post, fit.GaussianNoise(None), priors=chosen)
         th0 = lp.init_theta(jnp.asarray(theta), noise_scale=np.maximum(noise0, 1e-3))
-        s = jp.sample_pixels(lp, data, th0, theta_std=std, options=opts, seed=2)
+        s = jp.sample_pixels(lp, data, th0, theta_std=std, options=opts, gibbs=gibbs, seed=2)
         assert s.method == "gibbs_mh"
         r, g = (s.natural[..., lp.labels.index(f"specular.{c}")] for c in "RG")
         spread[name] = float(np.median(np.std(r - g, axis=(1, 2))))

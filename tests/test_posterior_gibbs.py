@@ -90,7 +90,8 @@ def test_gibbs_agrees_with_hmc_on_the_pooled_posterior(pooled_posterior):
         lp,
         sub,
         theta0,
-        options=jp.HMCOptions(num_warmup=100, num_samples=1000, num_chains=4, gibbs_sweeps=2),
+        options=jp.HMCOptions(num_warmup=100, num_samples=1000, num_chains=4),
+        gibbs=jp.GibbsOptions(sweeps=2),
         seed=1,
     )
     assert g.method == "gibbs"
@@ -116,7 +117,8 @@ def test_gibbs_agrees_with_hmc_on_the_pooled_posterior(pooled_posterior):
 
 def test_only_linear_gaussian_posteriors_take_the_gibbs_path(pooled_posterior):
     lp, sub, theta0 = pooled_posterior
-    opts = jp.HMCOptions(num_warmup=20, num_samples=20, num_chains=2, gibbs_sweeps=1)
+    opts = jp.HMCOptions(num_warmup=20, num_samples=20, num_chains=2)
+    gibbs = jp.GibbsOptions(sweeps=1)
     # a censored observation with a fractional weight: not a Tobit likelihood
     cens = np.asarray(sub.censored).copy()
     cens[0, 0, 0] = 1
@@ -124,7 +126,7 @@ def test_only_linear_gaussian_posteriors_take_the_gibbs_path(pooled_posterior):
     wts[0, 0, 0] = 0.5
     half = sub.__class__(**{**sub.__dict__, "censored": jnp.asarray(cens), "weight": wts})
     assert not qualifies(lp, half)[0]
-    assert jp.sample_pixels(lp, half, theta0, options=opts).method == "hmc"
+    assert jp.sample_pixels(lp, half, theta0, options=opts, gibbs=gibbs).method == "hmc"
     # a per-pixel lobe width: not linear, and alpha's prior is not uniform
     model, space = svbrdf.capture_model("ggx", channels=3)
     ggx = jp.log_posterior(model, space, fit.GaussianNoise(None))
@@ -134,21 +136,21 @@ def test_only_linear_gaussian_posteriors_take_the_gibbs_path(pooled_posterior):
     model, space = lp.model, lp.space
     huber = jp.log_posterior(model, space, fit.GaussianNoise(None), loss=fit.Huber(1.0))
     assert qualifies(huber, sub) == (False, "the loss is Huber, not L2")
-    # gibbs_sweeps=0 (the default options): HMC even where Gibbs would be exact
-    plain = jp.HMCOptions(num_warmup=20, num_samples=20, num_chains=2)
-    assert jp.sample_pixels(lp, sub, theta0, options=plain).method == "hmc"
-    with pytest.raises(ValueError, match="gibbs_sweeps"):
-        jp.HMCOptions(gibbs_sweeps=-1)
+    # no GibbsOptions (the default): HMC even where Gibbs would be exact
+    assert jp.sample_pixels(lp, sub, theta0, options=opts).method == "hmc"
+    with pytest.raises(ValueError, match="sweeps"):
+        jp.GibbsOptions(sweeps=0)
 
 
 def test_gibbs_path_discards_its_fraction_of_the_warm_up(pooled_posterior):
-    """sample_pixels' Gibbs path runs sample_gibbs with num_warmup * gibbs_warmup_fraction
+    """sample_pixels' Gibbs path runs sample_gibbs with num_warmup * warmup_fraction
     intervals of warm-up (at least 1): the same draws as a direct call with that count."""
     lp, sub, theta0 = pooled_posterior
-    opts = jp.HMCOptions(num_warmup=50, num_samples=20, num_chains=2, gibbs_sweeps=1)
-    assert opts.gibbs_warmup == 10
-    assert jp.HMCOptions(num_warmup=2, gibbs_warmup_fraction=0.1).gibbs_warmup == 1
-    s = jp.sample_pixels(lp, sub, theta0, options=opts, seed=7)
+    opts = jp.HMCOptions(num_warmup=50, num_samples=20, num_chains=2)
+    gibbs = jp.GibbsOptions(sweeps=1)
+    assert gibbs.warmup(opts.num_warmup) == 10
+    assert jp.GibbsOptions(warmup_fraction=0.1).warmup(2) == 1
+    s = jp.sample_pixels(lp, sub, theta0, options=opts, gibbs=gibbs, seed=7)
     kw = dict(num_chains=2, num_samples=20, sweeps=1, seed=7)
     direct = sample_gibbs(lp, sub, theta0, num_warmup=10, **kw)
     longer = sample_gibbs(lp, sub, theta0, num_warmup=50, **kw)
@@ -156,8 +158,8 @@ def test_gibbs_path_discards_its_fraction_of_the_warm_up(pooled_posterior):
     np.testing.assert_array_equal(s.theta, direct.theta)
     assert not np.array_equal(s.theta, longer.theta)
     for bad in (0.0, 1.5):
-        with pytest.raises(ValueError, match="gibbs_warmup_fraction"):
-            jp.HMCOptions(gibbs_warmup_fraction=bad)
+        with pytest.raises(ValueError, match="warmup_fraction"):
+            jp.GibbsOptions(warmup_fraction=bad)
 
 
 def test_censored_observations_by_data_augmentation_agree_with_hmc(pooled_posterior):
@@ -176,7 +178,8 @@ def test_censored_observations_by_data_augmentation_agree_with_hmc(pooled_poster
         lp,
         clipped,
         theta0,
-        options=jp.HMCOptions(num_warmup=100, num_samples=1000, num_chains=4, gibbs_sweeps=2),
+        options=jp.HMCOptions(num_warmup=100, num_samples=1000, num_chains=4),
+        gibbs=jp.GibbsOptions(sweeps=2),
         seed=3,
     )
     h = jp.sample_pixels(

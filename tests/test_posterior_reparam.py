@@ -153,9 +153,9 @@ def test_known_answer_against_the_bound():
 
 def test_the_ridge_of_an_unseen_highlight_mixes_only_non_centred():
     """Co-located flash views of a glossy pixel far from its highlight: specular and
-    alpha trade against the albedo along a curved ridge. Under MAP_OPTIONS the fit's
+    alpha trade against the albedo along a curved ridge. Under UNCERTAINTY_MAP_HMC the fit's
     coordinates do not mix (median max R-hat > 1.15); the non-centred ones do (< 1.08).
-    MAP_OPTIONS itself takes the width sampler here (its joint move draws alpha from its
+    UNCERTAINTY_MAP_GIBBS takes the width sampler here (its joint move draws alpha from its
     marginal, across the ridge): median max R-hat < 1.05."""
     rng = np.random.default_rng(3)
     model, space = svbrdf.capture_model("ggx", channels=3, alpha_min=0.05)
@@ -181,12 +181,11 @@ def test_the_ridge_of_an_unseen_highlight_mixes_only_non_centred():
     x0 = lp.init_theta(truth, noise_scale=0.01)
     med = {}
     for mode in ("none", "albedo", "width"):
-        opts = (
-            jp.MAP_OPTIONS
-            if mode == "width"
-            else dataclasses.replace(jp.MAP_OPTIONS, reparam=mode, gibbs_sweeps=0)
-        )
-        s = jp.sample_pixels(lp, data, x0, options=opts, seed=5)
+        width = mode == "width"
+        opts = jp.UNCERTAINTY_MAP_HMC
+        opts = opts if width else dataclasses.replace(opts, reparam=mode)
+        gibbs = jp.UNCERTAINTY_MAP_GIBBS if width else None
+        s = jp.sample_pixels(lp, data, x0, options=opts, gibbs=gibbs, seed=5)
         assert s.method == ("gibbs_mh" if mode == "width" else "hmc")
         th = np.moveaxis(s.theta, -1, 1).reshape(-1, *s.theta.shape[1:3])
         med[mode] = float(np.median(rhat_rank(th).reshape(n, -1).max(1)))

@@ -15,7 +15,7 @@ from scipy import special
 from jaxrefl import fit, svbrdf
 from jaxrefl import posterior as jp
 from jaxrefl.demo import demo_scene, photograph_maps
-from jaxrefl.posterior._gibbs import _theta_of
+from jaxrefl.posterior._conjugate import theta_of as _theta_of
 from jaxrefl.posterior._width_gibbs import qualifies_width, sample_width_gibbs
 
 SIZE = 8
@@ -190,7 +190,8 @@ def test_agrees_with_hmc_with_censoring_an_unknown_noise_scale_and_a_gaussian_pr
         clipped,
         theta0,
         theta_std=std,
-        options=jp.HMCOptions(num_warmup=100, num_samples=1000, num_chains=4, gibbs_sweeps=2),
+        options=jp.HMCOptions(num_warmup=100, num_samples=1000, num_chains=4),
+        gibbs=jp.GibbsOptions(sweeps=2),
         seed=1,
     )
     assert g.method == "gibbs_mh"
@@ -220,13 +221,13 @@ def test_agrees_with_hmc_with_censoring_an_unknown_noise_scale_and_a_gaussian_pr
 
 def test_which_posteriors_take_the_width_path(ggx_fit):
     _cap, cf, data, pick = ggx_fit
-    assert jp.MAP_OPTIONS.width_scans == 1 and jp.HMCOptions().width_scans is None
+    assert jp.UNCERTAINTY_MAP_GIBBS.width_scans == 1 and jp.GibbsOptions().width_scans is None
     with pytest.raises(ValueError, match="width_scans"):
-        jp.HMCOptions(width_scans=0)
+        jp.GibbsOptions(width_scans=0)
     lp, _space = _posterior(cf, fit.GaussianNoise(None))
     sub = jax.tree.map(lambda x: x[pick[:2]], data)
     assert qualifies_width(lp, sub) == (True, "")
-    # (sample_pixels takes this path with gibbs_sweeps > 0 and HMC with 0: the ridge test
+    # (sample_pixels takes this path given GibbsOptions and HMC without: the ridge test
     # of tests/test_posterior_reparam.py runs both)
     # a robust loss is not Gaussian
     huber = jp.log_posterior(lp.model, lp.space, fit.GaussianNoise(None), loss=fit.Huber(1.0))

@@ -16,8 +16,9 @@ then :func:`jaxrefl.posterior.adaptive_uncertainty` with the
 :class:`~jaxrefl.posterior.AdaptiveOptions` the flags give; every default is the library's
 (:mod:`jaxrefl._map_defaults`: ``AdaptiveOptions()`` and this command make the same map)
 (``--mcmc``, ``--audit``,
-``--warmup``/``--samples``/``--chains``/``--gibbs-sweeps`` as its
-:class:`~jaxrefl.posterior.HMCOptions`: where the posterior allows, Gibbs sampling instead
+``--warmup``/``--samples``/``--chains`` as its :class:`~jaxrefl.posterior.HMCOptions`,
+``--gibbs-sweeps`` as its :class:`~jaxrefl.posterior.GibbsOptions`: where the posterior
+allows, Gibbs sampling instead
 of HMC, exact for ``pooled``, with the lobe width from its collapsed marginal for the
 per-pixel models (:mod:`jaxrefl.posterior._width_gibbs`),
 ``--rerun-rhat``: the max R-hat above which a pixel runs the longer second pass, 0 for
@@ -69,7 +70,7 @@ from pathlib import Path
 from typing import Any
 
 from jaxrefl._errors import JaxreflError
-from jaxrefl._map_defaults import MAP_AUDIT, MAP_CHUNK, MAP_SAMPLER, RERUN_RHAT
+from jaxrefl._map_defaults import MAP_AUDIT, MAP_CHUNK, MAP_GIBBS, MAP_SAMPLER, RERUN_RHAT
 from jaxrefl._names import (
     CAPTURE_MODELS,
     LIGHT_CHOICES,
@@ -179,10 +180,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--gibbs-sweeps",
         type=non_negative_int,
-        default=MAP_SAMPLER["gibbs_sweeps"],
+        default=MAP_GIBBS["sweeps"],
         help="scans between kept draws where a capture's posterior allows Gibbs sampling "
         "(pooled, per-pixel lobes under a co-located flash; --warmup scaled by "
-        "HMCOptions.gibbs_warmup_fraction); 0: HMC everywhere",
+        "GibbsOptions.warmup_fraction); 0: HMC everywhere",
     )
     p.add_argument(
         "--rerun-rhat",
@@ -334,20 +335,24 @@ def _progress(args) -> bool:
 
 
 def _options(args, brdf_file: bool):
-    """The sampler's settings: the map's (:data:`jaxrefl.posterior.MAP_OPTIONS`) for a
+    """The chains and HMC: the map's (:data:`jaxrefl.posterior.UNCERTAINTY_MAP_HMC`) for a
     capture, :class:`~jaxrefl.posterior.HMCOptions`' own for a BRDF file's HMC, with the
     flags given."""
-    import dataclasses
+    from jaxrefl.posterior import UNCERTAINTY_MAP_HMC, HMCOptions
 
-    from jaxrefl.posterior import MAP_OPTIONS, HMCOptions
-
-    base = HMCOptions() if brdf_file else MAP_OPTIONS
+    base = HMCOptions() if brdf_file else UNCERTAINTY_MAP_HMC
     given = {"num_warmup": args.warmup, "num_samples": args.samples, "num_chains": args.chains}
-    return dataclasses.replace(
-        base,
-        gibbs_sweeps=args.gibbs_sweeps,
-        **{k: v for k, v in given.items() if v is not None},
-    )
+    return dataclasses.replace(base, **{k: v for k, v in given.items() if v is not None})
+
+
+def _gibbs(args):
+    """The map's Gibbs sampling (:data:`jaxrefl.posterior.UNCERTAINTY_MAP_GIBBS`) with
+    ``--gibbs-sweeps``; None (HMC everywhere) for 0."""
+    from jaxrefl.posterior import UNCERTAINTY_MAP_GIBBS
+
+    if args.gibbs_sweeps == 0:
+        return None
+    return dataclasses.replace(UNCERTAINTY_MAP_GIBBS, sweeps=args.gibbs_sweeps)
 
 
 class _Stages:
@@ -374,6 +379,7 @@ def _run_capture(args, path: Path, opts, dist) -> dict:
         mcmc=args.mcmc,
         audit=args.audit,
         hmc=opts,
+        gibbs=_gibbs(args),
         rerun_rhat=(
             RERUN_RHAT
             if args.rerun_rhat is None
@@ -451,7 +457,7 @@ def _run_brdf(args, path: Path, opts) -> dict:
     from jaxrefl import measured
     from jaxrefl import posterior as jp
 
-    sampler = dataclasses.replace(opts, gibbs_sweeps=0)  # --sampler hmc: HMC, as asked
+    sampler = opts  # --sampler hmc: HMC, as asked
     if args.sampler == "emcee":
         sampler = jp.EmceeOptions(n_walkers=args.walkers, max_steps=args.max_steps)
     res = measured.sample_posterior(

@@ -9,32 +9,35 @@ Quick use::
     lp = jp.log_posterior(model, space, fit.GaussianNoise(0.01))   # priors: jp.default_priors
     s = jp.sample_pixels(lp, data, lp.init_theta(result.theta))    # vmapped HMC, (N, K, C)
     jp.diagnostics(s)["max_rhat"], jp.to_inference_data(s, data).to_netcdf("post.nc")
-    opts = jp.AdaptiveOptions(mcmc="flagged", hmc=jp.MAP_OPTIONS)          # one option object
+    opts = jp.AdaptiveOptions(mcmc="flagged")           # the map's defaults: one option object
     umap = jp.adaptive_uncertainty(lp, data, result.theta, lap.theta_std, lap.flag, opts)
     jp.write_uncertainty_exr("uncertainty.exr", umap, h, w)
 
 Parts: :mod:`._priors` (priors in natural units), :mod:`._sphere` (light direction on the
 sphere), :mod:`._logpost` (the log-posterior from the fit's model, bijections and noise),
-:mod:`._batched` (BlackJAX HMC/NUTS vmapped over pixels), :mod:`._reparam` (the
-non-centred albedo coordinates the batched sampler moves in), :mod:`._emcee` (ensemble
-sampler), :mod:`._adaptive` (Laplace everywhere, MCMC where flagged), :mod:`._diagnostics`
-(ArviZ, R-hat/ESS, plots, predictive checks), :mod:`._sbc` (simulation-based
-calibration), :mod:`._maps` (EXR uncertainty channels).
+:mod:`._options` (the samplers' settings), :mod:`._choice` (which sampler a batch of
+pixels takes), :mod:`._driver` (the one driver of the samplers' init/step kernels:
+starts, chains, packaging as :class:`Samples`), :mod:`._hmc` (BlackJAX HMC/NUTS vmapped
+over pixels), :mod:`._gibbs` and :mod:`._width_gibbs` (Gibbs sampling where the posterior
+is linear-Gaussian, in every parameter or given the lobe width; shared parts in
+:mod:`._conjugate`), :mod:`._reparam` (the non-centred albedo coordinates HMC moves in),
+:mod:`._emcee` (ensemble sampler), :mod:`._adaptive` (Laplace everywhere, MCMC where
+flagged; its settings :mod:`._adaptive_options`, its result :mod:`._uncertainty_map`, its
+chunks :mod:`._chunks`), :mod:`._diagnostics` (ArviZ, R-hat/ESS, plots, predictive
+checks), :mod:`._sbc` (simulation-based calibration), :mod:`._maps` (EXR uncertainty
+channels).
 """
 
-from ._adaptive import HEARTBEAT_S as HEARTBEAT_S
-from ._adaptive import MAP_OPTIONS as MAP_OPTIONS
-from ._adaptive import METHODS as METHODS
-from ._adaptive import RERUN_RHAT as RERUN_RHAT
-from ._adaptive import AdaptiveOptions as AdaptiveOptions
-from ._adaptive import MCMCPixels as MCMCPixels
-from ._adaptive import UncertaintyMap as UncertaintyMap
 from ._adaptive import adaptive_uncertainty as adaptive_uncertainty
-from ._adaptive import laplace_summary as laplace_summary
-from ._adaptive import longer_options as longer_options
-from ._adaptive import untuned_rerun as untuned_rerun
-from ._batched import HMCOptions as HMCOptions
-from ._batched import sample_pixels as sample_pixels
+from ._adaptive_options import RERUN_RHAT as RERUN_RHAT
+from ._adaptive_options import UNCERTAINTY_MAP_GIBBS as UNCERTAINTY_MAP_GIBBS
+from ._adaptive_options import UNCERTAINTY_MAP_HMC as UNCERTAINTY_MAP_HMC
+from ._adaptive_options import AdaptiveOptions as AdaptiveOptions
+from ._adaptive_options import MCMCPixels as MCMCPixels
+from ._adaptive_options import longer_options as longer_options
+from ._adaptive_options import untuned_rerun as untuned_rerun
+from ._choice import sample_pixels as sample_pixels
+from ._chunks import HEARTBEAT_S as HEARTBEAT_S
 from ._diagnostics import diagnostics as diagnostics
 from ._diagnostics import log_likelihood_draws as log_likelihood_draws
 from ._diagnostics import plot_corner as plot_corner
@@ -50,6 +53,7 @@ from ._emcee import EmceeOptions as EmceeOptions
 from ._emcee import autocorr_check as autocorr_check
 from ._emcee import convergence as convergence
 from ._emcee import sample_emcee as sample_emcee
+from ._laplace_summary import laplace_summary as laplace_summary
 from ._logpost import LogPosterior as LogPosterior
 from ._logpost import SharedLight as SharedLight
 from ._logpost import log_posterior as log_posterior
@@ -58,6 +62,8 @@ from ._maps import uncertainty_channels as uncertainty_channels
 from ._maps import write_uncertainty_exr as write_uncertainty_exr
 from ._methods import MCMC_METHODS as MCMC_METHODS
 from ._methods import Method as Method
+from ._options import GibbsOptions as GibbsOptions
+from ._options import HMCOptions as HMCOptions
 from ._priors import HalfCauchy as HalfCauchy
 from ._priors import Jeffreys as Jeffreys
 from ._priors import LogNormal as LogNormal
@@ -82,4 +88,70 @@ from ._sphere import SphereDirection as SphereDirection
 from ._sphere import angle_deg as angle_deg
 from ._sphere import direction_summary as direction_summary
 from ._sphere import lit_geometry as lit_geometry
-from ._workers import default_workers as default_workers
+from ._uncertainty_map import METHODS as METHODS
+from ._uncertainty_map import UncertaintyMap as UncertaintyMap
+
+__all__ = [
+    "HEARTBEAT_S",
+    "MCMC_METHODS",
+    "METHODS",
+    "RERUN_RHAT",
+    "UNCERTAINTY_MAP_GIBBS",
+    "UNCERTAINTY_MAP_HMC",
+    "AdaptiveOptions",
+    "ConditionalAlbedo",
+    "Convergence",
+    "EmceeOptions",
+    "GibbsOptions",
+    "HMCOptions",
+    "HalfCauchy",
+    "Jeffreys",
+    "LogNormal",
+    "LogPosterior",
+    "MCMCPixels",
+    "Method",
+    "MultivariateNormal",
+    "NonFinite",
+    "Normal",
+    "Prior",
+    "SBCResult",
+    "Samples",
+    "SharedLight",
+    "SphereDirection",
+    "UncertaintyMap",
+    "Uniform",
+    "VonMisesFisher",
+    "adaptive_uncertainty",
+    "angle_deg",
+    "autocorr_check",
+    "conditional_albedo",
+    "convergence",
+    "coverage",
+    "default_priors",
+    "diagnostics",
+    "direction_summary",
+    "laplace_summary",
+    "lit_geometry",
+    "log_likelihood_draws",
+    "log_posterior",
+    "longer_options",
+    "pit",
+    "plot_corner",
+    "plot_ppc",
+    "plot_rank",
+    "plot_trace",
+    "posterior_predictive",
+    "ranks",
+    "sample_emcee",
+    "sample_pixels",
+    "sample_truncated",
+    "save_netcdf",
+    "sbc_summary",
+    "split_rhat",
+    "thin",
+    "to_inference_data",
+    "uncertainty_channels",
+    "uniformity",
+    "untuned_rerun",
+    "write_uncertainty_exr",
+]

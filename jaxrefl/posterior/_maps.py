@@ -31,8 +31,8 @@ import numpy as np
 from jaxrefl._errors import JaxreflError
 from jaxrefl.io import exr_channels, map_name
 
-from ._adaptive import METHODS, UncertaintyMap
 from ._methods import MCMC_METHODS, Method
+from ._uncertainty_map import METHODS, UncertaintyMap
 
 __all__ = ["NonFinite", "uncertainty_channels", "write_uncertainty_exr"]
 

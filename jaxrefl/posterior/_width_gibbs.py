@@ -40,12 +40,11 @@ with SSE(alpha, x) = |W^1/2 (y' - b'(alpha) - A'(alpha) x)|^2 in whitened units
    term is 0 or 1 and the last stage's ratio is the plain independence one; equivalently,
    the proposal is truncated to the box, whose normalising constant (the inside mass) does
    not depend on the chain's state (stages are tried only after draws outside the box, a
-   rule the reverse path follows too). Two draws cost a second model evaluation per scan
-   and turn most of the rejections where a bound binds into moves, so that one scan between
-   kept draws (``HMCOptions.width_scans`` of :data:`~jaxrefl.posterior.MAP_OPTIONS`) mixes
-   about as two did with one draw. The cells are 32 even ones in log alpha from a tenth of
-   the fit's optimum (or the interval's lower end, if higher) to the upper end, 6 below
-   that, and 16 over +-6 Laplace standard deviations around the optimum, where an
+   rule the reverse path follows too). A second draw costs a second model evaluation
+   per scan and turns most of the rejections where a bound binds into moves. The cells
+   (:data:`_GLOBAL_CELLS`, :data:`_COARSE_CELLS`, :data:`_LOCAL_CELLS`) are even in log
+   alpha over the interval, coarser a decade below the fit's optimum, and dense around
+   the optimum, where an
    identified width is narrow. A ridge along which a lobe no photo saw trades width
    against F0 and albedo is crossed in one move: the proposal draws alpha from its
    marginal, not from its conditional given x;
@@ -77,7 +76,6 @@ joint moves' acceptance).
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import time
 
@@ -88,9 +86,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from jaxrefl.fit import (
-    L2,
     PixelData,
-    ScaledSigmoid,
     cholesky_unrolled,
     device_count,
     map_sharded,
@@ -99,23 +95,34 @@ from jaxrefl.fit import (
 )
 
 from ._bind import bind_once
-from ._gibbs import _EDGE, _density, _sweep, _theta_of, truncated_normal
+from ._conjugate import (
+    EDGE,
+    density,
+    natural_starts,
+    observations,
+    sweep,
+    theta_of,
+    truncated_normal,
+)
+from ._driver import Kernel, chain_starts, package, run_chain
 from ._logpost import LogPosterior
-from ._priors import Jeffreys, MultivariateNormal, Normal, Uniform
-from ._samples import Samples
+from ._width_layout import (
+    WIDTH,
+    affine_terms,
+    drop_width,
+    general,
+    insert_width,
+    layout,
+    qualifies_width,
+)
 
 __all__ = ["WIDTH", "qualifies_width", "sample_width_gibbs"]
 
-# The nonlinear parameter: a lobe width (GGX / Beckmann alpha), one scalar per pixel.
-WIDTH = "alpha"
-# Cells of the proposal over log alpha (module docstring): _GLOBAL_CELLS even ones from a
-# tenth of the optimum's width (or the interval's lower end, if higher) to the upper end,
+# Cells of the proposal over log alpha (module docstring): _GLOBAL_CELLS even ones from
+# _DENSE_BELOW below the optimum (or the interval's lower end, if higher) to the upper end,
 # _COARSE_CELLS even ones below that, and _LOCAL_CELLS over +-_LOCAL_SD Laplace standard
-# deviations around the optimum. Over a capture's resolvable range [0.05, 1] the even cells
-# are about 0.1 wide in log alpha; spread over the microfacet floor's [1e-3, 1] they would
-# be twice as wide. Where the local cells miss the posterior (a width at the fit's bound),
-# the even ones are the proposal, and cells that coarse mix more slowly. A posterior a
-# decade narrower than its fit's optimum is rare, and the coarse cells still propose it.
+# deviations around the optimum; the local cells hold an identified width, the even ones a
+# posterior far from the fit's optimum.
 _GLOBAL_CELLS = 32
 _COARSE_CELLS = 6
 _DENSE_BELOW = math.log(10.0)
@@ -130,145 +137,8 @@ _LOCAL_SD_RANGE = (1e-4, 2.0)
 # Censored observations per pixel the compiled sampler has room for (doubled where a pixel
 # has more): a clipped highlight is seen in one or two photos.
 _CENSORED_SLOTS = 4
-# Relative error of the linear prediction at a second point (see _gibbs._LINEAR_RTOL).
-_LINEAR_RTOL = 1e-9
 # Draws of the joint proposal per move, the first inside the box proposed (module docstring).
 _CANDIDATES = 2
-# Ridge relative to Q's largest diagonal entry in the Cholesky factor that gives step 3's
-# directions: keeps the factor finite where a direction is unseen (Q singular, a lobe no
-# photo saw); the moves stay exact for any directions.
-_RIDGE = 1e-10
-
-
-def _layout(lp: LogPosterior):
-    """(width index, lo (P,), hi (P,) over every natural entry, width prior, Gaussian prior)
-    when the posterior has one scalar ``alpha`` in a finite positive box and every other
-    entry is in a finite box with a uniform prior that covers it or a Gaussian prior
-    (:class:`Normal` per entry, :class:`MultivariateNormal` over its block; truncated to
-    the box); else None. The Gaussian prior is None where every such prior is uniform, else
-    a hashable (mean (P,), precision (P, P) in units of s^-2, k, absolute): zeros in the
-    uniform entries' and the width's rows and columns; a prior in units of the noise
-    (``noise_ref``) has precision cov^-1 noise_ref^2 (module docstring), one in absolute
-    units cov^-1, exact only where s = 1 (a known noise); k counts the entries of the
-    former (their prior's normalising factor s^-k), ``absolute`` says whether any prior is
-    of the latter kind."""
-    width = None
-    lo, hi = [], []
-    p = lp.space.size
-    mean, prec = np.zeros(p), np.zeros((p, p))
-    k_scaled, absolute = 0, False
-    for blk, prior in zip(lp.space.blocks, lp.priors, strict=True):
-        at = slice(blk.start, blk.stop)
-        for r in blk.runs:
-            if not isinstance(r.bijection, ScaledSigmoid):
-                return None
-            if not (np.isfinite(r.lower) and np.isfinite(r.upper)):
-                return None
-            if blk.name == WIDTH:
-                if r.stop - r.start != 1 or width is not None or not r.lower > 0:
-                    return None
-                width = (r.start, prior)
-            elif isinstance(prior, Normal):
-                idx = np.arange(r.start, r.stop)
-                mean[idx] = float(prior.mean)
-                prec[idx, idx] = 1.0 / float(prior.std) ** 2
-                absolute = True
-            elif isinstance(prior, MultivariateNormal):
-                if len(prior.mean) != blk.stop - blk.start:
-                    return None
-                if r.start == blk.start:  # once per block
-                    mean[at] = prior.mean
-                    ref = 1.0 if prior.noise_ref is None else float(prior.noise_ref) ** 2
-                    prec[at, at] = prior.precision * ref
-                    k_scaled += 0 if prior.noise_ref is None else len(prior.mean)
-                    absolute |= prior.noise_ref is None
-            elif not isinstance(prior, Uniform) or not (
-                float(prior.lower) <= r.lower and float(prior.upper) >= r.upper
-            ):
-                return None
-            lo += [r.lower] * (r.stop - r.start)
-            hi += [r.upper] * (r.stop - r.start)
-    if width is None:
-        return None
-    gauss = None
-    if np.any(prec != 0):
-        gauss = tuple(mean.tolist()), tuple(map(tuple, prec.tolist())), k_scaled, absolute
-    return width[0], np.asarray(lo, np.float64), np.asarray(hi, np.float64), width[1], gauss
-
-
-def _general(lp: LogPosterior) -> LogPosterior:
-    """``lp`` with its censored branch whatever the data (the same values): chunks with
-    and without censored observations then share one compiled program."""
-    return dataclasses.replace(lp, censoring=True)
-
-
-def _insert(x, a, i):
-    """The full natural vector: x (P - 1,) with the width a inserted at index i."""
-    return jnp.concatenate([x[..., :i], jnp.asarray(a, x.dtype)[..., None], x[..., i:]], -1)
-
-
-def _drop(v, i):
-    return jnp.concatenate([v[..., :i], v[..., i + 1 :]], -1)
-
-
-def _affine(lp, d, i, x_c, a):
-    """(A (M, P - 1), b (M,)) of pixel d's prediction at width a, exact for a model affine
-    in x (one forward-mode Jacobian at x_c)."""
-
-    def pred(x):
-        return lp.residual.predict(_theta_of(lp, _insert(x, a, i)), d).reshape(-1)
-
-    jac = jax.jacfwd(pred)(x_c)
-    return jac, pred(x_c) - jac @ x_c
-
-
-def qualifies_width(lp: LogPosterior, data: PixelData) -> tuple[bool, str]:
-    """(True, "") when :func:`sample_width_gibbs` samples this posterior for every pixel of
-    ``data`` (module docstring), else (False, the first condition that fails)."""
-    if lp.light is not None:
-        return False, "the light direction is sampled"
-    if not isinstance(lp.residual.loss, L2):
-        return False, f"the loss is {type(lp.residual.loss).__name__}, not L2"
-    if lp.noise_scale is not None and not isinstance(lp.noise_scale, Jeffreys):
-        return False, "the noise scale's prior is not Jeffreys'"
-    lay = _layout(lp)
-    if lay is None:
-        return False, (
-            f"not one scalar {WIDTH!r} in a positive box with every other parameter in a "
-            "finite box with a uniform or Gaussian prior"
-        )
-    cens = np.asarray(data.censored) != 0
-    w = np.asarray(data.weight)
-    if np.any(cens & (w != 0) & (w != 1)):
-        return False, "a censored observation has a weight other than 0 or 1"
-    i, lo, hi, _prior, gauss = lay
-    if gauss is not None and gauss[3] and lp.noise_scale is not None:
-        return False, (
-            "a Gaussian prior in absolute units with an unknown noise scale (give a "
-            "MultivariateNormal a noise_ref: a prior in units of the noise)"
-        )
-    ok = _linear_given_width(_general(lp), data, i, jnp.asarray(lo), jnp.asarray(hi))
-    if not bool(np.all(np.asarray(ok))):
-        return False, f"the model is not linear in its parameters given {WIDTH!r}"
-    return True, ""
-
-
-@eqx.filter_jit
-def _linear_given_width(lp, data, i, lo, hi):
-    xl, xh = _drop(lo, i), _drop(hi, i)
-    x_c, x_2 = 0.5 * (xl + xh), xl + 0.3 * (xh - xl)
-
-    def one(d):
-        ok = jnp.asarray(True)
-        for f in (0.2, 0.7):  # two widths inside the interval
-            a = lo[i] + f * (hi[i] - lo[i])
-            jac, b = _affine(lp, d, i, x_c, a)
-            p2 = lp.residual.predict(_theta_of(lp, _insert(x_2, a, i)), d).reshape(-1)
-            err = jnp.max(jnp.abs(p2 - (b + jac @ x_2)))
-            ok = ok & (err <= _LINEAR_RTOL * (jnp.max(jnp.abs(p2)) + 1e-300))
-        return ok
-
-    return jax.vmap(one)(data)
 
 
 def _moments(aw, bw, y, w):
@@ -301,19 +171,17 @@ def sample_width_gibbs(
     :class:`~jaxrefl.posterior.Samples` with ``method="gibbs_mh"``. The caller checks
     :func:`qualifies_width` first."""
 
-    lp = _general(lp)
-    lay = _layout(lp)
+    lp = general(lp)
+    lay = layout(lp)
     assert lay is not None  # qualifies_width() checked it
     i, lo_np, hi_np, prior, gauss = lay
     dtype = data.obs.dtype
     lo, hi = jnp.asarray(lo_np, dtype), jnp.asarray(hi_np, dtype)
-    n, p = data.obs.shape[0], lo.shape[0]
+    n = data.obs.shape[0]
     jeffreys = lp.noise_scale is not None
-    use = lp.residual.usable(data)
-    w = jnp.where(use, data.weight.astype(dtype), 0.0).reshape(n, -1)
-    obs = jnp.where(use, data.obs.astype(dtype), 0.0)
-    u_std = lp.residual.noise.std(obs).reshape(n, -1)
-    cens_np = np.asarray(jnp.where(use, data.censored, 0)).reshape(n, -1).astype(np.int8)
+    w, obs, u_std = observations(lp, data)
+    cens = jnp.where(lp.residual.usable(data), data.censored, 0)
+    cens_np = np.asarray(cens).reshape(n, -1).astype(np.int8)
     # The censored observations of each pixel, gathered (a pixel has a few at most): their
     # indices (N, R), padded with index 0 and sign 0, and their signs (+1 above, -1 below).
     # R is a power of 2, at least _CENSORED_SLOTS, and every batch takes the censored path:
@@ -326,16 +194,8 @@ def sample_width_gibbs(
     sign = np.take_along_axis(cens_np, order, axis=1)
     c_idx, c_sign = jnp.asarray(np.where(sign != 0, order, 0)), jnp.asarray(sign)
 
-    t0 = jnp.asarray(theta0, dtype)
-    if t0.ndim == 2:
-        t0 = jnp.broadcast_to(t0[:, None, :], (n, num_chains, t0.shape[-1]))
-    finite = jnp.all(jnp.isfinite(t0), axis=(-2, -1))
-    t0 = jnp.where(finite[:, None, None], t0, 0.0)
-    v0 = lp.space.natural_vector(t0[..., :p])
-    edge = _EDGE * (hi - lo)
-    v0 = jnp.clip(v0, (lo + edge)[None, None, :], (hi - edge)[None, None, :])
-    s0 = jnp.exp(t0[..., -1]) if jeffreys else jnp.ones((n, num_chains), dtype)
-    s0 = jnp.where(jnp.isfinite(s0) & (s0 > 0), s0, 1.0)
+    t0, finite = chain_starts(theta0, n, num_chains, dtype)
+    v0, s0 = natural_starts(lp, t0, lo, hi, jeffreys)
 
     # Laplace std of log alpha from theta's: d log(alpha) / d theta = s (1 - s) (hi - lo)
     # / alpha for alpha = lo + (hi - lo) s.
@@ -361,28 +221,23 @@ def sample_width_gibbs(
     vs, s2s, acc = map_sharded(run, batched, device_count(devices))
     vs, s2s, acc = jax.block_until_ready((vs, s2s, acc))
     run_s = time.perf_counter() - t_start
-    theta = _theta_of(lp, vs)
+    theta = theta_of(lp, vs)
     if jeffreys:
         theta = jnp.concatenate([theta, 0.5 * jnp.log(s2s)[..., None]], axis=-1)
-    lpd = _density(lp, theta, data)
-    pos = np.array(theta, np.float64)
-    bad = ~np.asarray(finite)
-    pos[bad] = np.nan
-    nat = np.asarray(lp.natural(jnp.asarray(pos)), np.float64)
-    shape = pos.shape[:3]
-    return Samples(
-        theta=pos,
-        natural=nat,
-        labels=lp.labels,
+    shape = theta.shape[:3]
+    return package(
+        lp,
+        theta,
+        finite,
         stats={
             "acceptance_rate": np.asarray(acc, np.float64),
             "diverging": np.zeros(shape, bool),
-            "lp": np.asarray(lpd, np.float64),
+            "lp": np.asarray(density(lp, theta, data), np.float64),
         },
         method="gibbs_mh",
         tuning={"step_size": np.full(shape[:2], np.nan)},
         run_s=run_s,
-        extra={"no_estimate": bad, "sweeps": sweeps, "reparam": "none"},
+        extra={"sweeps": sweeps, "reparam": "none"},
     )
 
 
@@ -415,19 +270,19 @@ def _run(
     between kept draws."""
     dtype = v0.dtype
     lo, hi = jnp.asarray(lo, dtype), jnp.asarray(hi, dtype)
-    xl, xh = _drop(lo, i), _drop(hi, i)
+    xl, xh = drop_width(lo, i), drop_width(hi, i)
     centre, box_prec = 0.5 * (xl + xh), (2.0 / (xh - xl)) ** 2
     # The stand-in prior of each entry: N(centre, (width / 2)^2) in absolute units; where
     # the entry has a Gaussian prior N(pm, s^2 pp^-1) (pp in units of s^-2), that prior.
     k_prior = 0
     pm = pp = None
     if gauss is not None:
-        pm = _drop(jnp.asarray(gauss[0], dtype), i)
-        pp = _drop(_drop(jnp.asarray(gauss[1], dtype), i).T, i)
+        pm = drop_width(jnp.asarray(gauss[0], dtype), i)
+        pp = drop_width(drop_width(jnp.asarray(gauss[1], dtype), i).T, i)
         box_prec = jnp.where(jnp.diagonal(pp) > 0, 0.0, box_prec)
         k_prior = gauss[2]
     u_lo, u_hi = jnp.log(lo[i]), jnp.log(hi[i])
-    e_u = _EDGE * (u_hi - u_lo)
+    e_u = EDGE * (u_hi - u_lo)
 
     def log_width_prior(u):
         return prior.log_prob(jnp.exp(u)) + u  # density of u = log alpha
@@ -437,7 +292,7 @@ def _run(
         nw = jnp.sum(w)
 
         def terms(a):
-            jac, b = _affine(lp, d, i, centre, a)
+            jac, b = affine_terms(lp, d, i, centre, a)
             return jac / u_std[:, None], b / u_std
 
         def factor(aw, bw, y, dref, dc):
@@ -579,57 +434,45 @@ def _run(
             eye = jnp.eye(q.shape[0], dtype=dtype)
             dirs = jax.vmap(lambda e: solve_lower_t_unrolled(l, e), out_axes=1)(eye)
             lam = jnp.einsum("pk,pq,qk->k", dirs, q, dirs)
-            x, s2 = _sweep(k_s, x, s2, q, r, yy, nw, dirs, lam, xl, xh, jeffreys, pp, pm, k_prior)
+            x, s2 = sweep(k_s, x, s2, q, r, yy, nw, dirs, lam, xl, xh, jeffreys, pp, pm, k_prior)
             return (key, u, x, s2, aw, bw, q, l), accept.astype(dtype)
 
-        def chain(key, v, s):
-            x = _drop(v, i)
+        def begin(state):
+            """A phase's proposal: the cells' factors at the chain's noise scale then (the
+            start's in the warm-up, which can be far off; the chain's own after it)."""
+            carry, _grid = state
+            grid = cells(carry[3])
+            return (*carry[:7], cholesky_unrolled(carry[6] + grid[0])[0]), grid
+
+        def step(state):
+            carry, grid = state
+            carry, accepted = scan_one(carry, grid)
+            return (carry, grid), accepted
+
+        def draw(state):
+            _key, u, x, s2 = state[0][:4]
+            return insert_width(x, jnp.exp(u), i), s2
+
+        def init(key, v, s):
+            x = drop_width(v, i)
             u = jnp.clip(jnp.log(v[i]), u_lo + e_u, u_hi - e_u)
             aw, bw = terms(jnp.exp(u))
             q = _moments(aw, bw, yw, w)[0]
-
-            # Both phases run one compiled loop (half the program of two): an outer scan
-            # over the phases, each rescaling the stand-in to the chain's noise scale then
-            # (the start's in the warm-up, which can be far off; the chain's own after it;
-            # the proposal is fixed within a phase), and an inner loop over its intervals
-            # whose count is the phase's, written into the draws only after the warm-up.
-            p_out = v.shape[0]
-            draws0 = (
-                jnp.zeros((num_samples, p_out), dtype),
-                jnp.zeros((num_samples,), dtype),
-                jnp.zeros((num_samples,), dtype),
-            )
-
-            def phase(state, spec):
-                carry, draws = state
-                length, keep = spec[0], spec[1] > 0
-                grid = cells(carry[3])
-                carry = (*carry[:7], cholesky_unrolled(carry[6] + grid[0])[0])
-
-                def interval(t, st):
-                    carry, draws = st
-
-                    def scan(_, sc):
-                        carry, acc = sc
-                        carry, a = scan_one(carry, grid)
-                        return carry, acc + a
-
-                    zero = jnp.zeros((), dtype)
-                    carry, acc = jax.lax.fori_loop(0, sweeps, scan, (carry, zero))
-                    u, x, s2 = carry[1], carry[2], carry[3]
-                    new = (_insert(x, jnp.exp(u), i), s2, acc / sweeps)
-                    at = jnp.where(keep, t, num_samples)  # out of range in the warm-up: dropped
-                    draws = tuple(
-                        d.at[at].set(v, mode="drop") for d, v in zip(draws, new, strict=True)
-                    )
-                    return carry, draws
-
-                return jax.lax.fori_loop(0, length, interval, (carry, draws)), None
-
             carry = (key, u, x, s * s, aw, bw, q, jnp.zeros_like(q))
-            specs = jnp.asarray([[num_warmup, 0], [num_samples, 1]], jnp.int32)
-            (_, draws), _ = jax.lax.scan(phase, (carry, draws0), specs)
-            return draws
+            grid = jax.tree.map(jnp.zeros_like, jax.eval_shape(cells, s * s))
+            return carry, grid
+
+        def chain(key, v, s):
+            kernel = Kernel(step=step, draw=draw, begin=begin)
+            (vs, s2s), acc, _ = run_chain(
+                kernel,
+                init(key, v, s),
+                warmup=num_warmup,
+                warmup_steps=sweeps,
+                num_samples=num_samples,
+                per_draw=sweeps,
+            )
+            return vs, s2s, acc
 
         ks = jax.random.split(key, v0.shape[0])
         return jax.vmap(chain)(ks, v0, s0)

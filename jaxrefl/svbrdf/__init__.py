@@ -13,7 +13,7 @@ Quick use::
     result.report["heldout_rmse"], result.maps["roughness"]
 
     jax.config.update("jax_enable_x64", True)               # posteriors are float64
-    opts = posterior.AdaptiveOptions(hmc=posterior.MAP_OPTIONS)
+    opts = posterior.AdaptiveOptions()                      # the map's defaults
     job64 = svbrdf.FitJob(config=fit.FitConfig(dtype=np.float64))
     u = svbrdf.uncertainty_maps(cap, job64, opts)
     svbrdf.write_uncertainty(u, "post")                     # uncertainty.exr, posterior.nc

@@ -1,0 +1,153 @@
+"""Settings of an uncertainty map (:class:`AdaptiveOptions`), and the map's defaults.
+
+:data:`UNCERTAINTY_MAP_HMC` and :data:`UNCERTAINTY_MAP_GIBBS`, the default samplers of
+:class:`AdaptiveOptions`, are built from :mod:`jaxrefl._map_defaults`, the one place the
+library, ``jaxrefl sample CAPTURE`` and the docs read them: a map's targets are a std and
+5% / 95% quantiles rather than tail probabilities, so they are cheaper than
+:class:`HMCOptions`' own (fewer chains, shorter, more leapfrog steps per draw), with
+adaptation still per chain and per pixel in the non-centred coordinates of
+:mod:`jaxrefl.posterior._reparam`; where the posterior allows it, Gibbs sampling instead
+(``benchmarks/posterior_speed.py --only-mixing`` compares the settings).
+
+Second pass: pixels whose first-pass chains disagree (max split R-hat above
+``rerun_rhat``, :data:`RERUN_RHAT` by default) run again under ``rerun_hmc`` (default
+:func:`longer_options`). Where every first-pass chunk was drawn by a sampler with nothing
+to tune (:data:`UNTUNED`: the width sampler, whose joint move draws the width
+independently of the chain's state) and ``rerun_hmc`` is not set, the second pass is
+:func:`untuned_rerun`: the first pass's settings with more scans between kept draws, whose
+compiled program is the first pass's. Exact Gibbs keeps the longer second pass: its moves
+along a box's edge can be slow.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import math
+from dataclasses import dataclass
+
+from jaxrefl._errors import JaxreflError
+from jaxrefl._map_defaults import MAP_AUDIT, MAP_CHUNK, MAP_GIBBS, MAP_SAMPLER
+from jaxrefl._map_defaults import RERUN_RHAT as _RERUN_RHAT
+
+from ._options import GibbsOptions, HMCOptions
+
+__all__ = [
+    "RERUN_RHAT",
+    "UNCERTAINTY_MAP_GIBBS",
+    "UNCERTAINTY_MAP_HMC",
+    "UNTUNED",
+    "AdaptiveOptions",
+    "MCMCPixels",
+    "longer_options",
+    "untuned_rerun",
+]
+
+#: The uncertainty map's chains and HMC (:data:`jaxrefl._map_defaults.MAP_SAMPLER`): the
+#: default ``hmc`` of :class:`AdaptiveOptions`.
+UNCERTAINTY_MAP_HMC = HMCOptions(**MAP_SAMPLER)
+#: The uncertainty map's Gibbs sampling (:data:`jaxrefl._map_defaults.MAP_GIBBS`): the
+#: default ``gibbs`` of :class:`AdaptiveOptions`.
+UNCERTAINTY_MAP_GIBBS = GibbsOptions(**MAP_GIBBS)
+RERUN_RHAT = _RERUN_RHAT  # the second pass's threshold (jaxrefl._map_defaults.RERUN_RHAT)
+# Samplers (Samples.method) whose second pass repeats the first's settings (module
+# docstring): nothing to tune, nearly independent draws.
+UNTUNED = frozenset({"gibbs_mh"})
+
+
+def untuned_rerun(opts: HMCOptions) -> HMCOptions:
+    """The second pass's settings where the first pass had nothing to tune (:data:`UNTUNED`,
+    module docstring): the first's, with twice the scans between kept draws (thin x 2). The
+    scans are an argument of the width sampler's compiled program, so the first pass's
+    program runs them."""
+    return dataclasses.replace(opts, thin=2 * opts.thin)
+
+
+def longer_options(opts: HMCOptions) -> HMCOptions:
+    """The second pass's settings from the first's: twice the warm-up and thin=4 (four
+    times the steps for the same kept draws), no start jitter (the starts are first-pass
+    draws, already apart). ``benchmarks/posterior_speed.py --only-mixing`` compares it with
+    restarts from the LM optimum and with thin 2.
+    """
+    return dataclasses.replace(opts, num_warmup=2 * opts.num_warmup, thin=4, init_jitter=0.0)
+
+
+class MCMCPixels(enum.StrEnum):
+    """Which pixels :func:`adaptive_uncertainty` samples (:attr:`AdaptiveOptions.mcmc`)."""
+
+    FLAGGED = "flagged"  # the pixels Laplace flags, and an audit sample of the others
+    ALL = "all"  # every pixel with an estimate
+    NONE = "none"  # none: Laplace summaries only
+
+
+@dataclass(frozen=True)
+class AdaptiveOptions:
+    """Settings of :func:`adaptive_uncertainty` (module docstring), immutable; derive
+    variants with :func:`dataclasses.replace`.
+
+    mcmc:        which pixels are sampled (:class:`MCMCPixels`, or its value as a string):
+                 ``flagged`` (default), ``all`` or ``none``
+    audit:       with ``flagged``, the fraction in [0, 1] of the reliable pixels (flag 0)
+                 also sampled, ceil(audit x count), drawn at random (method 3)
+    hmc:         the chains and HMC (:class:`HMCOptions`; default
+                 :data:`UNCERTAINTY_MAP_HMC`, the map's: :mod:`jaxrefl._map_defaults`)
+    gibbs:       Gibbs sampling where the posterior allows it (:class:`GibbsOptions`;
+                 default :data:`UNCERTAINTY_MAP_GIBBS`); None: HMC everywhere
+    rerun_rhat:  pixels whose first-pass max split R-hat exceeds it (or is NaN) run a
+                 second, longer pass; None: no second pass
+    rerun_hmc:   the second pass's settings; None: :func:`longer_options` of ``hmc``. It
+                 keeps ``hmc``'s ``num_chains`` and ``num_samples`` (its draws replace the
+                 first pass's); lengthen it with ``num_warmup`` and ``thin``
+    chunk:       MCMC pixels per compiled sampler call (>= 1)
+    seed:        chooses the audit pixels and seeds the chains (chunk i: ``seed + i``)
+    keep_samples: keep the draws in :attr:`UncertaintyMap.samples` (False: summaries only)
+    workers:     chunks sampled at once, each in its own thread (None: 2 on a CPU, else 1:
+                 :func:`jaxrefl.posterior._workers.default_workers`);
+                 the summaries do not depend on it (chunk i is seeded ``seed + i`` wherever
+                 it runs)
+    """
+
+    mcmc: MCMCPixels = MCMCPixels.FLAGGED
+    audit: float = MAP_AUDIT
+    hmc: HMCOptions = UNCERTAINTY_MAP_HMC
+    gibbs: GibbsOptions | None = UNCERTAINTY_MAP_GIBBS
+    rerun_rhat: float | None = RERUN_RHAT
+    rerun_hmc: HMCOptions | None = None
+    chunk: int = MAP_CHUNK
+    seed: int = 0
+    keep_samples: bool = True
+    workers: int | None = None
+
+    def __post_init__(self) -> None:
+        try:
+            object.__setattr__(self, "mcmc", MCMCPixels(self.mcmc))
+        except ValueError:
+            names = ", ".join(repr(m.value) for m in MCMCPixels)
+            raise JaxreflError(f"mcmc must be one of {names}, not {self.mcmc!r}") from None
+        if not 0.0 <= self.audit <= 1.0:
+            raise JaxreflError(f"audit must be a fraction in [0, 1], got {self.audit}")
+        if self.rerun_rhat is not None and not (
+            math.isfinite(self.rerun_rhat) and self.rerun_rhat > 0
+        ):
+            raise JaxreflError(
+                f"rerun_rhat must be a positive number or None, got {self.rerun_rhat}"
+            )
+        if self.chunk < 1:
+            raise JaxreflError(f"chunk must be >= 1, got {self.chunk}")
+        if self.workers is not None and self.workers < 1:
+            raise JaxreflError(f"workers must be >= 1 or None, got {self.workers}")
+        second = self.rerun_hmc
+        if second is not None and (
+            second.num_chains != self.hmc.num_chains or second.num_samples != self.hmc.num_samples
+        ):
+            raise JaxreflError(
+                "rerun_hmc must keep the first pass's num_chains and num_samples (the "
+                "draws replace the first pass's); lengthen it with num_warmup and thin"
+            )
+
+    @property
+    def second_pass(self) -> HMCOptions | None:
+        """The second pass's sampler settings; None when there is no second pass."""
+        if self.rerun_rhat is None:
+            return None
+        return longer_options(self.hmc) if self.rerun_hmc is None else self.rerun_hmc
