@@ -53,6 +53,7 @@ from jaxrefl.fit import PixelData
 from ._check import NEAR
 from ._data import pixel_block
 from ._job import CaptureFit, FitJob, fit_capture, map_name
+from ._light_map import light_spread, widen_for_light
 from ._models import capture_model
 from ._population import population_priors
 from ._uncertainty_plots import write_uncertainty_plots
@@ -99,6 +100,9 @@ class CaptureUncertainty:
                ``timings`` split it), and the call (``total_s``)
     model_choice: the model sampled and why (:func:`uncertainty_maps`)
     time_limit_s: the time limit the map was made under (None: none)
+    light_std: (N, P) the estimated light's share of each pixel's std over the model's
+               parameters (:mod:`jaxrefl.svbrdf._light_map`: ``map``'s std, q05 and q95
+               include it); None where the light is the stated one
     """
 
     fit: CaptureFit
@@ -113,6 +117,7 @@ class CaptureUncertainty:
     prior_summary: dict[str, Any] = field(default_factory=dict)
     model_choice: dict[str, Any] = field(default_factory=dict)
     time_limit_s: float | None = None
+    light_std: np.ndarray | None = None
 
     @property
     def model(self) -> str:
@@ -197,12 +202,36 @@ class CaptureUncertainty:
             "model_choice": dict(self.model_choice),
             # the flash the posterior was sampled under (FitJob.light; the fit's estimate)
             "light": self.fit.report.get("light"),
+            "light_std": self.light_std_summary(),
             "uncertainty": self.map.report(),
             # pixels of uncertainty.exr whose non-finite values no method code explains
             "nonfinite_counts": self.nonfinite_counts(),
             "timings": dict(self.timings),
             "time_limit": self.time_limit_report(),
         }
+
+    def light_std_summary(self) -> dict[str, dict[str, float]] | None:
+        """Per parameter, the median and 90th percentile over pixels of the light's share
+        of the std, and of the ratio of the widened std to the std without it (None: the
+        light is the stated one)."""
+        if self.light_std is None:
+            return None
+        out = {}
+        p = self.light_std.shape[1]
+        for j, lab in enumerate(self.map.labels[:p]):
+            ls = self.light_std[:, j]
+            tot = np.asarray(self.map.std[:, j], np.float64)
+            ok = np.isfinite(ls) & np.isfinite(tot) & (tot > 0)
+            if not ok.any():
+                continue
+            ratio = tot[ok] / np.sqrt(np.maximum(tot[ok] ** 2 - ls[ok] ** 2, 0.0))
+            out[lab] = {
+                "median": float(np.median(ls[ok])),
+                "p90": float(np.quantile(ls[ok], 0.9)),
+                "widening_median": float(np.median(ratio)),
+                "widening_p90": float(np.quantile(ratio, 0.9)),
+            }
+        return out
 
     def nonfinite_counts(self) -> dict[str, int]:
         """Pixels per bit of ``uncertainty.exr``'s ``nonfinite`` channel
@@ -496,6 +525,15 @@ def uncertainty_maps(
         log=log,
     )
     t_post = time.perf_counter() - t1
+    # The light's own uncertainty widens every pixel's intervals (._light_map).
+    t_light = time.perf_counter()
+    var = light_spread(cf, lp, data, capture, fit_theta(cf, lp.space), seed=options.seed)
+    light_std = None
+    if var is not None:
+        umap, light_std = widen_for_light(umap, var, lp.space.lower, lp.space.upper)
+        spent = time.perf_counter() - t_light
+        say(f"light: its uncertainty carried into the intervals, {spent:.1f} s")
+    t_light = time.perf_counter() - t_light
     return CaptureUncertainty(
         fit=cf,
         map=umap,
@@ -509,11 +547,13 @@ def uncertainty_maps(
             "fit_s": t_fit,
             "priors_s": t_pri,
             "posterior_s": t_post,
+            "light_s": t_light,
             "total_s": time.perf_counter() - t0,
         },
         prior_summary=prior_summary,
         model_choice=choice,
         time_limit_s=time_limit_s,
+        light_std=light_std,
     )
 
 
