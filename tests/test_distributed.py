@@ -186,7 +186,7 @@ def test_mcmc_chunks_on_two_devices_equal_one_device():
         jax.config.update("jax_enable_x64", True)
         from jaxrefl import brdf, fit
         from jaxrefl import posterior as jp
-        from jaxrefl.posterior import _hmc as _batched
+        from jaxrefl.posterior import _hmc
         assert jax.device_count() == 2
 
         sigma, n, k = 0.02, 6, 6
@@ -209,17 +209,17 @@ def test_mcmc_chunks_on_two_devices_equal_one_device():
         args = (lp, data, theta, theta_std, flag, o)
 
         meshes, traced = [], []
-        real, real_run = _batched.map_sharded, _batched._run
+        real, real_run = _hmc.map_sharded, _hmc._run
         def spy(fn, a, ndev):
             meshes.append(ndev)
             return real(fn, a, ndev)
         def counted(*a):
             traced.append(1)  # on the mesh: once per compilation of the sampler
             return real_run(*a)
-        _batched.map_sharded, _batched._run = spy, counted
+        _hmc.map_sharded, _hmc._run = spy, counted
         two = jp.adaptive_uncertainty(*args)
         assert len(traced) == 1, traced  # both chunks run one compiled program
-        _batched.device_count = lambda devices=None: 1
+        _hmc.device_count = lambda devices=None: 1
         one = jp.adaptive_uncertainty(*args)
         assert meshes == [2, 2, 1, 1], meshes
         a, b = two.samples.theta, one.samples.theta

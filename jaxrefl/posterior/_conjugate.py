@@ -13,15 +13,21 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
+from jaxrefl.fit import L2
+
 from ._logpost import LogPosterior
+from ._priors import Jeffreys
 
 __all__ = [
     "EDGE",
     "LINEAR_RTOL",
+    "censoring_failure",
     "density",
     "is_linear",
+    "likelihood_failure",
     "natural_starts",
     "observations",
     "sweep",
@@ -82,6 +88,29 @@ def theta_of(lp: LogPosterior, x: Float[Array, "*b P"]) -> Float[Array, "*b P"]:
         r.bijection.inverse(x[..., r.start : r.stop]) for blk in lp.space.blocks for r in blk.runs
     ]
     return jnp.concatenate(parts, axis=-1)
+
+
+def likelihood_failure(lp: LogPosterior) -> str:
+    """Why the likelihood is not the Gaussian one both Gibbs samplers draw from ("" where
+    it is): the light is known, the loss is L2, the noise scale known or under Jeffreys'
+    prior."""
+    if lp.light is not None:
+        return "the light direction is sampled"
+    if not isinstance(lp.residual.loss, L2):
+        return f"the loss is {type(lp.residual.loss).__name__}, not L2"
+    if lp.noise_scale is not None and not isinstance(lp.noise_scale, Jeffreys):
+        return "the noise scale's prior is not Jeffreys'"
+    return ""
+
+
+def censoring_failure(data) -> str:
+    """Why the censored observations are not a Tobit likelihood the samplers augment (""
+    where they are): each has weight 0 or 1."""
+    cens = np.asarray(data.censored) != 0
+    w = np.asarray(data.weight)
+    if np.any(cens & (w != 0) & (w != 1)):
+        return "a censored observation has a weight other than 0 or 1"
+    return ""
 
 
 def is_linear(pred: Float[Array, " M"], linear: Float[Array, " M"]) -> Array:

@@ -55,11 +55,13 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from jaxrefl._errors import JaxreflError
-from jaxrefl.fit import L2, PixelData, ScaledSigmoid
+from jaxrefl.fit import PixelData, ScaledSigmoid
 
 from ._conjugate import (
+    censoring_failure,
     density,
     is_linear,
+    likelihood_failure,
     natural_starts,
     observations,
     sweep,
@@ -68,7 +70,7 @@ from ._conjugate import (
 )
 from ._driver import Kernel, chain_starts, package, run_chain
 from ._logpost import LogPosterior
-from ._priors import Jeffreys, Uniform
+from ._priors import Uniform
 
 __all__ = ["gibbs_kernel", "linear_terms", "qualifies", "sample_gibbs"]
 
@@ -122,18 +124,12 @@ def _linear_terms(lp, data, lo, hi):
 def qualifies(lp: LogPosterior, data: PixelData) -> tuple[bool, str]:
     """(True, "") when :func:`sample_gibbs` draws this posterior exactly for every pixel of
     ``data`` (module docstring), else (False, the first condition that fails)."""
-    if lp.light is not None:
-        return False, "the light direction is sampled"
-    if not isinstance(lp.residual.loss, L2):
-        return False, f"the loss is {type(lp.residual.loss).__name__}, not L2"
-    if lp.noise_scale is not None and not isinstance(lp.noise_scale, Jeffreys):
-        return False, "the noise scale's prior is not Jeffreys'"
+    if why := likelihood_failure(lp):
+        return False, why
     if _box(lp) is None:
         return False, "a parameter is not a finite box with a uniform prior"
-    cens = np.asarray(data.censored) != 0
-    w = np.asarray(data.weight)
-    if np.any(cens & (w != 0) & (w != 1)):
-        return False, "a censored observation has a weight other than 0 or 1"
+    if why := censoring_failure(data):
+        return False, why
     _a, _b, ok = linear_terms(lp, data)
     if not bool(np.all(np.asarray(ok))):
         return False, "the model is not linear in its parameters on these pixels"

@@ -14,11 +14,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxrefl.fit import L2, PixelData, ScaledSigmoid
+from jaxrefl.fit import PixelData, ScaledSigmoid
 
-from ._conjugate import is_linear, theta_of
+from ._conjugate import censoring_failure, is_linear, likelihood_failure, theta_of
 from ._logpost import LogPosterior
-from ._priors import Jeffreys, MultivariateNormal, Normal, Uniform
+from ._priors import MultivariateNormal, Normal, Uniform
 
 __all__ = [
     "WIDTH",
@@ -119,22 +119,16 @@ def affine_terms(lp, d, i, x_c, a):
 def qualifies_width(lp: LogPosterior, data: PixelData) -> tuple[bool, str]:
     """(True, "") when :func:`sample_width_gibbs` samples this posterior for every pixel of
     ``data`` (module docstring), else (False, the first condition that fails)."""
-    if lp.light is not None:
-        return False, "the light direction is sampled"
-    if not isinstance(lp.residual.loss, L2):
-        return False, f"the loss is {type(lp.residual.loss).__name__}, not L2"
-    if lp.noise_scale is not None and not isinstance(lp.noise_scale, Jeffreys):
-        return False, "the noise scale's prior is not Jeffreys'"
+    if why := likelihood_failure(lp):
+        return False, why
     lay = layout(lp)
     if lay is None:
         return False, (
             f"not one scalar {WIDTH!r} in a positive box with every other parameter in a "
             "finite box with a uniform or Gaussian prior"
         )
-    cens = np.asarray(data.censored) != 0
-    w = np.asarray(data.weight)
-    if np.any(cens & (w != 0) & (w != 1)):
-        return False, "a censored observation has a weight other than 0 or 1"
+    if why := censoring_failure(data):
+        return False, why
     i, lo, hi, _prior, gauss = lay
     if gauss is not None and gauss[3] and lp.noise_scale is not None:
         return False, (
