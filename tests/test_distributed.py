@@ -204,8 +204,8 @@ def test_mcmc_chunks_on_two_devices_equal_one_device():
         hmc = jp.HMCOptions(num_warmup=20, num_samples=20, num_chains=2,
                             num_integration_steps=8, dense_mass=False, reparam="none")
         # two chunks of 3 pixels, each padded to 4 for the two devices
-        o = jp.AdaptiveOptions(mcmc="all", hmc=hmc, chunk=4, seed=7, rerun_rhat=None,
-                               workers=1)
+        o = jp.AdaptiveOptions(mcmc="all", hmc=hmc, gibbs=None, chunk=4, seed=7,
+                               rerun_rhat=None, workers=1)
         args = (lp, data, theta, theta_std, flag, o)
 
         meshes, traced = [], []
