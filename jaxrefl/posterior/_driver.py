@@ -3,8 +3,8 @@ draws packaged as :class:`~jaxrefl.posterior.Samples`.
 
 Each sampler (HMC/NUTS :mod:`._hmc`, exact Gibbs :mod:`._gibbs`, the width sampler
 :mod:`._width_gibbs`) is a :class:`Kernel` of one chain: pure functions over explicit
-state, in the manner of BlackJAX's ``init``/``step``. The sampler builds a chain's first
-state (its ``init``); ``step(state) -> (state, info)`` makes one move (the random key is
+state, in the manner of BlackJAX's ``init``/``step``: ``init(*start)`` builds a chain's
+first state from its start; ``step(state) -> (state, info)`` makes one move (the random key is
 part of the state, or the step's own where the sampler splits its keys up front);
 ``begin(state)`` prepares a phase (the warm-up, then the kept draws); ``draw(state)`` is
 what a kept draw records. :func:`run_chain` runs the warm-up, then ``num_samples`` kept
@@ -39,15 +39,18 @@ def _same(state):
 class Kernel(NamedTuple):
     """One chain's moves (module docstring)."""
 
+    init: Callable[..., Any]
     step: Callable[[Any], tuple[Any, Any]]
     draw: Callable[[Any], Any]
     begin: Callable[[Any], Any] = _same
 
 
-def run_chain(kernel: Kernel, state, *, warmup, warmup_steps, num_samples: int, per_draw):
-    """(draws (num_samples, ...), info (num_samples, ...), the last state) of one chain:
-    ``warmup`` intervals of ``warmup_steps`` steps whose draws are dropped, then
-    ``num_samples`` draws ``per_draw`` steps apart (module docstring)."""
+def run_chain(kernel: Kernel, start, *, warmup, warmup_steps, num_samples: int, per_draw):
+    """(draws (num_samples, ...), info (num_samples, ...), the last state) of one chain
+    from ``kernel.init(*start)``: ``warmup`` intervals of ``warmup_steps`` steps whose
+    draws are dropped, then ``num_samples`` draws ``per_draw`` steps apart (module
+    docstring)."""
+    state = kernel.init(*start)
     draw0 = jax.eval_shape(kernel.draw, state)
     info0 = jax.eval_shape(kernel.step, state)[1]
 

@@ -258,7 +258,10 @@ def gibbs_kernel(terms: _Terms, lo, hi, *, jeffreys: bool, censored: bool) -> Ke
         x, s2 = sweep(sub, x, s2, t.q, r, yy, t.nw, t.evec, t.evals, lo, hi, jeffreys)
         return (key, x, s2), ()
 
-    return Kernel(step=step, draw=lambda state: state[1:])
+    def init(key, x, s2):
+        return key, x, s2
+
+    return Kernel(init=init, step=step, draw=lambda state: state[1:])
 
 
 @functools.partial(

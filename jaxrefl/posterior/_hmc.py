@@ -130,7 +130,7 @@ def hmc_kernel(lp: LogPosterior | ConditionalAlbedo, opts: HMCOptions, keys, dat
     def draw(carry):
         return carry[1].position, carry[1].logdensity
 
-    return init, Kernel(step=step, draw=draw)
+    return Kernel(init=init, step=step, draw=draw)
 
 
 def _ones_like_metric(cov):
@@ -154,10 +154,10 @@ def _one_chain(
     the last draw is kept, the acceptance averaged and a divergence in any step counted.
     """
     total = opts.num_warmup + opts.num_samples * opts.thin
-    init, kernel = hmc_kernel(lp, opts, jax.random.split(key, total), data, normals)
+    kernel = hmc_kernel(lp, opts, jax.random.split(key, total), data, normals)
     (pos, lpd), (acc, div), last = run_chain(
         kernel,
-        init(x0, imm0),
+        (x0, imm0),
         warmup=opts.num_warmup,
         warmup_steps=1,
         num_samples=opts.num_samples,

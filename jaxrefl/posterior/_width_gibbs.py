@@ -463,10 +463,10 @@ def _run(
             return carry, grid
 
         def chain(key, v, s):
-            kernel = Kernel(step=step, draw=draw, begin=begin)
+            kernel = Kernel(init=init, step=step, draw=draw, begin=begin)
             (vs, s2s), acc, _ = run_chain(
                 kernel,
-                init(key, v, s),
+                (key, v, s),
                 warmup=num_warmup,
                 warmup_steps=sweeps,
                 num_samples=num_samples,
