@@ -145,18 +145,7 @@ def test_cycle_finder_sees_cycles_and_imports_inside_functions():
     assert cycles(graph) == [["p", "p.d"], ["p.a", "p.b"]]
 
 
-# Subpackages with a cycle that is being removed: xfail(strict) so that the test fails the
-# moment the cycle is gone, and the mark must go with it.
-_OPEN = {"svbrdf": "cycle being removed: issue 47"}
-_CASES = [
-    pytest.param(name, marks=pytest.mark.xfail(strict=True, reason=_OPEN[name]))
-    if name in _OPEN
-    else name
-    for name in SUBPACKAGES
-]
-
-
-@pytest.mark.parametrize("subpackage", _CASES)
+@pytest.mark.parametrize("subpackage", SUBPACKAGES)
 def test_no_import_cycle_inside_a_subpackage(subpackage):
     graph = _graph()
     mine = {m for m in graph if _group(m) == subpackage}

@@ -33,8 +33,11 @@ flagged: posterior uncertainty maps), :mod:`._population` (the lobe's priors of 
 pixels from the reliably fitted ones), :mod:`._check` (where the model cannot be right: the
 ``misspecified`` map), :mod:`._predictive` (posterior predictive intervals of photos, with a
 model-discrepancy term measured on training photos; their coverage of held-out photos),
-:mod:`._plan` (where to take the next photo: candidate positions ranked by expected
-information gain), :mod:`._plan_files` (a fit's folder read back; ``plan.json`` and figures).
+:mod:`._plan` (where to take the next photo: candidate positions ranked by the expected
+reduction of the renderings' predictive variance, or by expected information gain),
+:mod:`._plan_files` (a fit's folder read back; ``plan.json`` and figures), :mod:`._light`
+(the flash's offset and gains, estimated), :mod:`._light_map` (the light's uncertainty in
+an uncertainty map's intervals).
 """
 
 from ._auto import AUTO_CANDIDATES as AUTO_CANDIDATES
@@ -82,6 +85,7 @@ from ._outputs import predict_photos as predict_photos
 from ._outputs import write_maps as write_maps
 from ._outputs import write_outputs as write_outputs
 from ._outputs import write_previews as write_previews
+from ._plan import CRITERIA as CRITERIA
 from ._plan import INFORMED_GAIN as INFORMED_GAIN
 from ._plan import Candidates as Candidates
 from ._plan import Plan as Plan

@@ -21,10 +21,12 @@ from __future__ import annotations
 from dataclasses import replace
 from typing import Any
 
-import jax
 import numpy as np
 
 from jaxrefl._errors import JaxreflError
+
+from . import _light_prior
+from ._light import LightEstimate
 
 __all__ = ["fit_light", "orientations", "place_flash"]
 
@@ -32,24 +34,16 @@ __all__ = ["fit_light", "orientations", "place_flash"]
 def orientations(capture) -> np.ndarray | None:
     """(K, 3, 3) camera-to-sample rotations of ``capture``'s photos from its
     ``calibration.json``, or None where it gives none (the offset's frame is then the
-    sample's)."""
-    k = capture.n_photos
+    sample's) or the capture has no flash to place."""
     if capture.light_pos is None or capture.source is None:
         return None
-    from jaxrefl.svbrdf import light_problem
-
-    with jax.enable_x64(True):
-        problem = light_problem(capture, np.ones(k, bool), n_pixels=1)
-    if not problem.frame.startswith("camera"):
-        return None
-    return np.asarray(problem.halves[0].rot, np.float64)
+    return _light_prior.orientations(capture)
 
 
 def fit_light(capture_fit, capture) -> Any:
     """The light the fit estimated (its report's ``light``) as a
     :class:`~jaxrefl.svbrdf.LightEstimate` of ``capture``, or None where the fit kept the
-    stated light. (``jaxrefl.svbrdf``'s names are imported when called: this module is
-    imported by the package.)"""
+    stated light."""
     rep: dict[str, Any] | None = capture_fit.report.get("light")
     if not rep or rep.get("mode", "fixed") == "fixed":
         return None
@@ -60,8 +54,6 @@ def fit_light(capture_fit, capture) -> Any:
             f"the fit's light has an offset of shape {offset.shape} and {gains.size} photo "
             f"gains; the capture has {capture.n_photos} photos: give the capture it was fitted to"
         )
-    from jaxrefl.svbrdf import LightEstimate
-
     rot = orientations(capture) if str(rep.get("frame", "")).startswith("camera") else None
     return LightEstimate(
         mode=str(rep["mode"]),
