@@ -1,6 +1,7 @@
-"""No import cycles: the ``import`` statements of every module under ``jaxrefl/`` (read with
-``ast``, those inside functions included, those under ``if TYPE_CHECKING:`` left out) form no
-cycle among the modules of one subpackage, nor among the subpackages.
+"""No import cycles, and no module over the line limit (:data:`MAX_MODULE_LINES`): the
+``import`` statements of every module under ``jaxrefl/`` (read with ``ast``, those inside
+functions included, those under ``if TYPE_CHECKING:`` left out) form no cycle among the
+modules of one subpackage, nor among the subpackages.
 
 A cycle says a name lives in the wrong module: a module imports one that (directly or
 through others) imports it back, so one of them can only work by importing inside a
@@ -162,3 +163,16 @@ def test_no_import_cycle_between_subpackages():
             _group(t) for t in targets if _group(t) != _group(m)
         )
     assert not cycles(groups), f"import cycles between subpackages: {cycles(groups)}"
+
+
+#: A module is one idea: past this many lines it holds several (docs/architecture.md).
+MAX_MODULE_LINES = 600
+
+
+def test_no_module_above_the_line_limit():
+    long = {
+        name: n
+        for name, path in MODULES.items()
+        if (n := len(path.read_text(encoding="utf-8").splitlines())) > MAX_MODULE_LINES
+    }
+    assert not long, f"split these modules by idea (over {MAX_MODULE_LINES} lines): {long}"
