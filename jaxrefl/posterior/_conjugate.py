@@ -18,6 +18,7 @@ from jaxtyping import Array, Float
 
 from jaxrefl.fit import L2
 
+from ._driver import package
 from ._logpost import LogPosterior
 from ._priors import Jeffreys
 
@@ -30,6 +31,7 @@ __all__ = [
     "likelihood_failure",
     "natural_starts",
     "observations",
+    "package_draws",
     "sweep",
     "theta_of",
     "truncated_normal",
@@ -199,3 +201,40 @@ def natural_starts(lp: LogPosterior, t0, lo, hi, jeffreys: bool):
     x0 = jnp.clip(x0, (lo + edge)[None, None, :], (hi - edge)[None, None, :])
     s0 = jnp.exp(t0[..., -1]) if jeffreys else jnp.ones(t0.shape[:2], t0.dtype)
     return x0, jnp.where(jnp.isfinite(s0) & (s0 > 0), s0, 1.0)
+
+
+def package_draws(
+    lp: LogPosterior,
+    xs,
+    s2s,
+    ok,
+    data,
+    *,
+    acceptance,
+    method: str,
+    sweeps,
+    run_s: float,
+    jeffreys: bool,
+):
+    """:class:`~jaxrefl.posterior.Samples` of a Gibbs sampler's natural draws ``xs`` (N,
+    chains, draws, P) and noise variances ``s2s``: theta (log s appended where the scale is
+    sampled), the log density of every draw, ``acceptance`` (N, chains, draws) and no step
+    size (NaN, so that chunks of Gibbs and HMC draws concatenate)."""
+    theta = theta_of(lp, xs)
+    if jeffreys:
+        theta = jnp.concatenate([theta, 0.5 * jnp.log(s2s)[..., None]], axis=-1)
+    shape = theta.shape[:3]
+    return package(
+        lp,
+        theta,
+        ok,
+        stats={
+            "acceptance_rate": np.broadcast_to(np.asarray(acceptance, np.float64), shape),
+            "diverging": np.zeros(shape, bool),
+            "lp": np.asarray(density(lp, theta, data), np.float64),
+        },
+        method=method,
+        tuning={"step_size": np.full(shape[:2], np.nan)},
+        run_s=run_s,
+        extra={"sweeps": sweeps, "reparam": "none"},
+    )

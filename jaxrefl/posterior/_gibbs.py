@@ -59,16 +59,16 @@ from jaxrefl.fit import PixelData, ScaledSigmoid
 
 from ._conjugate import (
     censoring_failure,
-    density,
     is_linear,
     likelihood_failure,
     natural_starts,
     observations,
+    package_draws,
     sweep,
     theta_of,
     truncated_normal,
 )
-from ._driver import Kernel, chain_starts, package, run_chain
+from ._driver import Kernel, chain_starts, run_chain
 from ._logpost import LogPosterior
 from ._priors import Uniform
 
@@ -212,24 +212,17 @@ def sample_gibbs(
     )
     xs, s2s = jax.block_until_ready((xs, s2s))
     run_s = time.perf_counter() - t_start
-    theta = theta_of(lp, xs)
-    if jeffreys:
-        theta = jnp.concatenate([theta, 0.5 * jnp.log(s2s)[..., None]], axis=-1)
-    shape = theta.shape[:3]
-    return package(
+    return package_draws(
         lp,
-        theta,
+        xs,
+        s2s,
         finite,
-        stats={
-            "acceptance_rate": np.ones(shape),
-            "diverging": np.zeros(shape, bool),
-            "lp": np.asarray(density(lp, theta, data), np.float64),
-        },
+        data,
+        acceptance=1.0,
         method="gibbs",
-        # no step size: NaN, so that chunks of Gibbs and HMC draws concatenate
-        tuning={"step_size": np.full(shape[:2], np.nan)},
+        sweeps=sweeps,
         run_s=run_s,
-        extra={"sweeps": sweeps, "reparam": "none"},
+        jeffreys=jeffreys,
     )
 
 

@@ -97,14 +97,13 @@ from jaxrefl.fit import (
 from ._bind import bind_once
 from ._conjugate import (
     EDGE,
-    density,
     natural_starts,
     observations,
+    package_draws,
     sweep,
-    theta_of,
     truncated_normal,
 )
-from ._driver import Kernel, chain_starts, package, run_chain
+from ._driver import Kernel, chain_starts, run_chain
 from ._logpost import LogPosterior
 from ._width_layout import (
     WIDTH,
@@ -221,23 +220,17 @@ def sample_width_gibbs(
     vs, s2s, acc = map_sharded(run, batched, device_count(devices))
     vs, s2s, acc = jax.block_until_ready((vs, s2s, acc))
     run_s = time.perf_counter() - t_start
-    theta = theta_of(lp, vs)
-    if jeffreys:
-        theta = jnp.concatenate([theta, 0.5 * jnp.log(s2s)[..., None]], axis=-1)
-    shape = theta.shape[:3]
-    return package(
+    return package_draws(
         lp,
-        theta,
+        vs,
+        s2s,
         finite,
-        stats={
-            "acceptance_rate": np.asarray(acc, np.float64),
-            "diverging": np.zeros(shape, bool),
-            "lp": np.asarray(density(lp, theta, data), np.float64),
-        },
+        data,
+        acceptance=acc,
         method="gibbs_mh",
-        tuning={"step_size": np.full(shape[:2], np.nan)},
+        sweeps=sweeps,
         run_s=run_s,
-        extra={"sweeps": sweeps, "reparam": "none"},
+        jeffreys=jeffreys,
     )
 
 
