@@ -286,9 +286,12 @@ def estimate_light(
     *,
     n_pixels: int = SELECTION_PIXELS,
     seed: int = 0,
+    alpha_min: float | None = None,
 ) -> LightEstimate:
     """The light of ``capture`` (module docstring): ``light`` one of :data:`LIGHT_CHOICES`;
-    the photos in ``holdout`` are never looked at. ``fixed`` returns the stated light."""
+    the photos in ``holdout`` are never looked at. ``fixed`` returns the stated light.
+    ``alpha_min``: the narrowest lobe a pixel may have, the fit's (``FitJob.alpha_min``;
+    None: the capture's resolvable width)."""
     if light not in LIGHT_CHOICES:
         raise JaxreflError(f"light must be one of {', '.join(LIGHT_CHOICES)}, not {light!r}")
     if light == "fixed":
@@ -308,7 +311,7 @@ def estimate_light(
             f"{n_train} training photos: scoring the light by leave-one-photo-out needs {need}",
         )
     with jax.enable_x64(True):
-        problem = light_problem(capture, train, n_pixels=n_pixels, seed=seed)
+        problem = light_problem(capture, train, n_pixels=n_pixels, seed=seed, alpha_min=alpha_min)
         if light == "auto":
             chosen, cv, margins = choose_light(problem)
             why = (

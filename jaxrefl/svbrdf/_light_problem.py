@@ -4,10 +4,11 @@ Estimation (profiling, variable projection: Golub & Pereyra 1973). Given the lig
 (d (3), log g (K)), each pixel and channel of a random pixel subsample is a non-negative
 least-squares problem in two columns: the diffuse term E cos_i / pi and a unit-F0 GGX lobe
 (height-correlated Smith, no Fresnel) of the pixel's own width, sought on a grid spanning
-the capture's resolvable width (:func:`jaxrefl.svbrdf.resolvable_alpha`) to
-:data:`ALPHA_MAX` and refined by parabolic steps; E = g_k I_k / r^2 the flash's irradiance.
-The residual of that solve, as a function of x, is minimised by Levenberg-Marquardt, its
-Jacobian by forward-mode differentiation through the solve, each pixel's width profiled in
+the fit's lower bound of alpha (by default the capture's resolvable width,
+:func:`jaxrefl.svbrdf.resolvable_alpha`) to :data:`ALPHA_MAX` and refined by parabolic
+steps; E = g_k I_k / r^2 the flash's irradiance. The residual of that solve, as a function
+of x, is minimised by Levenberg-Marquardt, its Jacobian by forward-mode differentiation
+through the solve, each pixel's width profiled in
 Gauss-Newton form (its column projected out). Only measured observations enter (saturated,
 dark, masked, held-out photos: weight 0). x enters every compiled program as an array
 argument: one compile serves every light value of every optimiser step.
@@ -464,11 +465,18 @@ class LightProblem:
 
 
 def light_problem(
-    capture, train: np.ndarray, *, n_pixels: int = SELECTION_PIXELS, seed: int = 0
+    capture,
+    train: np.ndarray,
+    *,
+    n_pixels: int = SELECTION_PIXELS,
+    seed: int = 0,
+    alpha_min: float | None = None,
 ) -> LightProblem:
     """Two pixel halves of ``n_pixels`` each (fewer where the capture is small) with the
-    capture's stated geometry, the gains' prior and the shared width's start (module
-    docstring). Deterministic given the capture, ``train`` and ``seed``."""
+    capture's stated geometry and the gains' prior (module docstring). Deterministic given
+    the capture, ``train`` and ``seed``. The lobes' widths span ``alpha_min`` (None: the
+    capture's resolvable width, the fit's default) to :data:`ALPHA_MAX`: a lobe narrower
+    than the grid reaches is a misfit the light would absorb."""
     k, h, w, _c = capture.shape
     total = h * w
     n = min(int(n_pixels), total // 2)
@@ -484,7 +492,8 @@ def light_problem(
             "camera: x right, y down, z forward (cm), each photo's orientation from "
             "calibration.json"
         )
-    alphas = np.geomspace(min(resolvable_alpha(capture), ALPHA_MAX), ALPHA_MAX, WIDTHS)
+    lo = resolvable_alpha(capture) if alpha_min is None else float(alpha_min)
+    alphas = np.geomspace(min(lo, ALPHA_MAX), ALPHA_MAX, WIDTHS)
     halves = [_light_data(capture, np.sort(part), rot, alphas) for part in (pick[:n], pick[n:])]
     problem = LightProblem(halves, np.asarray(train, bool), gain_prior(capture), frame)
     return problem
