@@ -121,7 +121,7 @@ def fit_capture(
         compact = h * w >= COMPACT_MIN_PIXELS
     # The light first (the capture as the estimate places it): every model sees the same.
     t_light = time.perf_counter()
-    light = estimate_light(capture, job.light, job.holdout)
+    light = estimate_light(capture, job.light, job.holdout, alpha_min=job.alpha_min)
     capture = light.apply(capture)
     light_s = time.perf_counter() - t_light
     choice: ModelChoice | None = None
