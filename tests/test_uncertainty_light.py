@@ -112,6 +112,13 @@ def test_light_uncertainty_widens_intervals_by_the_moves_of_each_optimum(offset_
     # the estimate's interval holds the quantiles' widening too
     width = res.map.q95[:, :3] - res.map.q05[:, :3]
     assert np.all(width[np.isfinite(width)] >= 0)
+    # the offset's z is held at its prior, not estimated: a common scale the maps are
+    # conditional on, so its prior variance alone moves nothing
+    only_z = np.zeros_like(est.cov)
+    only_z[2, 2] = est.cov[2, 2]
+    held = dataclasses.replace(res.fit, light=dataclasses.replace(est, cov=only_z))
+    var_z = _light_map.light_spread(held, res.posterior, res.data, cap, theta, n_draws=4)
+    assert var_z is not None and np.nanmax(var_z) == 0.0
     # a fixed light: nothing to propagate
     assert (
         _light_map.light_spread(

@@ -18,7 +18,11 @@ mapped to natural units by the bijections' slopes at theta*. The map's intervals
 those of the convolution of the pixel's posterior with that spread: its std becomes
 sqrt(std^2 + var_light), and its 5% / 95% quantiles move away from the mean by the same
 factor, inside the parameter's box (exact for a Gaussian posterior, the Laplace pixels; a
-first-order widening for the sampled ones). The draws in ``posterior.nc`` stay conditional
+first-order widening for the sampled ones). What the light estimate holds at its prior
+(the offset's components past ``ESTIMATED_OFFSET`` of :mod:`jaxrefl.svbrdf._light_problem`)
+is not propagated: it scales every photo nearly alike, a common factor of the maps that the
+photos cannot tell apart from them (as the stated power and the gains' common factor), so
+the maps are conditional on it, as on those. The draws in ``posterior.nc`` stay conditional
 on the estimated light; ``uncertainty.exr`` holds the widened summaries, and the result's
 ``light_std`` the light's share, per pixel and parameter.
 """
@@ -35,6 +39,7 @@ import numpy as np
 
 from ._data import pixel_block
 from ._light import light_draws
+from ._light_problem import ESTIMATED_OFFSET
 
 __all__ = ["LIGHT_DRAWS", "light_spread", "widen_for_light"]
 
@@ -92,6 +97,13 @@ def light_spread(
     est = cf.light
     if est is None or est.cov is None or n_draws < 2:
         return None
+    # Only what the photos estimated moves: the offset's components held at their prior
+    # change every photo's irradiance nearly alike, a common scale of the maps (as the
+    # stated power and the gains' common factor are), on which the maps are conditional.
+    cov = np.array(est.cov, np.float64)
+    cov[ESTIMATED_OFFSET:3, :] = 0.0
+    cov[:, ESTIMATED_OFFSET:3] = 0.0
+    est = replace(est, cov=cov)
     n = theta.shape[0]
     ok = np.all(np.isfinite(theta), -1)
     t = jnp.asarray(np.where(ok[:, None], theta, 0.0))
