@@ -62,8 +62,10 @@ def run_family(
     members: list[str] | None = None,
     real: tuple[str, ...] = ("bath_tile", "yellow_box"),
     size: int = 256,
+    light: str | None = None,
 ) -> list[list[object]]:
-    """One map per capture; prints a table (module docstring) and returns its rows."""
+    """One map per capture; prints a table (module docstring) and returns its rows.
+    ``light``: the fit's ``FitJob.light`` (None: the library's default)."""
     import jax
 
     jax.config.update("jax_enable_x64", True)
@@ -86,7 +88,12 @@ def run_family(
     for name, cap, truth in caps:
         k, h, w, _c = cap.shape
         t0, c0 = time.perf_counter(), time.process_time()
-        res = svbrdf.uncertainty_maps(cap)
+        job = None
+        if light is not None:
+            from jaxrefl import fit
+
+            job = svbrdf.FitJob(config=fit.FitConfig(dtype=np.float64), light=light)
+        res = svbrdf.uncertainty_maps(cap, job)
         total, cpu = time.perf_counter() - t0, time.process_time() - c0
         tm, mt = res.timings, res.map.timings
         mc = res.map.report()["mcmc"]
@@ -145,8 +152,13 @@ def run_family(
         "flagged: the fit's misspecification map (docs/outputs.md). Targets: a map within "
         f"{TARGET_WARM_S:.0f} s (compile cache warm) / {TARGET_COLD_S:.0f} s (cold), "
         "R-hat <= 1.05 on 99% of the MCMC pixels, coverage 85-95%. The generated captures' "
-        "light is written at the lens whatever their true flash offset (the model does not "
-        "know it). The first capture's time includes compiling what the others reuse. CPU s: "
+        "light is written at the lens whatever their true flash offset; "
+        + (
+            "the library's default light (FitJob.light) takes it as written. "
+            if light is None
+            else f"the fit's light is {light!r} (FitJob.light), its uncertainty in the intervals. "
+        )
+        + "The first capture's time includes compiling what the others reuse. CPU s: "
         "the process's CPU time (both cores) during the map, which other work on the machine "
         "slows less than the wall time."
     )

@@ -562,6 +562,12 @@ def main() -> None:
     )
     p.add_argument("--members", default=None, help="family members, comma-separated (all)")
     p.add_argument(
+        "--light",
+        default=None,
+        help="with --only-family: the maps' FitJob.light (default: the library's); a light "
+        "other than the default is recorded in its own section, posterior_speed_family_light",
+    )
+    p.add_argument(
         "--cli",
         action="store_true",
         help="with --only-family: also jaxrefl sample per capture, cold and warm compile cache",
@@ -591,7 +597,7 @@ def main() -> None:
         from _family_maps import run_family
 
         members = None if args.members is None else args.members.split(",")
-        run_family(members)
+        run_family(members, light=args.light)
         if args.cli:
             from _family_maps import run_family_cli
 
@@ -624,6 +630,14 @@ if __name__ == "__main__":
         sys.exit(
             run_and_record(
                 "posterior_speed_family_cli", "jaxrefl sample on captures of the family", main
+            )
+        )
+    if "--only-family" in sys.argv and "--light" in sys.argv:
+        sys.exit(
+            run_and_record(
+                "posterior_speed_family_light",
+                "Uncertainty maps of a capture family, the light estimated",
+                main,
             )
         )
     if "--only-family" in sys.argv:
