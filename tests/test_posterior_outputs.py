@@ -561,8 +561,8 @@ def test_chunk_folder_resumes_without_sampling_again(lambert, monkeypatch, tmp_p
     folder = tmp_path / "mcmc"
     first = jp.adaptive_uncertainty(lp, data, th, sd, flag, o, chunk_dir=folder)
     assert len(calls) == 3 and first.rerun.any()  # two first-pass chunks, one second-pass
-    assert len(list(folder.glob("first_*.npz"))) == 2
-    assert len(list(folder.glob("second_*.npz"))) == 1
+    assert len(list(folder.glob("first_*/chunk_*.npz"))) == 2
+    assert len(list(folder.glob("second_*/chunk_*.npz"))) == 1
     calls.clear()
     again = jp.adaptive_uncertainty(lp, data, th, sd, flag, o, chunk_dir=folder)
     assert calls == []

@@ -486,7 +486,7 @@ def test_interrupted_run_resumes_without_recomputing(tmp_path):
     again = svbrdf.fit_capture(cap, job, tmp_path)
     assert again.tiles_computed == 1
     np.testing.assert_array_equal(again.maps["alpha"], full.maps["alpha"])
-    with pytest.raises(ValueError, match="different fit"):
+    with pytest.raises(ValueError, match="different job"):
         svbrdf.fit_capture(cap, svbrdf.FitJob(tile_pixels=_TILE, model="lambert"), tmp_path)
     # So is the same model with another noise model, solver or loss: the manifest records
     # each option object (its type and every field), so a changed field counts as well.
@@ -499,7 +499,7 @@ def test_interrupted_run_resumes_without_recomputing(tmp_path):
     )
     for change in changes:
         other = replace(job, config=job.config.replace(**change))
-        with pytest.raises(ValueError, match="different fit"):
+        with pytest.raises(ValueError, match="different job"):
             svbrdf.fit_capture(cap, other, tmp_path)
     manifest = json.loads((tmp_path / "tiles" / "manifest.json").read_text())
     assert manifest["job"]["config"]["noise"] == {"type": "gaussian", "sigma": None}
@@ -521,7 +521,7 @@ def test_interrupted_run_resumes_without_recomputing(tmp_path):
         "gain": 0.002,
     }
     brighter = replace(job, config=job.config.replace(noise=replace(shot, gain=0.004)))
-    with pytest.raises(ValueError, match="different fit"):
+    with pytest.raises(ValueError, match="different job"):
         svbrdf.fit_capture(cap, brighter, shot_dir)
     # A corrupt manifest is named as such, with the way out.
     (tmp_path / "tiles" / "manifest.json").write_text('{"job": ')

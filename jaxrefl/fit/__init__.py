@@ -25,7 +25,8 @@ reliability flags). :func:`map_sharded` spreads a batch of pixels over this proc
 devices; :class:`Distributed` names the process group of a job split over processes and
 hosts (JAX's distributed runtime), which :func:`process_share`, :func:`process_barrier`
 and :func:`process_gather` coordinate; a process that stops makes the others'
-barrier raise :class:`ProcessGroupError`, and :func:`leave_group` ends them at once.
+barrier raise :class:`ProcessGroupError`, and :func:`leave_group` ends them at once;
+:class:`WorkStore` keeps a job's finished pieces in a folder the processes share, for resume.
 """
 
 from ._affine import grid_values as grid_values
@@ -105,3 +106,5 @@ from ._transform import ParamSpace as ParamSpace
 from ._transform import ScaledSigmoid as ScaledSigmoid
 from ._transform import Softplus as Softplus
 from ._transform import UnitVector as UnitVector
+from ._work_store import WorkStore as WorkStore
+from ._work_store import fingerprint_hash as fingerprint_hash

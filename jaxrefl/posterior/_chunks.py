@@ -11,11 +11,11 @@ Chunks at once: a process samples ``workers`` chunks at a time, each in its own 
 seeded ``seed + i`` wherever it runs, so the map does not depend on ``workers``.
 
 Chunks on disk and across processes: with a folder, each chunk's draws are written there as
-it finishes (:mod:`._chunk_files`), and a rerun reads the chunks it finds rather than
-sampling them (resume). In a job of several processes (:class:`jaxrefl.fit.Distributed`)
-chunk i is sampled by process i mod n, with seed ``seed + i`` as in one process; after a
-barrier every process reads every chunk in order, so the map does not depend on the number
-of processes.
+it finishes (:mod:`._chunk_files`: a :class:`jaxrefl.fit.WorkStore` per pass), and a rerun
+reads the chunks it finds rather than sampling them (resume). In a job of several
+processes (:class:`jaxrefl.fit.Distributed`) chunk i is sampled by process i mod n, with
+seed ``seed + i`` as in one process; after a barrier every process reads every chunk in
+order, so the map does not depend on the number of processes.
 
 Bounded time and progress: with a ``deadline`` (a :func:`time.perf_counter` value) a chunk
 is not started where the last finished chunk's wall time would carry it past the deadline
@@ -39,7 +39,7 @@ import numpy as np
 from jaxrefl.fit import PixelData, process_barrier, process_share
 
 from ._choice import sample_pixels
-from ._chunk_files import fingerprint, load_chunk, save_chunk
+from ._chunk_files import fingerprint, load_chunk, open_pass, save_chunk
 from ._logpost import LogPosterior
 from ._options import GibbsOptions, HMCOptions
 from ._samples import Samples
@@ -90,14 +90,13 @@ class Chunks:
         mine = set(process_share(list(range(len(firsts)))))
         # A chunk file belongs to these pixels, starts of this pass, sampler settings and
         # parameter box only (the draws' theta is in the box's unconstrained coordinates):
-        # its name carries their fingerprint, so another run's chunks never match.
-        name = None
+        # its folder carries their fingerprint, so another run's chunks never match.
+        store = None
         if self.folder is not None:
-            self.folder.mkdir(parents=True, exist_ok=True)
             space = self.lp.space
             box = (self.lp.labels, tuple(space.lower.tolist()), tuple(space.upper.tolist()))
-            key = fingerprint(tag, idx, (opts, gibbs), seed, size, box)
-            name = lambda ci: self.folder / f"{tag}_{key}_{ci:05d}.npz"  # noqa: E731
+            fp = fingerprint(tag, idx, (opts, gibbs), seed, size, box)
+            store = open_pass(self.folder, tag, fp)
         bar = None
         if self.progress and jax.process_index() == 0:
             from tqdm.auto import tqdm
@@ -108,14 +107,14 @@ class Chunks:
 
         def get(ci: int) -> tuple[Samples, float] | _Skipped | None:
             real = idx[firsts[ci] : firsts[ci] + size]
-            got = None if name is None else load_chunk(name(ci), real.size, self.lp.labels)
+            got = None if store is None else load_chunk(store, ci, real.size, self.lp.labels)
             if got is None and ci in mine:
                 if pace.too_late(self.deadline):
                     return _SKIPPED
                 t0 = time.perf_counter()
                 got = self._sample(real, size, starts, opts, gibbs, seed + ci)
-                if name is not None:
-                    save_chunk(name(ci), *got)
+                if store is not None:
+                    save_chunk(store, ci, *got)
                 pace.took(time.perf_counter() - t0)
             return got
 
@@ -137,15 +136,11 @@ class Chunks:
                 bar.close()
         if many:
             process_barrier(f"jaxrefl mcmc: {tag} pass")
-            assert name is not None  # adaptive_uncertainty requires a folder here
+            assert store is not None  # adaptive_uncertainty requires a folder here
             for ci, a in enumerate(firsts):
                 real = idx[a : a + size]
-                got = load_chunk(name(ci), real.size, self.lp.labels)
-                if got is None:
-                    raise RuntimeError(
-                        f"{name(ci)}: missing or unreadable after every process finished; "
-                        "is chunk_dir one shared folder for all processes?"
-                    )
+                got = load_chunk(store, ci, real.size, self.lp.labels, required=True)
+                assert got is not None
                 yield real, *got
 
     def _sample(self, real, size, starts, opts: HMCOptions, gibbs: GibbsOptions | None, seed):

@@ -1,14 +1,15 @@
 """A capture fit's tiles on disk: written as they finish, read back by a rerun or another process.
 
-With an ``out_dir``, each finished tile is written to ``out_dir/tiles/tile_NNNNN.npz``
-beside a ``manifest.json`` (both written atomically: a file there is complete or absent)
-naming the job, the capture and the fit settings that ran
+With an ``out_dir``, each finished tile is written to ``out_dir/tiles/tile_NNNNN.npz``, a
+:class:`jaxrefl.fit.WorkStore` whose fingerprint is the job and the capture, and whose
+``manifest.json`` records beside them the fit settings that ran
 (:meth:`jaxrefl.svbrdf._tile_fitter.TileFitter.settings`). A rerun with the same job and
 capture loads the tiles already there and computes only the missing ones (none is lost, none
-recomputed); a different job or capture in the same folder is refused with a message, and a
-corrupt tile file is recomputed. The settings that ran follow from the job and the capture
-(the lean LM's compaction aside, which leaves per-pixel results as they are), so the check
-compares those two.
+recomputed); a different job or capture in the same folder is refused with the store's
+message, and a corrupt tile file is recomputed. The settings that ran follow from the job
+and the capture (the lean LM's compaction aside, which leaves per-pixel results as they
+are), so the fingerprint holds those two. A tile folder written before its manifest carried
+the fingerprint's hash is refused (``--restart`` discards it).
 
 Several processes share one folder (:class:`TileStore`): process 0 checks and prepares it
 while the others wait; after every process has written its tiles, each reads the others'
@@ -21,7 +22,6 @@ while the tile before it is fitted.
 from __future__ import annotations
 
 import hashlib
-import json
 import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -31,9 +31,7 @@ from typing import Any
 import jax
 import numpy as np
 
-from jaxrefl._errors import JaxreflError
-from jaxrefl.fit import process_barrier, process_gather
-from jaxrefl.io import save_npz_atomic, write_text_atomic
+from jaxrefl.fit import WorkStore, process_barrier, process_gather
 
 from ._job_types import FitJob
 from ._tile_fitter import STAGES, TileFitter
@@ -93,94 +91,53 @@ def manifest(job: FitJob, capture, n_tiles: int, ran: dict[str, Any]) -> dict[st
     }
 
 
-def load_tile(path: Path, n: int) -> dict[str, np.ndarray] | None:
-    """A saved tile of ``n`` pixels, or None where the file is truncated, corrupt, or holds
-    another number of pixels or other arrays (then the tile is recomputed)."""
-    try:
-        with np.load(path) as z:
-            tile = {k: z[k] for k in z.files}
-    except Exception:  # truncated or corrupt: recompute it
-        return None
-    if any(k not in tile for k in TILE_KEYS) or any(
-        v.ndim == 0 or v.shape[0] != n for v in tile.values()
-    ):
-        return None
-    return tile
+def _whole(n: int) -> Callable[[dict[str, np.ndarray]], bool]:
+    """Whether a tile file's arrays are a tile of ``n`` pixels: every array of
+    :data:`TILE_KEYS`, each of ``n`` rows (else the tile is recomputed)."""
 
-
-def _check_manifest(mpath: Path, new_manifest: dict[str, Any]) -> bool:
-    """Whether ``mpath`` exists and names this job and capture (False: absent); raises where
-    it is unreadable or names another fit (its tiles are not this fit's)."""
-    if not mpath.exists():
-        return False
-    tiles = mpath.parent
-    try:
-        old = json.loads(mpath.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError, OSError) as e:
-        raise JaxreflError(
-            f"{mpath}: unreadable resume manifest ({e}); the tiles beside it cannot be "
-            "matched to this fit: use --restart (or another --out folder)"
-        ) from None
-    new = json.loads(json.dumps(new_manifest))  # as it reads back (tuples become lists)
-    same = isinstance(old, dict) and all(old.get(k) == new[k] for k in _MATCHED)
-    if not same:
-        raise JaxreflError(
-            f"{mpath}: the tiles in {tiles} belong to a different fit (another model, "
-            "holdout, tile size, fit configuration or capture); use another --out "
-            "folder or --restart"
+    def check(tile: dict[str, np.ndarray]) -> bool:
+        return all(k in tile for k in TILE_KEYS) and all(
+            v.ndim > 0 and v.shape[0] == n for v in tile.values()
         )
-    return True
 
-
-def _prepare_dir(out_dir: Path, new_manifest: dict[str, Any], restart: bool) -> Path:
-    tiles = out_dir / "tiles"
-    tiles.mkdir(parents=True, exist_ok=True)
-    mpath = tiles / "manifest.json"
-    if not restart and _check_manifest(mpath, new_manifest):
-        return tiles
-    for old_tile in tiles.glob("tile_*.npz"):
-        old_tile.unlink()
-    write_text_atomic(mpath, json.dumps(new_manifest, indent=2))
-    return tiles
+    return check
 
 
 class TileStore:
-    """The tile files of one fit in ``folder`` (``out_dir/tiles``), beside its manifest."""
+    """The tile files of one fit in ``out_dir/tiles`` (a :class:`jaxrefl.fit.WorkStore`),
+    beside its manifest."""
 
-    def __init__(self, folder: Path):
-        self.folder = folder
+    def __init__(self, work: WorkStore):
+        self.work = work
+        self.folder = work.folder
 
     @classmethod
     def open(cls, out_dir: Path, new_manifest: dict[str, Any], restart: bool) -> TileStore:
-        """The folder of ``out_dir`` prepared for this fit, in a job of one or more processes:
-        every process checks the manifest (the same files give every process the same
-        error), process 0 alone creates the folder, writes the manifest or clears old tiles,
-        and the others wait for it. ``restart``: discard the tiles there."""
-        if jax.process_count() == 1:
-            return cls(_prepare_dir(out_dir, new_manifest, restart))
-        if not restart:
-            _check_manifest(out_dir / "tiles" / "manifest.json", new_manifest)
-        if jax.process_index() == 0:
-            _prepare_dir(out_dir, new_manifest, restart)
-        process_barrier("jaxrefl fit: folder prepared")
-        return cls(out_dir / "tiles")
+        """The folder ``out_dir/tiles`` prepared for this fit (:meth:`WorkStore.open`: every
+        process checks the manifest, process 0 alone prepares the folder). The manifest's
+        job and capture are the fingerprint; its other entries are recorded beside them.
+        ``restart``: discard the tiles there."""
+        fingerprint = {k: new_manifest[k] for k in _MATCHED}
+        record = {k: v for k, v in new_manifest.items() if k not in _MATCHED}
+        work = WorkStore.open(
+            Path(out_dir) / "tiles", fingerprint, restart, record=record, job="jaxrefl fit"
+        )
+        return cls(work)
+
+    @staticmethod
+    def key(i: int) -> str:
+        return f"tile_{i:05d}"
 
     def path(self, i: int) -> Path:
-        return self.folder / f"tile_{i:05d}.npz"
+        return self.work.path(self.key(i))
 
     def save(self, i: int, tile: dict[str, np.ndarray]) -> None:
-        save_npz_atomic(self.path(i), **tile)
+        self.work.save(self.key(i), tile)
 
     def load_done(self, tiles: list[tuple[int, int]]) -> tuple[list[Any], int]:
         """(each tile's arrays where its file is there and readable, else None; how many)."""
-        results: list[dict[str, np.ndarray] | None] = [None] * len(tiles)
-        loaded = 0
-        for i, (s, e) in enumerate(tiles):
-            p = self.path(i)
-            if p.exists():
-                results[i] = load_tile(p, e - s)
-                loaded += results[i] is not None
-        return results, loaded
+        results = [self.work.load(self.key(i), _whole(e - s)) for i, (s, e) in enumerate(tiles)]
+        return results, sum(r is not None for r in results)
 
     def gather(
         self, tiles, results: list, computed: int, compile_s: float, run_s: float
@@ -191,12 +148,7 @@ class TileStore:
         for i, r in enumerate(results):
             if r is None:
                 s, e = tiles[i]
-                results[i] = load_tile(self.path(i), e - s)
-                if results[i] is None:
-                    raise RuntimeError(
-                        f"{self.path(i)}: missing or unreadable after every process "
-                        "finished; is the output folder one shared folder for all processes?"
-                    )
+                results[i] = self.work.require(self.key(i), _whole(e - s))
         stats = np.array([computed, compile_s, run_s], np.float64)
         return process_gather(stats, "jaxrefl fit: timings gathered")
 
