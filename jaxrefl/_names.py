@@ -32,8 +32,10 @@ __all__ = [
 #: What a capture fit does with its flash (``jaxrefl fit --light``, ``svbrdf.FitJob.light``):
 #: as stated, its offset from the lens estimated, the offset and a gain per photo, or auto.
 LIGHT_CHOICES: tuple[str, ...] = ("fixed", "offset", "offset+gains", "auto")
-#: The flash of ``jaxrefl fit`` and ``jaxrefl sample`` when ``--light`` is not given.
-LIGHT_DEFAULT = "fixed"
+#: The flash of ``jaxrefl fit`` and ``jaxrefl sample`` when ``--light`` is not given, and of
+#: ``svbrdf.FitJob``: ``auto`` moves it from where the capture states it only where held-out
+#: photos support the move (docs/light.md).
+LIGHT_DEFAULT = "auto"
 
 #: BRDF families of :func:`jaxrefl.brdf.get` -> one line.
 FAMILIES: dict[str, str] = {
