@@ -84,6 +84,7 @@ def run_family(
             caps.append((name, flash_capture(name, size), None))
         else:
             print(f"(no {root / 'svbrdf_flash' / name}: {name} left out)")
+    light_used = svbrdf.FitJob().light if light is None else light
     rows = []
     for name, cap, truth in caps:
         k, h, w, _c = cap.shape
@@ -152,13 +153,9 @@ def run_family(
         "flagged: the fit's misspecification map (docs/outputs.md). Targets: a map within "
         f"{TARGET_WARM_S:.0f} s (compile cache warm) / {TARGET_COLD_S:.0f} s (cold), "
         "R-hat <= 1.05 on 99% of the MCMC pixels, coverage 85-95%. The generated captures' "
-        "light is written at the lens whatever their true flash offset; "
-        + (
-            "the library's default light (FitJob.light) takes it as written. "
-            if light is None
-            else f"the fit's light is {light!r} (FitJob.light), its uncertainty in the intervals. "
-        )
-        + "The first capture's time includes compiling what the others reuse. CPU s: "
+        "light is written at the lens whatever their true flash offset; the fit's light is "
+        f"{light_used!r} (FitJob.light; an estimated light's uncertainty is in the "
+        "intervals). The first capture's time includes compiling what the others reuse. CPU s: "
         "the process's CPU time (both cores) during the map, which other work on the machine "
         "slows less than the wall time."
     )
