@@ -349,8 +349,11 @@ def light_draws(estimate: LightEstimate, n: int, seed=0) -> list[tuple[np.ndarra
         return [(off.copy(), gain.copy()) for _ in range(n)]
     mean = np.concatenate([off, np.log(gain)])
     vals, vecs = np.linalg.eigh(np.asarray(estimate.cov, np.float64))
-    # Round-off leaves the constrained directions' eigenvalues a hair below 0.
-    root = vecs * np.sqrt(np.maximum(vals, 0.0))
+    # Round-off leaves the constrained directions' eigenvalues a hair either side of 0: below
+    # numpy's numerical-rank tolerance (largest x size x eps, as matrix_rank) they are 0, so
+    # the draws keep the constraints to round-off.
+    tol = max(vals.max(), 0.0) * vals.size * np.finfo(np.float64).eps
+    root = vecs * np.sqrt(np.where(vals > tol, vals, 0.0))
     rng = np.random.default_rng(seed)
     xs = mean + rng.standard_normal((n, mean.size)) @ root.T
     return [(x[:3], np.exp(x[3:])) for x in xs]
