@@ -614,6 +614,9 @@ def test_bath_tile_beats_lambert_on_a_held_out_photo(shared_data, tmp_path):
         out = tmp_path / model
         args = ["fit", str(shared_data / BATH), "--out", str(out), "--model", model]
         args += ["--holdout", "4", "--downsample", "8", "--quiet", "--no-previews"]
+        # the models compared under one light, as the capture states it (tests/test_light.py
+        # covers estimating it)
+        args += ["--light", "fixed"]
         assert main(args) == 0
         report = json.loads((out / "report.json").read_text())
         rmse[model] = report["heldout_rmse"]
