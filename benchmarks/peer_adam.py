@@ -270,7 +270,9 @@ class PeerFit:
         }
 
     def predict(self, capture) -> np.ndarray:
-        """(K, H, W, C) linear radiance of every photo of ``capture`` (unclipped)."""
+        """(K, H, W, C) linear radiance of every photo of ``capture`` (unclipped; the tool's
+        renderer clamps it to [0, 1] before anyone sees it, which is how
+        ``benchmarks/real_captures.py`` scores the peer)."""
         with _precision(self.dtype):
             geo = _prepare(capture.per_pixel_geometry(dtype=np.float64))
             geo = {k: jnp.asarray(v, self.dtype) for k, v in geo.items()}
