@@ -373,7 +373,6 @@ def end_to_end(side: int, lm_pixels: int, repeats: int, auto: bool) -> list[dict
     the same capture's pixels (module docstring)."""
     from jaxrefl import svbrdf
     from jaxrefl.svbrdf._data import pixel_block
-    from jaxrefl.svbrdf._job import COMPACT_MIN_PIXELS
     from jaxrefl.svbrdf._tile_fitter import TileFitter
 
     t0 = time.perf_counter()
@@ -407,12 +406,8 @@ def end_to_end(side: int, lm_pixels: int, repeats: int, auto: bool) -> list[dict
         if r.job.model not in lm_ref:
             # The LM alone and the start alone on the same pixels, tile-shaped blocks (the
             # job's own compiled shapes), same model, space, noise and loss as the job.
-            fitter = TileFitter(
-                cap,
-                r.job,
-                pooled=r.extra["pooled"],
-                compact=n_px >= COMPACT_MIN_PIXELS,
-            )
+            # The fit's job records the compaction that ran (FitJob.compact).
+            fitter = TileFitter(cap, r.job, pooled=r.extra["pooled"])
             tile = r.job.tile_pixels
             n_lm = min(lm_pixels, n_px) // tile * tile or tile
             blocks = [

@@ -97,7 +97,13 @@ def test_cornell_as_rgb_and_per_band(shared_data):
 
     # Per band: three bands, each its own problem with its own albedo.
     bands = m.select_channels(["450nm", "550nm", "650nm"])
-    rb = jm.fit_brdf(bands, ["lambert"], spectral="bands", retry_float64=False, timing=False)
+    rb = jm.fit_brdf(
+        bands,
+        ["lambert"],
+        spectral="bands",
+        options=jm.MeasuredOptions(retry_float64=False),
+        timing=False,
+    )
     lam = rb.fits["lambert"]
     assert lam.channels == "separate" and lam.params["albedo"].shape == (3,)
     assert lam.n_params == 3 and rb.settings["illuminant"] is None

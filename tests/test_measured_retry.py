@@ -6,6 +6,7 @@ Gauss-Newton step gain)."""
 from __future__ import annotations
 
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import jax.numpy as jnp
@@ -46,13 +47,14 @@ def test_collinear_lights_are_detected_and_redone_in_float64():
         np.asarray(d.wi[i]), np.asarray(d.wo[i]), np.asarray(d.obs[i]), ("R", "G", "B")
     )
     # One start (starts=None): the retry of that start's result is what is tested here.
-    kw = dict(cosine=False, max_theta_deg=None, timing=False, starts=None)
-    one = jm.fit_model(pr.model, m, **kw)
+    kw = dict(timing=False, starts=None)
+    opts = jm.MeasuredOptions(cosine=False, max_theta_deg=None)
+    one = jm.fit_model(pr.model, m, options=opts, **kw)
     assert one.retry is not None and "status ILL_CONDITIONED" in one.retry["reasons"]
     assert one.retry["kept"] == "float64" == one.dtype
     assert one.retry["float64_cost"] < one.retry["float32_cost"]
     assert one.cost == one.retry["float64_cost"]
-    plain = jm.fit_model(pr.model, m, retry_float64=False, **kw)
+    plain = jm.fit_model(pr.model, m, options=replace(opts, retry_float64=False), **kw)
     assert plain.retry is None and plain.dtype == "float32" and plain.cost > one.cost
     assert jm.float64_reasons(plain.result) == ["status ILL_CONDITIONED"]
 

@@ -58,7 +58,7 @@ def sharp_ggx():
 def test_new_starts_find_a_lobe_the_single_start_misses(sharp_ggx):
     m, truth = sharp_ggx
     model = jm.build_model("ggx")
-    kw = dict(config=F64, timing=False, retry_float64=False)
+    kw = dict(config=F64, timing=False, options=jm.MeasuredOptions(retry_float64=False))
     single = jm.fit_model(model, m, starts=None, **kw)
     multi = jm.fit_model(model, m, starts=STARTS, **kw)
     # The single start stops at a lobe ~10x too wide with the albedo at its bound (measured:
@@ -120,7 +120,9 @@ def test_certify_counts_and_thresholds():
 def test_fresnel_choice_is_selectable_and_in_the_report():
     m, _ = _synthetic("ggx_dielectric", eta=np.full(3, 1.5), alpha=0.2)
     names = ["ggx", "ggx_dielectric"]
-    rep = jm.fit_brdf(m, names, timing=False, starts=STARTS, retry_float64=False)
+    rep = jm.fit_brdf(
+        m, names, timing=False, starts=STARTS, options=jm.MeasuredOptions(retry_float64=False)
+    )
     d = json.loads(report_json(rep.to_dict()))
     schlick, diel = (d["models"][n] for n in names)
     assert schlick["fresnel"] == "schlick" and diel["fresnel"] == "dielectric"
@@ -158,7 +160,11 @@ def test_nested_starts_find_the_second_lafortune_lobe():
     m = MeasuredBRDF(wi, wo, f, ("R", "G", "B"), name="synthetic lafortune_2")
     assert jm.nested_model(l2) == l1 and jm.nested_model(l1) is None
     assert jm.nested_model(jm.build_model("ggx")) is None
-    kw = dict(config=F64, timing=False, retry_float64=False, max_theta_deg=None)
+    kw = dict(
+        config=F64,
+        timing=False,
+        options=jm.MeasuredOptions(retry_float64=False, max_theta_deg=None),
+    )
     one = jm.fit_model(l1, m, starts=STARTS, **kw)
     with jm.x64():
         r, cert, costs = jm.fit_multistart(l2, wi, wo, f, config=F64, starts=STARTS,
@@ -192,7 +198,7 @@ def test_continued_and_perturbed_starts_reach_the_best_of_64(shared_data):
         jm.load_measured(shared_data / "brdf" / "curet" / "abrdf.dat", curet_sample=61), 80.0
     )
     model = jm.build_model("lafortune_2")
-    kw = dict(name="lafortune_2", max_theta_deg=None, timing=False)
+    kw = dict(name="lafortune_2", options=jm.MeasuredOptions(max_theta_deg=None), timing=False)
     plain = jm.fit_model(model, m, starts=jm.MultiStart(rounds=0, generations=0), **kw)
     default = jm.fit_model(model, m, **kw)
     space = fit.ParamSpace(model, channels=len(m.channels))

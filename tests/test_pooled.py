@@ -250,7 +250,8 @@ def test_the_pooled_fit_runs_and_records_its_own_settings(auto_fit):
     from jaxrefl.svbrdf._tile_fitter import TileFitter
 
     cap, cf = auto_fit
-    ran = TileFitter(cap, cf.job, pooled=cf.extra["pooled"], compact=False).settings()
+    ran = TileFitter(cap, cf.job, pooled=cf.extra["pooled"]).settings()
+    assert ran["compact"] is cf.job.compact is False  # a small capture: no compaction
     assert cf.job.config.noise.sigma is None
     sigma = pytest.approx(cf.extra["pooled"].sigma, rel=1e-6)
     assert ran["config"]["noise"] == {"type": "gaussian", "sigma": sigma}
@@ -357,42 +358,44 @@ def test_held_out_photo_is_re_rendered_with_coloured_highlights(auto_fit, tmp_pa
 
 
 def test_leave_one_out_compacts_by_the_work_of_all_folds(shared_lobe_capture, monkeypatch):
-    """fit_capture compacts the LM's slow pixels by the capture's size unless told; the K
-    fits of leave_one_out share their programs, so they compact by K x H x W, and the
-    model selection's per-pixel fits follow the fit's choice (the same tile shape)."""
-    from jaxrefl.svbrdf import _auto, _holdout, _job, _tile_fitter
+    """fit_capture compacts the LM's slow pixels by the capture's size unless the job says
+    (``FitJob.compact``), and its job records what ran; the K fits of leave_one_out share
+    their programs, so they compact by K x H x W, and the model selection's per-pixel fits
+    follow the fit's choice (the same tile shape)."""
+    from jaxrefl.svbrdf import _auto, _job, _job_types, _tile_fitter
 
     cap, _ = shared_lobe_capture
     cap = cap.select(SIX).crop(0, 8, 0, 8)
     seen: list[tuple[str, bool]] = []
 
     class Recording(_tile_fitter.TileFitter):
-        def __init__(self, capture, job, pooled=None, *, compact=True, width_terms=True):
-            seen.append((job.model, compact))
-            super().__init__(capture, job, pooled, compact=compact, width_terms=width_terms)
+        def __init__(self, capture, job, pooled=None, *, width_terms=True):
+            super().__init__(capture, job, pooled, width_terms=width_terms)
+            seen.append((job.model, self.compact))
 
     monkeypatch.setattr(_job, "TileFitter", Recording)
     monkeypatch.setattr(_auto, "TileFitter", Recording)
     job = FitJob(model="lambert", tile_pixels=64)
-    fit_capture(cap, job)
+    res = fit_capture(cap, job)
     assert seen == [("lambert", False)]  # 64 pixels: far below COMPACT_MIN_PIXELS
+    assert res.job.compact is False and res.report["job"]["compact"] is False
     seen.clear()
-    monkeypatch.setattr(_holdout, "COMPACT_MIN_PIXELS", 6 * 64)  # K x H x W reaches it
+    monkeypatch.setattr(_job_types, "COMPACT_MIN_PIXELS", 6 * 64)  # K x H x W reaches it
     leave_one_out(cap, job)
     assert seen == [("lambert", True)] * 12
     seen.clear()
-    monkeypatch.setattr(_holdout, "COMPACT_MIN_PIXELS", 6 * 64 + 1)
+    monkeypatch.setattr(_job_types, "COMPACT_MIN_PIXELS", 6 * 64 + 1)
     leave_one_out(cap, job)
     assert seen == [("lambert", False)] * 12
     seen.clear()
-    # The default model: fit_capture hands its choice to the selection (here of one
+    # The default model: fit_capture hands the job's choice to the selection (here of one
     # candidate, which keeps the test to one compiled model) and to the chosen model's fit.
     choose = _job.choose_model
     monkeypatch.setattr(
         _job, "choose_model", lambda c, j, **kw: choose(c, j, candidates=("lambert",), **kw)
     )
-    res = fit_capture(cap, FitJob(tile_pixels=64, holdout=(5,)), compact=True)
-    assert res.job.model == "lambert"
+    res = fit_capture(cap, FitJob(tile_pixels=64, holdout=(5,), compact=True))
+    assert res.job.model == "lambert" and res.job.compact is True
     assert seen == [("lambert", True), ("lambert", True)]
 
 
@@ -401,7 +404,8 @@ def test_pixel_take_reads_the_pixels_pixel_block_reads(shared_lobe_capture):
     same rows of the capture read in one block, censoring and weights included."""
     import jax
 
-    from jaxrefl.svbrdf import pixel_block, pixel_take
+    from jaxrefl.svbrdf import pixel_block
+    from jaxrefl.svbrdf._data import pixel_take
 
     cap, _ = shared_lobe_capture
     st = cap.status.copy()

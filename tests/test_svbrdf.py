@@ -508,6 +508,13 @@ def test_interrupted_run_resumes_without_recomputing(tmp_path):
     # Beside the job, the settings that ran: this small job's lean LM is one plain loop.
     assert manifest["job"]["config"]["solver"]["compact_stages"]
     assert manifest["ran"]["config"]["solver"]["compact_stages"] == []
+    # The job's compaction left to the size rule is recorded as decided (none, for this
+    # size): the same value resumes, the other one is another job.
+    assert manifest["job"]["compact"] is False and manifest["ran"]["compact"] is False
+    same = svbrdf.fit_capture(cap, replace(job, compact=False), tmp_path)
+    assert same.tiles_loaded == 4 and same.tiles_computed == 0 and same.job.compact is False
+    with pytest.raises(ValueError, match="different job"):
+        svbrdf.fit_capture(cap, replace(job, compact=True), tmp_path)
     # A job with shot noise resumes its own tiles, and refuses the same job with another gain.
     shot_dir = tmp_path / "shot"
     shot_job = replace(job, config=job.config.replace(noise=shot))

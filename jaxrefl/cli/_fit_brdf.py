@@ -195,10 +195,10 @@ def run(args: argparse.Namespace) -> int:
         names,
         spectral=args.spectral,
         illuminant=args.illuminant,
-        max_theta_deg=max_theta,
-        cosine=not args.no_cosine,
+        options=jm.MeasuredOptions(
+            max_theta_deg=max_theta, cosine=not args.no_cosine, retry_float64=not args.no_retry
+        ),
         config=fit_config(args.backend, args.dtype, max_iters=args.max_iters),
-        retry_float64=not args.no_retry,
         progress=lambda name: print(f"  fitting {name} ...", flush=True),
         starts=starts,
     )

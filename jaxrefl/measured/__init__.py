@@ -49,6 +49,7 @@ from ._fit import ModelFit as ModelFit
 from ._fit import fit_brdf as fit_brdf
 from ._fit import fit_model as fit_model
 from ._fit import predict as predict
+from ._fit_options import MeasuredOptions as MeasuredOptions
 from ._metrics import METRICS as METRICS
 from ._metrics import cosine_weighted_l2 as cosine_weighted_l2
 from ._metrics import error_metrics as error_metrics

@@ -10,25 +10,25 @@ once (spectra to RGB or per band, angle limit, solid-angle weights) and fits a w
 models into a :class:`FitReport` whose :meth:`FitReport.to_dict` is the ``report.json``
 of ``jaxrefl fit-brdf``.
 
-What is minimised: with ``cosine=True`` (default) the residual is
-(f̂ - f) cos(theta_i) per sample and channel, i.e. exactly the quantity inside the
-cosine-weighted L2 of Ngan et al. 2005 (unweighted in the solver: the solid-angle weights
-enter only the reported metrics); ``cosine=False`` fits f_r itself. Samples beyond
-``max_theta_deg`` (default 80 degrees, as Ngan et al.) from the normal are left out of the
-fit and of the metrics.
+What is minimised (:class:`~jaxrefl.measured.MeasuredOptions`, with the samples a fit uses):
+with ``cosine=True`` (default) the residual is (f̂ - f) cos(theta_i) per sample and channel,
+i.e. exactly the quantity inside the cosine-weighted L2 of Ngan et al. 2005 (unweighted in
+the solver: the solid-angle weights enter only the reported metrics); ``cosine=False`` fits
+f_r itself. Samples beyond ``max_theta_deg`` (default 80 degrees, as Ngan et al.) from the
+normal are left out of the fit and of the metrics.
 
 Time: ``fit_time_s`` is the wall time of a second, identical call (compiled code is cached
 by then), ``compile_time_s`` the extra time of the first call (tracing + XLA compilation +
-the first run's transfers). With ``retry_float64`` a float32 fit that shows a reason of
-:func:`~jaxrefl.measured._retry.float64_reasons` is redone in float64; both times are then
-included and the report says why, and which result was kept.
+the first run's transfers). With ``MeasuredOptions.retry_float64`` a float32 fit that
+shows a reason of :func:`~jaxrefl.measured._retry.float64_reasons` is redone in float64;
+both times are then included and the report says why, and which result was kept.
 """
 
 from __future__ import annotations
 
 import time
 from collections.abc import Callable, Iterable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
 import jax
@@ -42,6 +42,7 @@ from jaxrefl.io import MeasuredBRDF
 
 from ._certificate import Certificate
 from ._data import restrict, to_rgb
+from ._fit_options import MeasuredOptions
 from ._metrics import METRICS, error_metrics, sample_weights, usable_samples
 from ._models import MODEL_DESCRIPTIONS, fresnel_name, resolve_models
 from ._nested import nested_model
@@ -56,6 +57,7 @@ _FLOAT32 = np.dtype(np.float32)
 _FLOAT64 = np.dtype(np.float64)
 _MEASURED_CONFIG = FitConfig(dtype=np.float32)
 _MULTISTART = MultiStart()
+_OPTIONS = MeasuredOptions()
 
 
 def _check_dtype(config: FitConfig) -> np.dtype:
@@ -213,10 +215,8 @@ def fit_model(
     *,
     name: str | None = None,
     channels: Channels = "joint",
-    cosine: bool = True,
+    options: MeasuredOptions = _OPTIONS,
     config: FitConfig = _MEASURED_CONFIG,
-    retry_float64: bool = True,
-    max_theta_deg: float | None = 80.0,
     weight: np.ndarray | None = None,
     timing: bool = True,
     starts: MultiStart | None = _MULTISTART,
@@ -226,13 +226,12 @@ def fit_model(
 
     channels:      ``"joint"`` (colour parameters per channel, shared roughness) or
                    ``"separate"`` (each channel its own problem, e.g. spectral bands)
+    options:       the samples used, what is minimised and the float64 retry
+                   (:class:`MeasuredOptions`: angle limit, cosine residual, retry)
     config:        solver, noise, loss and dtype (:class:`jaxrefl.fit.FitConfig`); dtype
                    float32 (default; None means float32 here, the fast one) or float64,
                    which works whether or not JAX runs with x64 enabled (it is switched on
                    around the fit)
-    retry_float64: redo a float32 fit in float64 when it has a non-finite cost or parameter
-                   or a NONFINITE_INPUT / ILL_CONDITIONED status, and keep the float64
-                   result when it is finite and no worse (see ``_retry``)
     weight:        per-sample solid-angle weights for the metrics (default 1), aligned
                    with ``measured`` before the angle limit is applied
     starts:        the multi-start settings (:class:`MultiStart`; default: the data-driven
@@ -248,6 +247,7 @@ def fit_model(
                    settings (recursively; its time is not in ``fit_time_s``)
     """
     name = name or type(model).__name__
+    max_theta_deg, cosine = options.max_theta_deg, options.cosine
     ok = usable_samples(measured.wi, measured.wo, measured.values, max_theta_deg)
     data = measured.select(ok)
     w = None if weight is None else np.asarray(weight, dtype=np.float64)[ok]
@@ -263,10 +263,9 @@ def fit_model(
             inner,
             data,
             channels=channels,
-            cosine=cosine,
+            # ``data`` is within the angle limit already.
+            options=replace(options, max_theta_deg=None),
             config=config,
-            retry_float64=retry_float64,
-            max_theta_deg=None,
             timing=False,
             starts=starts,
         )
@@ -302,7 +301,7 @@ def fit_model(
     f_hat = predict(result, data.wi, data.wo, channels)
     cost = _cost64(f_hat, f, cos_i, cosine)
     retry = None
-    if retry_float64 and dtype == _FLOAT32:
+    if options.retry_float64 and dtype == _FLOAT32:
         reasons = float64_reasons(result)
         if not np.isfinite(cost) and "non-finite cost" not in reasons:
             reasons.append("non-finite cost")
@@ -434,10 +433,8 @@ def fit_brdf(
     *,
     spectral: Literal["rgb", "bands"] = "rgb",
     illuminant: Literal["D65", "E"] = "D65",
-    max_theta_deg: float | None = 80.0,
-    cosine: bool = True,
+    options: MeasuredOptions = _OPTIONS,
     config: FitConfig = _MEASURED_CONFIG,
-    retry_float64: bool = True,
     timing: bool = True,
     progress: Callable[[str], None] | None = None,
     starts: MultiStart | None = _MULTISTART,
@@ -462,6 +459,7 @@ def fit_brdf(
             channels = "separate"
         else:
             raise JaxreflError(f"spectral must be 'rgb' or 'bands', not {spectral!r}")
+    max_theta_deg = options.max_theta_deg
     ok = usable_samples(data.wi, data.wo, data.values, max_theta_deg)
     prepared = restrict(data, max_theta_deg)
     weight = weight_all[ok]
@@ -482,10 +480,9 @@ def fit_brdf(
             prepared,
             name=name,
             channels=channels,
-            cosine=cosine,
+            # ``prepared`` is within the angle limit already.
+            options=replace(options, max_theta_deg=None),
             config=config,
-            retry_float64=retry_float64,
-            max_theta_deg=None,
             weight=weight,
             timing=timing,
             starts=starts,
@@ -496,10 +493,8 @@ def fit_brdf(
         "spectral": spectral if measured.wavelengths_nm is not None else None,
         "illuminant": illuminant if channels == "joint" and data is not measured else None,
         "channels": channels,
-        "max_theta_deg": max_theta_deg,
-        "cosine": cosine,
+        **{k: v for k, v in options.to_json().items() if k != "type"},
         "config": config.to_json(),
-        "retry_float64": retry_float64,
         "starts": None if starts is None else starts.to_json(),
     }
     return FitReport(prepared, fits, settings, weight)

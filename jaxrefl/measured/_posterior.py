@@ -34,9 +34,11 @@ from jaxrefl import fit
 from jaxrefl import posterior as jp
 from jaxrefl.fit import PixelData
 from jaxrefl.io import MeasuredBRDF
+from jaxrefl.posterior._diagnostics import log_likelihood_draws
 
 from ._data import load_measured, restrict, to_rgb
 from ._fit import ModelFit, fit_model
+from ._fit_options import MeasuredOptions
 from ._models import build_model
 from ._prune import measured_pixel_data
 from ._start_options import MultiStart
@@ -45,6 +47,7 @@ __all__ = ["BRDFPosterior", "sample_posterior", "write_posterior"]
 
 NOISE = "Gaussian on f_r cos(theta_i), unknown scale (Jeffreys prior)"
 _MULTISTART = MultiStart()
+_OPTIONS = MeasuredOptions()
 FILE_DRAWS = 2000  # draws in posterior.nc: with the log-likelihood, ~35 MB for 4,300 values
 _EMCEE_KEYS = ("tau", "burn", "thin", "tau_reliable", "n_steps", "max_steps", "n_walkers")
 
@@ -135,7 +138,7 @@ class BRDFPosterior:
             stats={k: np.asarray(v)[:, :, ::step] for k, v in s.stats.items()},
         )
         one = jax.tree.map(lambda a: a[None], self.data)
-        ll = jp.log_likelihood_draws(self.posterior, s, one).astype(np.float32)
+        ll = log_likelihood_draws(self.posterior, s, one).astype(np.float32)
         idata = jp.to_inference_data(
             s, one, log_likelihood=ll, observation="sample", attrs={"file_thin": step}
         )
@@ -179,7 +182,7 @@ def sample_posterior(
     model: str,
     sampler: jp.EmceeOptions | jp.HMCOptions | None = None,
     *,
-    max_theta_deg: float | None = 80.0,
+    options: MeasuredOptions = _OPTIONS,
     seed: int = 0,
     progress: bool = False,
     starts: MultiStart | None = _MULTISTART,
@@ -190,14 +193,15 @@ def sample_posterior(
     measured:      a :class:`jaxrefl.io.MeasuredBRDF`, or a file :func:`load_measured` reads
     sampler:       :class:`jaxrefl.posterior.EmceeOptions` (None: its defaults) or
                    :class:`jaxrefl.posterior.HMCOptions`
-    max_theta_deg: samples with either direction further from the normal are left out
+    options:       the samples used and the residual (:class:`MeasuredOptions`: the angle
+                   limit, the cosine factor; the fit runs in float64, so no retry)
     seed, progress: the sampler's seed and progress bar (emcee only)
     starts:        the least-squares fit's starts (:class:`MultiStart`; None: one start)
     """
     m = measured if isinstance(measured, MeasuredBRDF) else load_measured(measured)
     if m.wavelengths_nm is not None:
         m = to_rgb(m)
-    m = restrict(m, max_theta_deg)
+    m = restrict(m, options.max_theta_deg)
     sampler = jp.EmceeOptions() if sampler is None else sampler
     brdf = build_model(model)
     t0 = time.perf_counter()
@@ -205,15 +209,14 @@ def sample_posterior(
         brdf,
         m,
         name=model,
-        cosine=True,
+        options=options,
         config=fit.FitConfig(dtype=np.float64),
-        max_theta_deg=max_theta_deg,
         timing=False,
         starts=starts,
     )
     t_fit = time.perf_counter() - t0
     space = mf.result.space
-    data = jax.tree.map(lambda a: a[0], measured_pixel_data(m, cosine=True))
+    data = jax.tree.map(lambda a: a[0], measured_pixel_data(m, cosine=options.cosine))
     lp = jp.log_posterior(brdf, space, fit.GaussianNoise(None))
     theta = np.asarray(mf.result.theta, np.float64)
     n_used = float(np.sum(np.asarray(data.weight) > 0))

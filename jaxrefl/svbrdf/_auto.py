@@ -164,17 +164,16 @@ def choose_model(
     *,
     max_pixels: int = SELECTION_PIXELS,
     seed: int = 0,
-    compact: bool = False,
 ) -> ModelChoice:
     """Score every candidate by leave-one-photo-out over the photos ``job`` trains on
     (module docstring) and choose one. ``job`` gives everything but the model (noise, loss
     -- None: each model's default --, dtype, alpha_min, tiling). ``max_pixels``: selection
     rows in all (pixels x folds; at least 256 pixels a fold). Candidates the training photos
     cannot fit or score are skipped (module docstring, "Small captures"); where none can be
-    fitted a :class:`~jaxrefl.JaxreflError` lists what each needs. ``compact``: the
-    per-pixel fits gather their slow pixels into the lean LM's compaction stages
-    (:func:`jaxrefl.svbrdf.fit_capture` passes its own choice: the selection's tiles have
-    the fit's shape, so they share its compiled programs)."""
+    fitted a :class:`~jaxrefl.JaxreflError` lists what each needs. The per-pixel fits gather
+    their slow pixels into the lean LM's compaction stages as the fit does (``job.compact``,
+    :meth:`FitJob.compacts`: the selection's tiles have the fit's shape, so they share its
+    compiled programs)."""
     if not candidates or "auto" in candidates:
         raise JaxreflError("candidates must name one or more models other than 'auto'")
     k = capture.n_photos
@@ -224,7 +223,7 @@ def choose_model(
         """(fitter, leave-one-photo-out RMSE, the fits of each tile of rows where a
         refinement starts from ``m``'s)."""
         if fitter is None:
-            fitter = TileFitter(capture, replace(job, model=m), compact=compact, width_terms=False)
+            fitter = TileFitter(capture, replace(job, model=m), width_terms=False)
         sse = cnt = 0.0
         fits = []
         for s in range(0, mask.shape[0], size):
@@ -252,7 +251,7 @@ def choose_model(
         if base in cv and cv[base] > min(cv.values()) * (1.0 + TOLERANCE):
             skipped[m] = f"refines {base}, which is not the best so far"
             continue
-        fitter = TileFitter(capture, replace(job, model=m), compact=compact, width_terms=False)
+        fitter = TileFitter(capture, replace(job, model=m), width_terms=False)
         if base in done:
             ev = np.sum([fitter.tilt_evidence(r, d) for r, d in done[base][2]], axis=0)
             t, e, v = (float(x) for x in ev)

@@ -6,7 +6,8 @@ same way in the same run, so every figure has its reference beside it. Held-out 
 weights in the data, not shapes, so every fold after the first reuses the compiled programs
 of the first (one compile per model, whatever the photo count); the LM compacts its slow
 pixels where the K fits together are large enough to repay the compaction stages' compile
-(``COMPACT_MIN_PIXELS`` pixels over all folds).
+(:data:`~jaxrefl.svbrdf._job_types.COMPACT_MIN_PIXELS` pixels over all folds, where the
+job's ``compact`` is None).
 
 Figures (linear radiance, over each held-out photo's uncensored, valid observations, raw
 predictions: nothing clipped):
@@ -34,7 +35,7 @@ import numpy as np
 
 from jaxrefl._errors import JaxreflError
 
-from ._job import COMPACT_MIN_PIXELS, fit_capture
+from ._job import fit_capture
 from ._job_types import CaptureFit, FitJob
 
 __all__ = ["LeaveOneOut", "leave_one_out"]
@@ -83,11 +84,11 @@ def _run(capture, job: FitJob, progress: Callable[[str], None] | None):
     autos = []
     counts: dict[str, dict[str, int]] = {"status": {}, "laplace_flag": {}}
     # K fits of the capture share their compiled programs: compaction stages repay their
-    # compile by the work of all folds together, not by one fit's (fit_capture's compact).
-    compact = k * h * w >= COMPACT_MIN_PIXELS
+    # compile by the work of all folds together, not by one fit's (FitJob.compacts).
+    job = replace(job, compact=job.compacts(k * h * w))
     for i in range(k):
         t0 = time.perf_counter()
-        fit = fit_capture(capture, replace(job, holdout=(i,)), compact=compact)
+        fit = fit_capture(capture, replace(job, holdout=(i,)))
         wall = time.perf_counter() - t0
         compile_s += fit.report["timings"]["compile_s"]
         secs[i] = wall - fit.report["timings"]["compile_s"]

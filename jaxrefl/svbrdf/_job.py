@@ -48,7 +48,8 @@ import jax
 import numpy as np
 
 from jaxrefl._errors import JaxreflError
-from jaxrefl.fit import Distributed, process_barrier, process_share
+from jaxrefl.fit import Distributed
+from jaxrefl.fit._distributed import process_barrier, process_share
 
 # FitJob, CaptureFit and map_name are imported from here by other modules of the package.
 from jaxrefl.io import map_name
@@ -60,13 +61,7 @@ from ._maps import capture_maps, capture_report, distributed_timings, widen_shar
 from ._tile_fitter import TileFitter
 from ._tile_store import TileStore, fit_tiles, manifest, tile_ranges
 
-__all__ = ["COMPACT_MIN_PIXELS", "CaptureFit", "FitJob", "fit_capture", "map_name"]
-
-# Captures of fewer pixels than this are fitted by the lean LM in one plain loop of steps
-# rather than in compaction stages (fit.LMOptions.compact_stages; per-pixel results do not
-# depend on it): each stage is one more compiled copy of the LM step, and the steps it saves
-# repay that compile only over some tens of tiles of the default size.
-COMPACT_MIN_PIXELS = 1 << 17
+__all__ = ["CaptureFit", "FitJob", "fit_capture", "map_name"]
 
 
 def fit_capture(
@@ -78,7 +73,6 @@ def fit_capture(
     progress: bool = False,
     on_tile: Callable[[int, int], None] | None = None,
     distributed: Distributed | None = None,
-    compact: bool | None = None,
 ) -> CaptureFit:
     """Fit every pixel of ``capture`` (module docstring); returns the maps and a report.
 
@@ -96,12 +90,10 @@ def fit_capture(
               finished tiles, which a rerun loads. Call ``distributed.initialize()``
               before loading the capture (:func:`jaxrefl.io.load_capture` computes with
               JAX, which fixes the process's devices); here it is a no-op then.
-    compact:  whether the lean LM gathers its slow pixels into compaction stages, in the
-              fit and in the model selection (per-pixel results do not depend on it; it
-              trades compiled copies of the step for the steps it saves). None: where the
-              capture has :data:`COMPACT_MIN_PIXELS` pixels or more. A caller that fits the
-              same capture many times (:func:`jaxrefl.svbrdf.leave_one_out`) passes its
-              own count of the work.
+
+    The job's ``compact`` left None is decided by the capture's size
+    (:meth:`FitJob.compacts`); the returned fit's job, its report and the resume manifest
+    record the value that ran.
     """
     job = FitJob() if job is None else job
     if distributed is not None:
@@ -117,8 +109,7 @@ def fit_capture(
             "can read and write (the processes exchange their tiles there)"
         )
     _k, h, w, c = capture.shape
-    if compact is None:
-        compact = h * w >= COMPACT_MIN_PIXELS
+    job = replace(job, compact=job.compacts(h * w))
     # The light first (the capture as the estimate places it): every model sees the same.
     t_light = time.perf_counter()
     light = estimate_light(capture, job.light, job.holdout, alpha_min=job.alpha_min)
@@ -127,12 +118,10 @@ def fit_capture(
     choice: ModelChoice | None = None
     t_choose = time.perf_counter()
     if job.model == "auto":
-        choice = choose_model(capture, job, compact=compact)
+        choice = choose_model(capture, job)
         job = replace(job, model=choice.model)
     choose_s = time.perf_counter() - t_choose
-    fitter = TileFitter(
-        capture, job, pooled=None if choice is None else choice.pooled, compact=compact
-    )
+    fitter = TileFitter(capture, job, pooled=None if choice is None else choice.pooled)
     tiles = tile_ranges(h, w, job.tile_pixels)
     store = None
     results: list[dict[str, np.ndarray] | None] = [None] * len(tiles)

@@ -22,7 +22,13 @@ from ._models import ALPHA_RANGE, capture_model
 if TYPE_CHECKING:
     from ._light import LightEstimate
 
-__all__ = ["DEFAULT_LOSS", "CaptureFit", "FitJob"]
+__all__ = ["COMPACT_MIN_PIXELS", "DEFAULT_LOSS", "CaptureFit", "FitJob"]
+
+# Where ``FitJob.compact`` is None, captures of fewer pixels than this are fitted by the lean
+# LM in one plain loop of steps rather than in compaction stages
+# (fit.LMOptions.compact_stages): each stage is one more compiled copy of the LM step, and
+# the steps it saves repay that compile only over some tens of tiles of the default size.
+COMPACT_MIN_PIXELS = 1 << 17
 
 # Models whose default loss is not L2. Huber's threshold is one noise std (the pooled model
 # estimates that std): a glint or a misregistered edge in one photo then pulls the shared
@@ -45,11 +51,8 @@ class FitJob:
 
                 * ``solver``: :class:`~jaxrefl.fit.LMOptions` (default), or a library solver
                   (:class:`~jaxrefl.fit.OptimistixLM`, :class:`~jaxrefl.fit.JaxoptLM`),
-                  with its iteration budget; captures of fewer than
-                  :data:`~jaxrefl.svbrdf._job.COMPACT_MIN_PIXELS` pixels run the lean LM
-                  as one plain loop (its ``compact_stages`` dropped; per-pixel results are
-                  the same), unless :func:`~jaxrefl.svbrdf.fit_capture` is told otherwise
-                  (its ``compact``)
+                  with its iteration budget (the lean LM's compaction stages as
+                  ``compact`` says)
                 * ``noise``: :class:`~jaxrefl.fit.GaussianNoise` (default: sigma unknown, the
                   Laplace step estimates its scale per pixel) or
                   :class:`~jaxrefl.fit.ShotNoise` (variance read^2 + gain * obs), in linear
@@ -74,6 +77,14 @@ class FitJob:
                 held-out observations support); default ``jaxrefl._names.LIGHT_DEFAULT``,
                 also ``jaxrefl fit``'s and ``jaxrefl sample``'s; the report's ``light``
                 says what and why
+    compact:    whether the lean LM gathers its slow pixels into compaction stages
+                (:attr:`jaxrefl.fit.LMOptions.compact_stages`), in the fit and in the model
+                selection; False runs one plain loop of steps (the stages dropped). Per-pixel
+                results do not depend on it: it trades compiled copies of the step for the
+                steps they save. None (the
+                default): the size rule, stages where the capture has
+                :data:`COMPACT_MIN_PIXELS` pixels or more (:meth:`compacts`);
+                :func:`~jaxrefl.svbrdf.fit_capture` records the value it ran with
     """
 
     model: str = "auto"
@@ -83,6 +94,7 @@ class FitJob:
     alpha_min: float | None = None
     tilt_std: float = 0.1
     light: str = LIGHT_DEFAULT
+    compact: bool | None = None
 
     def __post_init__(self) -> None:
         if self.light not in LIGHT_CHOICES:
@@ -110,6 +122,16 @@ class FitJob:
         if self.alpha_min is not None and not lo <= self.alpha_min <= hi:
             raise JaxreflError(f"alpha_min must be in [{lo:g}, {hi:g}], got {self.alpha_min}")
         object.__setattr__(self, "holdout", tuple(sorted({int(i) for i in self.holdout})))
+        if self.compact not in (None, True, False):
+            raise JaxreflError(f"compact must be True, False or None, not {self.compact!r}")
+        if self.compact is not None:
+            object.__setattr__(self, "compact", bool(self.compact))
+
+    def compacts(self, n_pixels: int) -> bool:
+        """Whether the lean LM runs compaction stages for a capture of ``n_pixels`` pixels
+        (fitted ``n_pixels`` at a time or, over several folds, in all): ``compact``, or
+        where it is None the size rule (:data:`COMPACT_MIN_PIXELS`)."""
+        return n_pixels >= COMPACT_MIN_PIXELS if self.compact is None else self.compact
 
     @property
     def dtype(self) -> np.dtype:
@@ -127,6 +149,7 @@ class FitJob:
             "alpha_min": self.alpha_min,
             "tilt_std": self.tilt_std,
             "light": self.light,
+            "compact": self.compact,
         }
 
 

@@ -62,7 +62,7 @@ flagged pixels apart (:meth:`Predictive.coverage` takes a pixel mask).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import equinox as eqx
@@ -286,7 +286,7 @@ def predictive(
             "capture the fit was made of"
         )
     fitter = TileFitter(
-        capture, cf.job, pooled=cf.extra.get("pooled"), compact=False, width_terms=False
+        capture, replace(cf.job, compact=False), pooled=cf.extra.get("pooled"), width_terms=False
     )
     space = fitter.space
     theta, std, corr = _fit_arrays(cf, space)
@@ -425,7 +425,7 @@ def estimate_discrepancy(
     if len(train) < 2:
         return Discrepancy.zero()
     fitter = TileFitter(
-        capture, cf.job, pooled=cf.extra.get("pooled"), compact=False, width_terms=False
+        capture, replace(cf.job, compact=False), pooled=cf.extra.get("pooled"), width_terms=False
     )
     if replace_noise is None:
         replace_noise = fitter.known_noise is not None

@@ -28,6 +28,8 @@ import numpy as np
 
 from jaxrefl import fit
 from jaxrefl._errors import JaxreflError
+from jaxrefl.fit._laplace import same_residual
+from jaxrefl.fit._select import keep_lower
 
 from ._data import pixel_block, resolvable_alpha
 from ._job_types import FitJob
@@ -63,18 +65,17 @@ class TileFitter:
         job: FitJob,
         pooled: PoolChoice | None = None,
         *,
-        compact: bool = True,
         width_terms: bool = True,
     ):
         """``pooled``: ``pooled``'s choice when already made for these training photos.
-        ``compact``: the lean LM gathers its slow pixels into compaction stages (else one
-        plain loop of steps; :func:`jaxrefl.svbrdf.fit_capture` decides: its ``compact``).
+        The lean LM gathers its slow pixels into compaction stages as ``job.compact`` says
+        (None: by the capture's size, :meth:`FitJob.compacts`).
         ``width_terms``: for ``pooled``, each pixel's share of the shared width's Laplace
         uncertainty (:mod:`jaxrefl.svbrdf._shared`; model selection needs no covariance)."""
         self.capture = capture
         self.width_terms = width_terms
         self.job = job
-        self.compact = compact
+        self.compact = job.compacts(capture.shape[1] * capture.shape[2])
         k = capture.n_photos
         bad = [i for i in job.holdout if not 0 <= i < k]
         if bad:
@@ -124,7 +125,7 @@ class TileFitter:
         self.loss: fit.Loss = job.config.loss
         self.residual = fit.make_residual(self.model, self.space, self.noise, self.loss, self.prior)
         self.config = job.config.replace(noise=self.noise, loss=self.loss)
-        if not compact and isinstance(self.config.solver, fit.LMOptions):
+        if not self.compact and isinstance(self.config.solver, fit.LMOptions):
             self.config = self.config.replace(solver=replace(self.config.solver, compact_stages=()))
         if job.model == "pooled" and isinstance(self.config.solver, fit.LMOptions):
             # Linear in its free parameters (alpha is shared) and started at the exact
@@ -153,7 +154,7 @@ class TileFitter:
         """The fit configuration that runs, as JSON (:meth:`jaxrefl.fit.FitConfig.to_json`):
         the job's with what the fitter sets (module docstring); for a two-stage model also
         the tilted fit's solver (its noise scale is each tile's own estimate)."""
-        out: dict[str, Any] = {"config": self.config.to_json()}
+        out: dict[str, Any] = {"config": self.config.to_json(), "compact": self.compact}
         if self.first is not None:
             out["tilted_solver"] = self.tilted_solver.to_json()
         return out
@@ -330,11 +331,11 @@ _PER_PIXEL = ("params", "theta", "status", "iterations", "n_used")
 
 
 def _keep_lower(a, b):
-    """Per pixel, the fit result of lower cost (:func:`jaxrefl.fit.keep_lower`: a NaN cost
+    """Per pixel, the fit result of lower cost (:func:`jaxrefl.fit._select.keep_lower`: a NaN cost
     never wins)."""
     la, lb = a.linearisation, b.linearisation
     # The curvature goes with the theta it was taken at; without both there is none.
-    same = la is not None and lb is not None and fit.same_residual(la.residual, lb.residual)
+    same = la is not None and lb is not None and same_residual(la.residual, lb.residual)
 
     def candidate(r):
         out = {f: getattr(r, f) for f in _PER_PIXEL}
@@ -342,7 +343,7 @@ def _keep_lower(a, b):
             out["jtj"], out["active"] = r.linearisation.jtj, r.linearisation.active
         return out
 
-    cost, kept = fit.keep_lower(a.cost, candidate(a), b.cost, candidate(b))
+    cost, kept = keep_lower(a.cost, candidate(a), b.cost, candidate(b))
     lin = None
     if same:
         lin = replace(la, jtj=kept.pop("jtj"), active=kept.pop("active"))

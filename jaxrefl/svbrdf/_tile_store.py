@@ -7,8 +7,8 @@ With an ``out_dir``, each finished tile is written to ``out_dir/tiles/tile_NNNNN
 capture loads the tiles already there and computes only the missing ones (none is lost, none
 recomputed); a different job or capture in the same folder is refused with the store's
 message, and a corrupt tile file is recomputed. The settings that ran follow from the job
-and the capture (the lean LM's compaction aside, which leaves per-pixel results as they
-are), so the fingerprint holds those two. A tile folder written before its manifest carried
+(the lean LM's compaction included: ``FitJob.compact``, as decided for the capture) and the
+capture, so the fingerprint holds those two. A tile folder written before its manifest carried
 the fingerprint's hash is refused (``--restart`` discards it).
 
 Several processes share one folder (:class:`TileStore`): process 0 checks and prepares it
@@ -31,7 +31,8 @@ from typing import Any
 import jax
 import numpy as np
 
-from jaxrefl.fit import WorkStore, process_barrier, process_gather
+from jaxrefl.fit import WorkStore
+from jaxrefl.fit._distributed import process_barrier, process_gather
 
 from ._job_types import FitJob
 from ._tile_fitter import STAGES, TileFitter
