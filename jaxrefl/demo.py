@@ -27,7 +27,14 @@ from jaxtyping import Array, Float
 from . import brdf
 from .scene import GammaResponse, PinholeCamera, PointLight, planar_points, render
 
-__all__ = ["DemoScene", "demo_capture", "demo_scene", "photograph_maps", "render_demo"]
+__all__ = [
+    "DemoScene",
+    "demo_capture",
+    "demo_model",
+    "demo_scene",
+    "photograph_maps",
+    "render_demo",
+]
 
 SIDE_CM = 11.136
 LIGHT_POWER = 1500.0
@@ -54,6 +61,17 @@ class DemoScene:
         return [PinholeCamera(p, look_at=(0.0, 0.0, 0.0)) for p in self.positions]
 
 
+def demo_model() -> brdf.BRDF:
+    """The demo's BRDF: GGX Cook-Torrance (height-correlated Smith, Schlick) on Lambert."""
+    return brdf.get(
+        "cook_torrance",
+        distribution="ggx",
+        shadowing="smith_height_correlated",
+        fresnel="schlick",
+        diffuse="lambert",
+    )
+
+
 def demo_scene(size: int = 128, seed: int = 0, dtype=jnp.float32) -> DemoScene:
     """Build the demo SVBRDF (``size`` x ``size`` pixels) and its nine-photo flash rig."""
     rng = np.random.default_rng(seed)
@@ -71,13 +89,7 @@ def demo_scene(size: int = 128, seed: int = 0, dtype=jnp.float32) -> DemoScene:
         "specular": jnp.asarray(np.repeat(patch_spec[rows, cols][..., None], 3, -1), dtype=dtype),
         "alpha": jnp.asarray(rough**2, dtype=dtype),
     }
-    model = brdf.get(
-        "cook_torrance",
-        distribution="ggx",
-        shadowing="smith_height_correlated",
-        fresnel="schlick",
-        diffuse="lambert",
-    )
+    model = demo_model()
     # Flash positions like the bath_tile capture: ~24 cm up, offsets of a few cm.
     offsets = np.array(
         [

@@ -208,6 +208,12 @@ class Beckmann(Distribution):
 
 
 # --------------------------------------------------------------------------- shadowing
+# The shadowing terms' directions (unit, local frame, pointing away from the surface) and
+# their value per direction triple.
+_Dir = Float[Array, "*b 3"]
+_PerDir = Float[Array, " *b"]
+
+
 def _cosines(wi: Array, wo: Array, wh: Array) -> tuple[Array, Array, Array, Array]:
     ci = wi[..., 2]
     co = wo[..., 2]
@@ -235,23 +241,11 @@ class Shadowing(eqx.Module):
 
     @abc.abstractmethod
     def visibility(
-        self,
-        dist: Distribution,
-        p: dict[str, Array],
-        wi: Float[Array, "*b 3"],
-        wo: Float[Array, "*b 3"],
-        wh: Float[Array, "*b 3"],
-    ) -> Float[Array, " *b"]:
+        self, dist: Distribution, p: dict[str, Array], wi: _Dir, wo: _Dir, wh: _Dir
+    ) -> _PerDir:
         """G(wi, wo, h) / (4 cos_i cos_o); 0 where a cosine or wo.h is <= 0."""
 
-    def G(
-        self,
-        dist: Distribution,
-        p: dict[str, Array],
-        wi: Float[Array, "*b 3"],
-        wo: Float[Array, "*b 3"],
-        wh: Float[Array, "*b 3"],
-    ) -> Float[Array, " *b"]:
+    def G(self, dist: Distribution, p: dict[str, Array], wi: _Dir, wo: _Dir, wh: _Dir) -> _PerDir:
         """The shadowing-masking factor G in [0, 1] itself."""
         return self.visibility(dist, p, wi, wo, wh) * 4.0 * wi[..., 2] * wo[..., 2]
 

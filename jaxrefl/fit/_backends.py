@@ -110,30 +110,28 @@ class FitInfo(eqx.Module):
     active: Int[Array, " N"]  # active residual rows there (``_lm._linearise``)
 
 
-def _import_jaxopt():
+def _optional(package: str, solver: str):
+    """The optional ``package`` a library ``solver`` needs, or an ImportError saying how to
+    install it."""
     try:
         with warnings.catch_warnings():
-            # jaxopt warns at import that it is unmaintained (DeprecationWarning) and may
-            # emit others from its own imports; none of them is actionable for our users.
+            # jaxopt warns at import that it is unmaintained (DeprecationWarning), and a
+            # package may emit others from its own imports; none is actionable for our users.
             warnings.simplefilter("ignore")
-            import jaxopt
+            return __import__(package)
     except ImportError as err:  # pragma: no cover - depends on the environment
         raise ImportError(
-            "JaxoptLM needs the jaxopt package, an optional dependency: "
+            f"{solver} needs the {package} package, an optional dependency: "
             "pip install 'jaxrefl[backends]' (or use fit.LMOptions())"
         ) from err
-    return jaxopt
+
+
+def _import_jaxopt():
+    return _optional("jaxopt", "JaxoptLM")
 
 
 def _import_optimistix():
-    try:
-        import optimistix
-    except ImportError as err:  # pragma: no cover - depends on the environment
-        raise ImportError(
-            "OptimistixLM needs the optimistix package, an optional dependency: "
-            "pip install 'jaxrefl[backends]' (or use fit.LMOptions())"
-        ) from err
-    return optimistix
+    return _optional("optimistix", "OptimistixLM")
 
 
 def _status(residual_fn, theta, theta0, data, converged, valid, space, n_usable, cond_max, rtol):

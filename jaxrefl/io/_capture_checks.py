@@ -81,6 +81,37 @@ def _refuse(where: tuple[Path, list[str]], k: int, problem: str) -> CaptureError
     return CaptureError(path, problem, names[k])
 
 
+def _distance(
+    pos: np.ndarray,
+    what: str,
+    where: tuple[Path, list[str]],
+    k: int,
+    unit: str,
+    limit: float,
+    advice: str,
+) -> float:
+    """The distance from the sample's centre of photo ``k``'s ``what`` (camera or light) at
+    ``pos``; one on or below the sample plane, or further than ``limit``, is refused
+    (``advice``: the way out of the latter)."""
+    if not pos[2] > 0:
+        raise _refuse(
+            where,
+            k,
+            f"the {what} is at z = {pos[2]:g} {unit}, not above the sample plane; the sample "
+            f"lies in z = 0 facing +z, so a {what} needs z > 0",
+        )
+    with np.errstate(over="ignore"):  # an overflowing square is refused just below
+        dist = float(np.sqrt(np.sum(pos * pos)))
+    if not dist <= limit:
+        raise _refuse(
+            where,
+            k,
+            f"the {what} is {dist:.3g} {unit} from the sample, more than {MAX_SIDES:.3g} sample "
+            f"sides ({limit:.3g} {unit}){advice}",
+        )
+    return dist
+
+
 def check_geometry(
     camera_pos: np.ndarray,
     light_pos: np.ndarray | None,
@@ -98,22 +129,9 @@ def check_geometry(
     far: list[tuple[int, float, float]] = []  # phone flashes far from their camera
     for k in range(camera_pos.shape[0]):
         cam = camera_pos[k]
-        if not cam[2] > 0:
-            raise _refuse(
-                fields.camera,
-                k,
-                f"the camera is at z = {cam[2]:g} {unit}, not above the sample plane; the "
-                "sample lies in z = 0 facing +z, so a camera needs z > 0",
-            )
-        with np.errstate(over="ignore"):  # an overflowing square is refused just below
-            dist = float(np.sqrt(np.sum(cam * cam)))
-        if not dist <= limit:
-            raise _refuse(
-                fields.camera,
-                k,
-                f"the camera is {dist:.3g} {unit} from the sample, more than {MAX_SIDES:.3g} "
-                f"sample sides ({limit:.3g} {unit}); give positions in {unit}",
-            )
+        dist = _distance(
+            cam, "camera", fields.camera, k, unit, limit, f"; give positions in {unit}"
+        )
         if light_power[k].size and not np.all(light_power[k] > 0):
             raise _refuse(
                 fields.power,
@@ -132,23 +150,8 @@ def check_geometry(
             continue
         assert light_pos is not None  # one of light_pos and light_dir (Capture)
         lp = light_pos[k]
-        if not lp[2] > 0:
-            raise _refuse(
-                fields.light,
-                k,
-                f"the light is at z = {lp[2]:g} {unit}, not above the sample plane; the sample "
-                "lies in z = 0 facing +z, so a light needs z > 0",
-            )
-        with np.errstate(over="ignore"):  # an overflowing square is refused just below
-            r = float(np.sqrt(np.sum(lp * lp)))
-        if not r <= limit:
-            raise _refuse(
-                fields.light,
-                k,
-                f"the light is {r:.3g} {unit} from the sample, more than {MAX_SIDES:.3g} sample "
-                f"sides ({limit:.3g} {unit}): give it as a directional light, or positions in "
-                f"{unit}",
-            )
+        far_light = f": give it as a directional light, or positions in {unit}"
+        r = _distance(lp, "light", fields.light, k, unit, limit, far_light)
         # Irradiance power / r^2 between the nearest possible point (the light's height) and
         # the farthest (a corner): both must be normal float32 numbers.
         with np.errstate(over="ignore", divide="ignore"):

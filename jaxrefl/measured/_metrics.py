@@ -64,6 +64,10 @@ __all__ = [
 #: Names of the metrics, in report order.
 METRICS = ("cosine_weighted_l2", "log_l2", "relative_l2")
 
+# The metrics' arguments: f_r of K samples in C channels, and one value per sample.
+_Values = Float[ArrayLike, "K C"]
+_PerSample = Float[ArrayLike, " K"]
+
 
 def _prepare(measured, fitted, cos_i, weight):
     f = jnp.asarray(measured)
@@ -101,37 +105,32 @@ def _sqrt(x: Array) -> Array:
     return jnp.where(pos, jnp.sqrt(jnp.where(pos, x, 1.0)), jnp.where(jnp.isnan(x), x, 0.0))
 
 
-def cosine_weighted_l2(
-    measured: Float[ArrayLike, "K C"],
-    fitted: Float[ArrayLike, "K C"],
-    cos_i: Float[ArrayLike, " K"],
-    weight: Float[ArrayLike, " K"] | None = None,
-) -> Float[Array, ""]:
-    """E_cos of Ngan et al. 2005 (module docstring), in 1/sr."""
-    f, g, c, w = _prepare(measured, fitted, cos_i, weight)
-    d = (g - f) * c[:, None]
+def _rms(d: Array, w: Array) -> Array:
+    """The weighted root mean square of the differences ``d`` (K, C)."""
     return _sqrt(_weighted_mean(d * d, w))
 
 
+def cosine_weighted_l2(
+    measured: _Values, fitted: _Values, cos_i: _PerSample, weight: _PerSample | None = None
+) -> Float[Array, ""]:
+    """E_cos of Ngan et al. 2005 (module docstring), in 1/sr."""
+    f, g, c, w = _prepare(measured, fitted, cos_i, weight)
+    return _rms((g - f) * c[:, None], w)
+
+
 def log_l2(
-    measured: Float[ArrayLike, "K C"],
-    fitted: Float[ArrayLike, "K C"],
-    cos_i: Float[ArrayLike, " K"],
-    weight: Float[ArrayLike, " K"] | None = None,
+    measured: _Values, fitted: _Values, cos_i: _PerSample, weight: _PerSample | None = None
 ) -> Float[Array, ""]:
     """E_log, the cosine-weighted log-space L2 of Löw et al. 2012 (module docstring)."""
     f, g, c, w = _prepare(measured, fitted, cos_i, weight)
     # Clamp at 0: ln(1 + x) needs x > -1, and negative f_r is noise (module docstring).
     lf = jnp.log1p(jnp.maximum(f, 0.0) * c[:, None])
     lg = jnp.log1p(jnp.maximum(g, 0.0) * c[:, None])
-    d = lg - lf
-    return _sqrt(_weighted_mean(d * d, w))
+    return _rms(lg - lf, w)
 
 
 def relative_l2(
-    measured: Float[ArrayLike, "K C"],
-    fitted: Float[ArrayLike, "K C"],
-    weight: Float[ArrayLike, " K"] | None = None,
+    measured: _Values, fitted: _Values, weight: _PerSample | None = None
 ) -> Float[Array, ""]:
     """E_rel = |f̂ - f|_w / |f|_w on f_r (module docstring); NaN if f is 0 everywhere."""
     f, g, _, w = _prepare(measured, fitted, 1.0, weight)

@@ -120,15 +120,9 @@ class SyntheticSample:
 def default_sample() -> SyntheticSample:
     """The demo's BRDF (GGX Cook–Torrance on Lambert, :mod:`jaxrefl.demo`) with smooth
     maps: albedo, F0 and roughness vary as sinusoids of periods 2.5-4 cm."""
-    from jaxrefl import brdf
+    from jaxrefl.demo import demo_model
 
-    model = brdf.get(
-        "cook_torrance",
-        distribution="ggx",
-        shadowing="smith_height_correlated",
-        fresnel="schlick",
-        diffuse="lambert",
-    )
+    model = demo_model()
 
     def params_at(xy: np.ndarray) -> dict[str, np.ndarray]:
         x, y = xy[..., 0], xy[..., 1]

@@ -48,7 +48,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from jaxrefl.fit import PixelData, device_count, map_sharded
+from jaxrefl.fit import PixelData, map_sharded
+from jaxrefl.fit._shard import device_count
 
 from ._bind import bind_once
 from ._driver import Kernel, chain_starts, package, run_chain
@@ -228,18 +229,17 @@ def sample_hmc(
     lp: LogPosterior,
     data: PixelData,
     theta0: Float[ArrayLike, "*N D"],
+    opts: HMCOptions,
     *,
     theta_std: Float[ArrayLike, "*N D"] | None = None,
     normals: Array | None = None,
-    options: HMCOptions | None = None,
     seed: int = 0,
     timing: bool = False,
     devices: int | None = None,
 ) -> Samples:
-    """HMC/NUTS draws of every pixel of ``data`` (arguments of
-    :func:`jaxrefl.posterior.sample_pixels`, which calls it; ``lp`` already
-    :meth:`~LogPosterior.for_data`)."""
-    opts = HMCOptions() if options is None else options
+    """HMC/NUTS draws of every pixel of ``data`` under ``opts`` (the other arguments are
+    those of :func:`jaxrefl.posterior.sample_pixels`, which calls it with its options
+    resolved and ``lp`` already :meth:`~LogPosterior.for_data`)."""
     n = data.obs.shape[0]
     dtype = data.obs.dtype
     x, ok = chain_starts(theta0, n, opts.num_chains, dtype)
