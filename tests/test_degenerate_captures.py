@@ -25,7 +25,7 @@ import pytest
 from jaxrefl import JaxreflError, brdf, fit, svbrdf
 from jaxrefl.cli._main import main
 from jaxrefl.demo import demo_capture, demo_scene, render_demo
-from jaxrefl.fit import CORR_NAN_FLAGS, STD_NAN_FLAGS, undefined_correlations
+from jaxrefl.fit._laplace import CORR_NAN_FLAGS, STD_NAN_FLAGS, undefined_correlations
 from jaxrefl.io import CaptureError, CaptureWarning, ObsStatus, load_capture
 from jaxrefl.io._photos import write_png
 from jaxrefl.svbrdf._auto import ModelChoice, choose_model

@@ -25,6 +25,7 @@ from jaxrefl import brdf, svbrdf
 from jaxrefl.cli import main
 from jaxrefl.io import corr_name, exr_channel, map_key, map_name, read_png, write_exr
 from jaxrefl.scene import PinholeCamera, PointLight, planar_points, render
+from jaxrefl.svbrdf._export import F0_DIELECTRIC, FlashView, mitsuba_scene, renderer_maps
 
 mi = pytest.importorskip("mitsuba")
 
@@ -52,7 +53,7 @@ def _maps(normals: bool) -> dict[str, np.ndarray]:
     base = np.stack([0.2 + 0.6 * uu, 0.3 + 0.4 * vv, 0.5 - 0.3 * uu * vv], -1)
     metal = 0.6 * uu * vv
     alb, f0 = brdf.metallic_to_specular(jnp.asarray(base), jnp.asarray(metal))
-    alb = np.asarray(alb) / (1.0 - svbrdf.F0_DIELECTRIC)
+    alb = np.asarray(alb) / (1.0 - F0_DIELECTRIC)
     maps = {f"albedo.{c}": alb[..., i] for i, c in enumerate("RGB")}
     maps |= {f"specular.{c}": np.asarray(f0)[..., i] for i, c in enumerate("RGB")}
     maps["alpha"] = (0.3 + 0.4 * vv) ** 2
@@ -105,8 +106,8 @@ def test_mitsuba_render_of_the_export_matches_jaxrefl(tmp_path, normals):
     assert (tmp_path / "scene.xml") in paths and all(p.exists() for p in paths)
     tex = svbrdf.write_textures(maps, tmp_path)
     assert ("normal_exr" in tex.files) == normals
-    view = svbrdf.FlashView(side=SIDE, distance=DIST, intensity=POWER, width=N, height=N)
-    scene = svbrdf.mitsuba_scene(tex, view)
+    view = FlashView(side=SIDE, distance=DIST, intensity=POWER, width=N, height=N)
+    scene = mitsuba_scene(tex, view)
     _nearest(scene)  # texel = pixel: no bilinear blur between neighbours
     img = np.array(mi.render(mi.load_dict(scene), seed=0, spp=256))
     ref = _jaxrefl_render(maps)
@@ -114,7 +115,7 @@ def test_mitsuba_render_of_the_export_matches_jaxrefl(tmp_path, normals):
     assert np.median(rel) < 3e-3 and rel.max() < 1.5e-2, (np.median(rel), rel.max())
     # the XML file is the same scene (default view, bilinear textures) as the dict
     xml = np.array(mi.render(mi.load_file(str(tmp_path / "scene.xml")), seed=1, spp=4))
-    same = np.array(mi.render(mi.load_dict(svbrdf.mitsuba_scene(tex)), seed=1, spp=4))
+    same = np.array(mi.render(mi.load_dict(mitsuba_scene(tex)), seed=1, spp=4))
     np.testing.assert_allclose(xml, same, rtol=1e-5, atol=1e-7)
 
 
@@ -148,7 +149,7 @@ def test_metallic_view_and_principled_specular():
     maps["specular"] = np.array([[0.02, 0.04, 0.06], [0.2, 0.1, 0.03]], np.float32)
     maps["alpha"] = np.full((h, w), 0.25, np.float32)
     maps["albedo.R"][1, 2] = np.nan  # no estimate: black, rough (alpha 1), dielectric
-    rm = svbrdf.renderer_maps(maps)
+    rm = renderer_maps(maps)
     assert rm.missing.sum() == 1 and rm.missing[1, 2]
     assert rm.roughness[1, 2] == 1 and np.all(rm.base_color[1, 2] == 0)
     np.testing.assert_allclose(rm.roughness[~rm.missing], 0.5)
@@ -212,7 +213,7 @@ def test_gltf_material_is_valid_and_textures_follow_its_conventions(tmp_path, bi
     svbrdf.write_gltf(maps, tmp_path, bits=bits)
     doc = assert_valid_gltf(tmp_path / "material.gltf")
     assert "normalTexture" in doc["materials"][0]
-    rm = svbrdf.renderer_maps(maps)
+    rm = renderer_maps(maps)
     top = (1 << bits) - 1
     mr, _ = read_png(tmp_path / "metallic_roughness.png")
     assert mr.dtype == (np.uint8 if bits == 8 else np.uint16)

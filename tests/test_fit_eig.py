@@ -5,8 +5,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxrefl import fit
 from jaxrefl.fit import _eig
+from jaxrefl.fit._status import equilibrated_condition, ill_conditioned
 
 
 def _near_dependent(rng, n, p, k=None):
@@ -41,8 +41,8 @@ def test_ill_conditioned_agrees_with_the_eigenvalues(p):
     a = jnp.asarray(_near_dependent(rng, 2000, p))
     cond_max = 1e8
     kappa = np.linalg.cond(np.asarray(a))
-    got = np.asarray(jax.jit(lambda x: fit.ill_conditioned(x, cond_max))(a))
-    ref = np.asarray(fit.equilibrated_condition(a)) > cond_max
+    got = np.asarray(jax.jit(lambda x: ill_conditioned(x, cond_max))(a))
+    ref = np.asarray(equilibrated_condition(a)) > cond_max
     band = (p - 1) * 2.0**-_eig.BISECTIONS + 1e-6
     clear = np.abs(kappa / cond_max - 1) > band
     assert 0.2 < ref.mean() < 0.8  # both answers are well represented
@@ -58,19 +58,19 @@ def test_ill_conditioned_edge_cases_and_float32():
     indefinite = jnp.asarray([[1.0, 2.0], [2.0, 1.0]])  # eigenvalues 3 and -1
     scaled = jnp.diag(jnp.asarray([1e-6, 1.0, 1e6, 3.0]))  # units only: kappa = 1
     for a, want in [(eye, False), (zero_col, True), (nan, True), (singular, True), (scaled, False)]:
-        assert bool(fit.ill_conditioned(a, 1e8)) is want
-        assert bool(fit.equilibrated_condition(a) > 1e8) is want
-    assert bool(fit.ill_conditioned(indefinite, 1e8))
+        assert bool(ill_conditioned(a, 1e8)) is want
+        assert bool(equilibrated_condition(a) > 1e8) is want
+    assert bool(ill_conditioned(indefinite, 1e8))
     # float32 and a batch shape: the same answers as float64 away from the threshold.
     rng = np.random.default_rng(3)
     a = _near_dependent(rng, 500, 5)
     kappa = np.linalg.cond(a)
-    got = np.asarray(fit.ill_conditioned(jnp.asarray(a, jnp.float32).reshape(5, 100, 5, 5), 1e4))
+    got = np.asarray(ill_conditioned(jnp.asarray(a, jnp.float32).reshape(5, 100, 5, 5), 1e4))
     clear = np.abs(np.log10(kappa / 1e4)) > 0.3  # float32 rounding moves kappa ~1e4 by < 2x
     np.testing.assert_array_equal(got.reshape(-1)[clear], (kappa > 1e4)[clear])
     # Beyond MAX_P the status falls back to the eigenvalues (same answer).
     big = jnp.asarray(_near_dependent(rng, 50, _eig.MAX_P + 1))
     np.testing.assert_array_equal(
-        np.asarray(fit.ill_conditioned(big, 1e8)),
-        np.asarray(fit.equilibrated_condition(big)) > 1e8,
+        np.asarray(ill_conditioned(big, 1e8)),
+        np.asarray(equilibrated_condition(big)) > 1e8,
     )

@@ -7,7 +7,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxrefl import fit
+from jaxrefl.fit._linalg import (
+    cho_solve_unrolled,
+    cholesky_unrolled,
+    solve_lower_t_unrolled,
+    solve_lower_unrolled,
+)
 
 # Relative tolerances of each dtype against float64 LAPACK: a few hundred ulps, for
 # matrices whose condition number _spd keeps moderate.
@@ -26,7 +31,7 @@ def test_cholesky_matches_numpy(p, dtype):
     rng = np.random.default_rng(100 + p)
     a = _spd(rng, 16, p)
     b = rng.normal(size=(16, p))
-    l, ok = fit.cholesky_unrolled(jnp.asarray(a, dtype))
+    l, ok = cholesky_unrolled(jnp.asarray(a, dtype))
     assert l.dtype == dtype and bool(np.all(ok))
     ref = np.linalg.cholesky(a)
     scale = np.max(np.abs(ref), axis=(-2, -1), keepdims=True)
@@ -39,9 +44,9 @@ def test_cholesky_matches_numpy(p, dtype):
     back = np.linalg.solve(np.swapaxes(ref, -1, -2), b[..., None])[..., 0]
     full = np.linalg.solve(a, b[..., None])[..., 0]
     for got, want in (
-        (fit.solve_lower_unrolled(lf, bf), fwd),
-        (fit.solve_lower_t_unrolled(lf, bf), back),
-        (fit.cho_solve_unrolled(lf, bf), full),
+        (solve_lower_unrolled(lf, bf), fwd),
+        (solve_lower_t_unrolled(lf, bf), back),
+        (cho_solve_unrolled(lf, bf), full),
     ):
         assert got.dtype == dtype
         tol = _RTOL[dtype] * np.linalg.cond(a)[:, None] * np.max(np.abs(want), -1, keepdims=True)
@@ -53,5 +58,5 @@ def test_cholesky_flags_a_matrix_that_is_not_positive_definite(dtype):
     rng = np.random.default_rng(3)
     a = _spd(rng, 4, 5)
     a[:, 4, 4] = -1.0
-    l, ok = fit.cholesky_unrolled(jnp.asarray(a, dtype))
+    l, ok = cholesky_unrolled(jnp.asarray(a, dtype))
     assert not np.any(ok) and np.all(np.isfinite(np.asarray(l)))

@@ -13,6 +13,8 @@ from fit_zoo import make_problem, problem_zoo
 
 import jaxrefl
 from jaxrefl import fit
+from jaxrefl.fit._linalg import cho_solve_unrolled, cholesky_unrolled
+from jaxrefl.fit._status import equilibrated_condition
 
 _GGX = jaxrefl.brdf.get("cook_torrance", distribution="ggx", diffuse="lambert")
 
@@ -23,23 +25,23 @@ def test_unrolled_cholesky_matches_lapack(p):
     j = rng.normal(size=(4, 3 * p, p))
     a = jnp.asarray(np.einsum("nmp,nmq->npq", j, j) + 1e-3 * np.eye(p))
     b = jnp.asarray(rng.normal(size=(4, p)))
-    l, ok = fit.cholesky_unrolled(a)
+    l, ok = cholesky_unrolled(a)
     assert np.all(ok)
     np.testing.assert_allclose(l, jnp.linalg.cholesky(a), rtol=1e-10, atol=1e-12)
-    x = fit.cho_solve_unrolled(l, b)
+    x = cho_solve_unrolled(l, b)
     np.testing.assert_allclose(jnp.einsum("npq,nq->np", a, x), b, rtol=1e-8, atol=1e-10)
     # not positive definite -> flagged, never NaN
     bad = a.at[:, p - 1, p - 1].set(-1.0)
-    l_bad, ok_bad = fit.cholesky_unrolled(bad)
+    l_bad, ok_bad = cholesky_unrolled(bad)
     assert not np.any(ok_bad) and np.all(np.isfinite(l_bad))
 
 
 def test_equilibrated_condition():
-    assert float(fit.equilibrated_condition(jnp.diag(jnp.asarray([1e-6, 1.0, 1e6])))) == 1.0
+    assert float(equilibrated_condition(jnp.diag(jnp.asarray([1e-6, 1.0, 1e6])))) == 1.0
     j = jnp.asarray([[1.0, 2.0, 0.0], [1.0, 2.0 + 1e-9, 1.0], [0.0, 0.0, 1.0]])
-    assert float(fit.equilibrated_condition(j.T @ j)) > 1e12  # two nearly parallel columns
+    assert float(equilibrated_condition(j.T @ j)) > 1e12  # two nearly parallel columns
     z = jnp.asarray([[1.0, 0.0], [0.0, 0.0]])
-    assert float(fit.equilibrated_condition(z)) == np.inf  # a zero column
+    assert float(equilibrated_condition(z)) == np.inf  # a zero column
 
 
 def _errors(result, truth):

@@ -5,7 +5,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
-from jaxrefl import fit
+from jaxrefl.fit._select import keep_lower
 
 
 def test_keep_lower_per_pixel():
@@ -14,7 +14,7 @@ def test_keep_lower_per_pixel():
     cost_b = jnp.asarray([0.5, 2.0, 4.0, nan, inf, 4.0])
     params_a = {"theta": jnp.zeros((6, 2)), "status": jnp.zeros(6, jnp.int32)}
     params_b = {"theta": jnp.ones((6, 2)), "status": jnp.ones(6, jnp.int32)}
-    cost, params = fit.keep_lower(cost_a, params_a, cost_b, params_b)
+    cost, params = keep_lower(cost_a, params_a, cost_b, params_b)
     # lower wins; a tie keeps the first; a NaN first loses; a non-finite second never wins
     take_b = np.array([True, False, True, False, False, True])
     np.testing.assert_array_equal(np.asarray(params["status"]), take_b.astype(np.int32))
@@ -23,5 +23,5 @@ def test_keep_lower_per_pixel():
     assert params["status"].dtype == jnp.int32
     # ``where`` limits which pixels may take the second candidate
     only = np.array([False, True, True, True, True, True])
-    _, params = fit.keep_lower(cost_a, params_a, cost_b, params_b, where=only)
+    _, params = keep_lower(cost_a, params_a, cost_b, params_b, where=only)
     np.testing.assert_array_equal(np.asarray(params["status"]), take_b & only)

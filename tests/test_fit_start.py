@@ -20,7 +20,7 @@ import numpy as np
 from test_svbrdf import _demo_capture
 
 from jaxrefl import fit
-from jaxrefl.fit._affine import grid_values
+from jaxrefl.fit._affine import grid_values, linear_params
 from jaxrefl.fit._box_ls import _box_ls
 from jaxrefl.fit._init import _fit_weights, _inset, _natural_base
 from jaxrefl.svbrdf._data import pixel_block
@@ -30,7 +30,7 @@ from jaxrefl.svbrdf._models import capture_model
 def _reference_start(res, data, grid):
     """theta0 (N, P) by the per-pixel variable projection of the module docstring."""
     space, model = res.space, res.model
-    lin = fit.linear_params(model, space)
+    lin = linear_params(model, space)
     assert lin == ("albedo", "specular")
     lo = np.array([space.lower[space.index(n).start] for n in lin])
     hi = np.array([space.upper[space.index(n).start] for n in lin])

@@ -1,12 +1,12 @@
-"""Measured f_r samples as fitting data: one builder (:func:`jaxrefl.fit.sample_arrays`) for
-:func:`jaxrefl.fit.fit_samples` and :func:`jaxrefl.measured.measured_pixel_data`."""
+"""Measured f_r samples as fitting data: one builder (:func:`jaxrefl.fit._problem.sample_arrays`)
+for :func:`jaxrefl.fit.fit_samples` and :func:`jaxrefl.measured.measured_pixel_data`."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from jaxrefl.fit import sample_arrays
+from jaxrefl.fit._problem import sample_arrays
 from jaxrefl.io import MeasuredBRDF
 from jaxrefl.measured import measured_pixel_data
 

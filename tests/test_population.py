@@ -18,6 +18,12 @@ from jaxrefl.demo import demo_scene, photograph_maps
 from jaxrefl.posterior._priors import resolve_priors
 from jaxrefl.svbrdf import _check, _population
 from jaxrefl.svbrdf._models import ALPHA_RANGE
+from jaxrefl.svbrdf._uncertainty import (
+    fit_theta,
+    laplace_theta_std,
+    map_posterior,
+    posterior_space,
+)
 
 SIZE = 10
 SIGMA = 0.004
@@ -113,13 +119,13 @@ def test_population_priors_of_a_grey_capture(grey_capture, monkeypatch):
     block = svbrdf.pixel_block(cap, 0, SIZE * SIZE, dtype=np.float64)
     data = jax.tree.map(lambda a: a[rows], block)
     noise0 = np.nan_to_num(cf.maps["noise_std"].reshape(-1)[rows], nan=1e-2)
-    lp_map, source = svbrdf.map_posterior(cf)
+    lp_map, source = map_posterior(cf)
     assert source == summary
     want = resolve_priors(lp_map.space, priors)
     assert repr(lp_map.priors) == repr(tuple(want[b.name] for b in lp_map.space.blocks))
     post = lp_map.space
-    std = np.concatenate([svbrdf.laplace_theta_std(cf, post)[rows], np.ones((rows.size, 1))], 1)
-    theta = svbrdf.fit_theta(cf, post)[rows]
+    std = np.concatenate([laplace_theta_std(cf, post)[rows], np.ones((rows.size, 1))], 1)
+    theta = fit_theta(cf, post)[rows]
     opts = jp.HMCOptions(num_warmup=50, num_samples=200, num_chains=2)
     gibbs = jp.GibbsOptions(sweeps=1)
     spread, err, alpha = {}, {}, {}
@@ -152,25 +158,25 @@ def test_the_posterior_reaches_below_the_resolvable_width(grey_capture):
     The fit's optimum and Laplace std carry over through natural units."""
     _cap, cf, _truth = grey_capture
     own = cf.model()[1]
-    _model, post = svbrdf.posterior_space(cf)
+    _model, post = posterior_space(cf)
     j = own.labels.index("alpha")
     assert post.labels == own.labels and own.lower[j] == pytest.approx(cf.report["alpha_min"])
     assert post.lower[j] == ALPHA_RANGE[0] and post.upper[j] == own.upper[j]
     others = np.arange(own.size) != j
     np.testing.assert_array_equal(post.lower[others], own.lower[others])
-    theta, theta_own = svbrdf.fit_theta(cf, post), svbrdf.fit_theta(cf)
+    theta, theta_own = fit_theta(cf, post), fit_theta(cf)
     ok = np.all(np.isfinite(theta_own), -1)
     assert ok.any() and np.array_equal(np.all(np.isfinite(theta), -1), ok)
     np.testing.assert_array_equal(theta[:, others], theta_own[:, others])
     nat = np.asarray(post.natural_vector(jnp.asarray(theta[ok])))
     nat_own = np.asarray(own.natural_vector(jnp.asarray(theta_own[ok])))
     np.testing.assert_allclose(nat, nat_own, rtol=1e-9)
-    std = svbrdf.laplace_theta_std(cf, post)[ok] * np.abs(post.dnatural(jnp.asarray(theta[ok])))
+    std = laplace_theta_std(cf, post)[ok] * np.abs(post.dnatural(jnp.asarray(theta[ok])))
     std_map = cf.maps["alpha_std"].reshape(-1)[ok]
     np.testing.assert_allclose(std[:, j], std_map, rtol=1e-9)
     # the job's own floor is the user's: kept
     given = replace(cf, job=replace(cf.job, alpha_min=cf.report["alpha_min"]))
-    assert svbrdf.posterior_space(given)[1].lower[j] == own.lower[j]
+    assert posterior_space(given)[1].lower[j] == own.lower[j]
     # another model's space is refused
     with pytest.raises(ValueError, match="not the fit's"):
-        svbrdf.fit_theta(cf, svbrdf.capture_model("lambert")[1])
+        fit_theta(cf, svbrdf.capture_model("lambert")[1])

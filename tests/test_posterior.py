@@ -12,6 +12,7 @@ import pytest
 
 from jaxrefl import brdf, fit
 from jaxrefl import posterior as jp
+from jaxrefl.posterior._priors import sample_truncated
 from jaxrefl.posterior._sbc import sbc_summary
 from jaxrefl.scene import orthonormal_basis
 
@@ -222,7 +223,7 @@ def test_priors_log_prob_and_sampling():
     hc = jp.HalfCauchy(2.0)
     assert float(hc.log_prob(jnp.asarray(-1.0))) == -math.inf
     assert np.median(hc.sample(rng, (20000,))) == pytest.approx(2.0, rel=0.05)
-    tr = jp.sample_truncated(ln, rng, (500,), 0.05, 0.2)
+    tr = sample_truncated(ln, rng, (500,), 0.05, 0.2)
     assert tr.min() >= 0.05 and tr.max() <= 0.2
     vmf = jp.VonMisesFisher((0.0, 1.0, 1.0), 50.0)
     d = vmf.sample(rng, (5000,))

@@ -14,6 +14,8 @@ import pytest
 from jaxrefl import fit
 from jaxrefl import posterior as jp
 from jaxrefl.measured import build_model
+from jaxrefl.posterior._diagnostics import log_likelihood_draws
+from jaxrefl.posterior._emcee import autocorr_check
 
 with warnings.catch_warnings():
     warnings.simplefilter("ignore", FutureWarning)
@@ -35,17 +37,17 @@ def test_stopping_rule_refuses_a_chain_shorter_than_50_tau():
     phi = 0.9  # tau = 19 steps
     tau_true = (1 + phi) / (1 - phi)
     short = _ar1(600, phi)  # about 32 tau
-    tau, ok = jp.autocorr_check(short)
+    tau, ok = autocorr_check(short)
     assert not ok
     v = jp.convergence(np.swapaxes(short, 0, 1), tau=tau, n_steps=600, labels=("a", "b"))
     assert not v.converged and "tau" in v.reasons[0] and "needs 50" in v.reasons[0]
     assert v.to_dict()["chain_length"] == 600
     long = _ar1(2400, phi)  # about 126 tau
-    tau, ok = jp.autocorr_check(long)
+    tau, ok = autocorr_check(long)
     assert ok
     np.testing.assert_allclose(tau, tau_true, rtol=0.3)
     # the same chain judged against a stricter rule is refused again
-    assert not jp.autocorr_check(long, n_tau=200.0)[1]
+    assert not autocorr_check(long, n_tau=200.0)[1]
     v = jp.convergence(np.swapaxes(long, 0, 1)[:, ::10], tau=tau, n_steps=2400)
     assert v.converged and v.reasons == () and v.max_rhat < 1.01
     # R-hat and ESS are targets too: chains stuck apart are refused whatever their length
@@ -53,7 +55,7 @@ def test_stopping_rule_refuses_a_chain_shorter_than_50_tau():
     v = jp.convergence(apart, tau=tau, n_steps=2400, labels=("a", "b"))
     assert not v.converged and any("R-hat of" in r for r in v.reasons)
     with pytest.raises(ValueError, match="steps, walkers, D"):
-        jp.autocorr_check(long[:, 0])
+        autocorr_check(long[:, 0])
 
 
 def _gauss(theta):
@@ -112,7 +114,7 @@ def test_posterior_nc_ranks_ggx_above_lambert_by_loo(tmp_path):
             lp, th0, (data,), jp.EmceeOptions(20, 300), natural=lp.natural, labels=lp.labels
         )
         one = jax.tree.map(lambda a: a[None], data)
-        ll = jp.log_likelihood_draws(lp, s, one)
+        ll = log_likelihood_draws(lp, s, one)
         assert ll.shape == (1, *s.theta.shape[1:3], 40, 3) and np.all(ll[..., 0, :] == 0)
         # the pointwise terms sum to the sampler's log-likelihood (plus the Gaussian constant)
         t = jnp.asarray(s.theta[0, 0, 0])

@@ -9,6 +9,7 @@ import pytest
 
 from jaxrefl import brdf, fit
 from jaxrefl import posterior as jp
+from jaxrefl.posterior._sphere import angle_deg, lit_geometry
 
 K = 8
 SIGMA = 0.01
@@ -77,9 +78,9 @@ def test_light_direction_contains_truth_at_nominal_rate(runs):
     ident = 0
     for i in range(n):
         x = s.flat(i)
-        summ = jp.direction_summary(x, PRIOR, geometry=jp.lit_geometry(normals[i], w[i]))
-        ang = jp.angle_deg(x, np.asarray(summ["mean"])[None])
-        a_true = jp.angle_deg(light[i], np.asarray(summ["mean"]))
+        summ = jp.direction_summary(x, PRIOR, geometry=lit_geometry(normals[i], w[i]))
+        ang = angle_deg(x, np.asarray(summ["mean"])[None])
+        a_true = angle_deg(light[i], np.asarray(summ["mean"]))
         for lv in inside:
             inside[lv].append(a_true <= np.quantile(ang, lv))
         ident += summ["identified"]
@@ -100,14 +101,14 @@ def test_light_direction_not_identified_with_few_or_coplanar_points(runs):
     for i, why in ((60, "two points"), (61, "co-planar normals")):
         x = s.natural[i]
         rhat = float(np.max(split_rhat(x)))
-        geo = jp.lit_geometry(normals[i], w[i])
+        geo = lit_geometry(normals[i], w[i])
         assert not geo["identifiable"], (why, geo)
         summ = jp.direction_summary(x, PRIOR, rhat=rhat)  # the posterior alone
         assert not summ["identified"], (why, summ)
         assert summ["radius_deg"] > 15.0 or rhat > 1.05, (why, summ)
         full = jp.direction_summary(x, PRIOR, rhat=rhat, geometry=geo)
         assert "non-coplanar normals are needed" in full["reason"], full
-    i_good = next(i for i in range(60) if jp.lit_geometry(normals[i], w[i])["identifiable"])
+    i_good = next(i for i in range(60) if lit_geometry(normals[i], w[i])["identifiable"])
     x = s.natural[i_good]
     good = jp.direction_summary(x, PRIOR, rhat=float(np.max(split_rhat(x))))
     assert good["identified"], good

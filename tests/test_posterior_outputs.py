@@ -17,7 +17,10 @@ from jaxrefl import measured as jm
 from jaxrefl import posterior as jp
 from jaxrefl._jsonsafe import NULLS_KEY, jsonable
 from jaxrefl.cli import main
-from jaxrefl.io import load_capture, read_exr
+from jaxrefl.io import load_capture, map_name, read_exr
+from jaxrefl.posterior._adaptive_options import MCMCPixels
+from jaxrefl.posterior._laplace_summary import laplace_summary
+from jaxrefl.posterior._maps import uncertainty_channels
 
 with warnings.catch_warnings():
     warnings.simplefilter("ignore", FutureWarning)
@@ -109,9 +112,9 @@ def test_laplace_summaries_are_student_t_where_the_noise_was_estimated(lambert):
     lp, data, r, lap = lambert
     theta_std, flag = np.asarray(lap.theta_std), np.asarray(lap.flag)
     theta = np.asarray(r.theta)
-    g = jp.laplace_summary(lp, theta, theta_std)
+    g = laplace_summary(lp, theta, theta_std)
     dof = np.array([np.inf, 15.0, 4.0, 15.0, 30.0, 2.0])
-    t = jp.laplace_summary(lp, theta, theta_std, dof)
+    t = laplace_summary(lp, theta, theta_std, dof)
     np.testing.assert_array_equal(t[0][0], g[0][0])  # dof inf: the Gaussian summary
     np.testing.assert_array_equal(t[2][0], g[2][0])
     sp = lp.space
@@ -201,7 +204,7 @@ def test_cli_sample_capture_end_to_end(tmp_path):
     assert res.fit.job.tile_pixels == 16  # one tile of the crop's size
     assert isinstance(res.map, jp.UncertaintyMap) and res.map.labels == res.posterior.labels
     assert res.theta_std.shape == (16, 3) and np.all(res.theta_std > 0)
-    for name, ch in jp.uncertainty_channels(res.map, 4, 4).items():
+    for name, ch in uncertainty_channels(res.map, 4, 4).items():
         np.testing.assert_array_equal(im.channels[name], ch, err_msg=name)
     lib = jsonable(res.report())[0]  # as report.json holds it (NaN: null)
     assert set(rep) - {NULLS_KEY} == set(lib) | {"input", "kind", "crop", "downsample", "files"}
@@ -221,7 +224,7 @@ def test_cli_sample_capture_end_to_end(tmp_path):
     # theta_std is the job's std maps through the bijections' slopes (delta method reversed)
     lab = res.posterior.labels[0]
     slope = np.asarray(res.posterior.space.dnatural(jax.numpy.asarray(res.fit.theta)))[:, 0]
-    std_map = res.fit.maps[svbrdf.map_name(lab, "_std")].reshape(-1)
+    std_map = res.fit.maps[map_name(lab, "_std")].reshape(-1)
     np.testing.assert_allclose(res.theta_std[:, 0] * np.abs(slope), std_map, rtol=1e-12)
     # A held-out photo stays out of the posterior as it stayed out of the fit.
     crop = load_capture(cap).crop(2, 6, 2, 6)
@@ -444,7 +447,7 @@ def test_second_pass_reruns_the_pixels_whose_chains_disagree(lambert, monkeypatc
     sp = u.report()["mcmc"]["second_pass"]
     assert sp["pixels"] == 2 and sp["pixels_rhat_above_1.1_after"] == 0
     assert sp["max_rhat_before"]["min"] > 1.5 and sp["max_rhat_after"]["max"] < 1.1
-    ch = jp.uncertainty_channels(u, 2, 3)["mcmc_pass.Y"].reshape(-1)
+    ch = uncertainty_channels(u, 2, 3)["mcmc_pass.Y"].reshape(-1)
     np.testing.assert_array_equal(ch, [1, 2, 1, 1, 2, 1])
     lean = jp.adaptive_uncertainty(lp, data, th, sd, flag, replace(o, keep_samples=False))
     np.testing.assert_array_equal(lean.std, u.std)  # the same without keeping the draws
@@ -462,7 +465,7 @@ def test_adaptive_options_are_one_checked_immutable_object():
     settings are refused when the object is built, and it cannot be changed in place."""
     o = jp.AdaptiveOptions()
     assert (o.mcmc, o.audit, o.hmc, o.rerun_rhat, o.chunk, o.seed) == (
-        jp.MCMCPixels.FLAGGED,
+        MCMCPixels.FLAGGED,
         0.02,
         jp.UNCERTAINTY_MAP_HMC,
         1.05,
@@ -476,7 +479,7 @@ def test_adaptive_options_are_one_checked_immutable_object():
     assert all(getattr(o.hmc, k) == v for k, v in MAP_SAMPLER.items())
     assert o.gibbs == jp.UNCERTAINTY_MAP_GIBBS == jp.GibbsOptions(**MAP_GIBBS)
     assert (o.hmc.num_warmup, o.hmc.num_samples, o.hmc.num_chains) == (100, 100, 2)
-    assert jp.AdaptiveOptions(mcmc="all").mcmc is jp.MCMCPixels.ALL
+    assert jp.AdaptiveOptions(mcmc="all").mcmc is MCMCPixels.ALL
     for bad, match in (
         (dict(mcmc="some"), "mcmc must be one of"),
         (dict(audit=1.5), "audit"),

@@ -10,6 +10,8 @@ import pytest
 
 from jaxrefl import fit, svbrdf
 from jaxrefl import posterior as jp
+from jaxrefl.posterior._priors import sample_truncated
+from jaxrefl.posterior._sbc import thin
 
 SIGMA = 0.01
 K = 16
@@ -30,7 +32,7 @@ def _simulate(lp, rng, n, channels):
     cols = []
     for blk, prior in zip(space.blocks, lp.priors, strict=True):
         for j in range(blk.start, blk.stop):
-            cols.append(jp.sample_truncated(prior, rng, (n,), lo[j], hi[j]))
+            cols.append(sample_truncated(prior, rng, (n,), lo[j], hi[j]))
     nat = np.stack(cols, -1)
     names = [b.name for b in space.blocks]
     params = {nm: nat[:, b.start : b.stop] for nm, b in zip(names, space.blocks, strict=True)}
@@ -67,7 +69,7 @@ def test_sbc_batched_hmc(ggx1):
     )
     s = jp.sample_pixels(lp, sub, jnp.asarray(theta[:n]), options=opts, seed=5)
     assert s.extra["reparam"] == "albedo"
-    draws = jp.thin(s.theta, 19)
+    draws = thin(s.theta, 19)
     res = jp.sbc_summary(theta[:n], draws, labels=lp.labels, bins=5)
     assert np.all(res.tests["chi2_p"] > 1e-3), res.to_dict()
     for lv in (0.5, 0.9):
@@ -107,7 +109,7 @@ def test_sbc_emcee(ggx1):
     for i in range(n):
         d = jax.tree.map(lambda a, i=i: a[i], data)
         s = jp.sample_emcee(lp, theta[i], (d,), jp.EmceeOptions(12, 400), seed=i)
-        draws.append(jp.thin(s.theta, 19)[0])
+        draws.append(thin(s.theta, 19)[0])
     res = jp.sbc_summary(theta[:n], np.stack(draws), labels=lp.labels, bins=5)
     assert np.all(res.tests["chi2_p"] > 1e-3), res.to_dict()
     for lv in (0.5, 0.9):

@@ -17,6 +17,7 @@ from jaxrefl import posterior as jp
 from jaxrefl.demo import demo_scene, photograph_maps
 from jaxrefl.posterior._conjugate import theta_of as _theta_of
 from jaxrefl.posterior._width_gibbs import qualifies_width, sample_width_gibbs
+from jaxrefl.svbrdf._uncertainty import laplace_theta_std
 
 SIZE = 8
 SIGMA = 0.004
@@ -118,7 +119,7 @@ def test_draws_have_the_quadrature_marginals_of_alpha_and_f0(ggx_fit, f0_prior):
     sub = jax.tree.map(lambda x: x[pick[:3]], data)
     assert qualifies_width(lp, sub) == (True, "")
     theta0 = jnp.asarray(cf.theta[pick[:3]])
-    std = svbrdf.laplace_theta_std(cf, space)[pick[:3]]
+    std = laplace_theta_std(cf, space)[pick[:3]]
     run = functools.partial(sample_width_gibbs, lp, sub, num_chains=4, num_warmup=20)
     s = run(theta0=theta0, theta_std=std, num_samples=2000, sweeps=1, seed=11)
     assert s.method == "gibbs_mh" and s.natural.shape == (3, 4, 2000, lp.size)
@@ -183,7 +184,7 @@ def test_agrees_with_hmc_with_censoring_an_unknown_noise_scale_and_a_gaussian_pr
     clipped = sub.__class__(**{**sub.__dict__, "censored": jnp.asarray(cens)})
     noise0 = np.nan_to_num(cf.maps["noise_std"].reshape(-1)[pick], nan=1e-2)
     theta0 = lp.init_theta(jnp.asarray(cf.theta[pick]), noise_scale=np.maximum(noise0, 1e-3))
-    std = np.concatenate([svbrdf.laplace_theta_std(cf, space)[pick], np.ones((6, 1))], 1)
+    std = np.concatenate([laplace_theta_std(cf, space)[pick], np.ones((6, 1))], 1)
     assert qualifies_width(lp, clipped) == (True, "")
     g = jp.sample_pixels(
         lp,

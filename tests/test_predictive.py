@@ -138,7 +138,7 @@ def test_one_capture_noise_scale_is_replaced_by_a_variance_function(fitted):
     np.testing.assert_allclose(pred.noise_var, disc(pred.mean), rtol=1e-12)
     assert np.all(pred.disc_var == 0)
     # its noise variance is known: normal Laplace marginals
-    from jaxrefl.svbrdf import laplace_dof
+    from jaxrefl.svbrdf._uncertainty import laplace_dof
 
     dof = laplace_dof(cf)
     assert np.all(np.isinf(dof[~np.isnan(dof)])) and np.mean(~np.isnan(dof)) > 0.9
@@ -193,7 +193,7 @@ def test_laplace_intervals_are_student_t_where_the_noise_was_estimated(fitted):
     quantile."""
     from scipy import stats
 
-    from jaxrefl.svbrdf import laplace_dof, laplace_interval, laplace_theta_std
+    from jaxrefl.svbrdf._uncertainty import laplace_dof, laplace_interval, laplace_theta_std
 
     _cap, cf, _disc, _pred = fitted
     _model, space = cf.model()

@@ -12,7 +12,8 @@ import pytest
 
 from jaxrefl import fit
 from jaxrefl.demo import demo_scene, photograph_maps
-from jaxrefl.svbrdf import FitJob, fit_capture, map_name
+from jaxrefl.io import map_name
+from jaxrefl.svbrdf import FitJob, fit_capture
 from jaxrefl.svbrdf._data import pixel_block
 from jaxrefl.svbrdf._tile_fitter import TileFitter
 

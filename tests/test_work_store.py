@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from jaxrefl import JaxreflError
-from jaxrefl.fit import WorkStore, fingerprint_hash
+from jaxrefl.fit import WorkStore
+from jaxrefl.fit._work_store import fingerprint_hash
 
 JOB = {"model": "ggx", "tile": 16, "bounds": (0.0, 1.0)}
 

@@ -8,9 +8,9 @@ FIT_DIR is the output folder of ``jaxrefl fit`` or ``jaxrefl demo`` (its ``maps.
 (perceptual, sqrt(alpha)), ``metallic.png``, ``metallic_roughness.png`` (glTF's packing),
 ``normal.png`` (tangent space, when normals were fitted) and linear single-layer EXRs
 (channels R, G, B or Y). ``mitsuba`` adds ``scene.xml``
-(:func:`jaxrefl.svbrdf.mitsuba_xml`: the sample as a rectangle with a ``principled``
+(:func:`jaxrefl.svbrdf._export.mitsuba_xml`: the sample as a rectangle with a ``principled``
 BSDF, a camera and a flash beside it; render with ``mitsuba scene.xml``); ``gltf`` adds
-``material.gltf`` (:func:`jaxrefl.svbrdf.gltf_document`: a textured square with one
+``material.gltf`` (:func:`jaxrefl.svbrdf._export.gltf_document`: a textured square with one
 metallic-roughness material). The conversions (alpha to roughness, F0 to metallic or to
 principled's ``specular``) are stated in :mod:`jaxrefl.svbrdf._export`. OUT_DIR defaults
 to FIT_DIR/export_FORMAT.

@@ -16,21 +16,19 @@ Quick use::
 Parts: :class:`ParamSpace` and the bijections (unconstrained parametrisation), :class:`PixelData`
 and :func:`make_residual` (noise models, robust losses, censoring), :func:`initial_theta`
 (closed-form colours on a roughness grid), :func:`lm_solve` / :func:`batched_lm` (the lean
-Levenberg-Marquardt as pure init/step functions; :func:`cholesky_unrolled` and the unrolled
-triangular solves are its shared small linear algebra), :func:`solve` (the solver objects
+Levenberg-Marquardt as pure init/step functions; its unrolled Cholesky and triangular solves
+are the shared small linear algebra of :mod:`._linalg`), :func:`solve` (the solver objects
 :class:`LMOptions`, :class:`OptimistixLM`, :class:`JaxoptLM`), :class:`FitConfig` (solver,
 noise, loss and dtype of a fit, taken by every fitting entry point), per-pixel
 :class:`Status` codes, and :func:`laplace` (Gauss-Newton covariance in natural units with
 reliability flags). :func:`map_sharded` spreads a batch of pixels over this process's
 devices; :class:`Distributed` names the process group of a job split over processes and
-hosts (JAX's distributed runtime), which :func:`process_share`, :func:`process_barrier`
-and :func:`process_gather` coordinate; a process that stops makes the others'
-barrier raise :class:`ProcessGroupError`, and :func:`leave_group` ends them at once;
+hosts (JAX's distributed runtime; :mod:`._distributed` shares out, waits for and gathers
+the work); a process that stops makes the others' barrier raise
+:class:`ProcessGroupError`, and :func:`leave_group` ends them at once;
 :class:`WorkStore` keeps a job's finished pieces in a folder the processes share, for resume.
 """
 
-from ._affine import grid_values as grid_values
-from ._affine import linear_params as linear_params
 from ._backends import FitInfo as FitInfo
 from ._backends import JaxoptLM as JaxoptLM
 from ._backends import OptimistixLM as OptimistixLM
@@ -39,23 +37,15 @@ from ._backends import solve as solve
 from ._distributed import Distributed as Distributed
 from ._distributed import ProcessGroupError as ProcessGroupError
 from ._distributed import leave_group as leave_group
-from ._distributed import process_barrier as process_barrier
-from ._distributed import process_gather as process_gather
-from ._distributed import process_share as process_share
-from ._init import diffuse_albedo as diffuse_albedo
 from ._init import initial_theta as initial_theta
-from ._laplace import CORR_NAN_FLAGS as CORR_NAN_FLAGS
-from ._laplace import STD_NAN_FLAGS as STD_NAN_FLAGS
 from ._laplace import LaplaceFlag as LaplaceFlag
 from ._laplace import LaplaceResult as LaplaceResult
-from ._laplace import flag_counts as flag_counts
 from ._laplace import laplace as laplace
-from ._laplace import same_residual as same_residual
-from ._laplace import undefined_correlations as undefined_correlations
-from ._linalg import cho_solve_unrolled as cho_solve_unrolled
-from ._linalg import cholesky_unrolled as cholesky_unrolled
-from ._linalg import solve_lower_t_unrolled as solve_lower_t_unrolled
-from ._linalg import solve_lower_unrolled as solve_lower_unrolled
+from ._linalg import (
+    cholesky_unrolled,  # noqa: F401
+    solve_lower_t_unrolled,  # noqa: F401
+    solve_lower_unrolled,  # noqa: F401
+)
 from ._lm import LMInfo as LMInfo
 from ._lm import LMOptions as LMOptions
 from ._lm import LMResult as LMResult
@@ -65,13 +55,11 @@ from ._lm import lm_solve as lm_solve
 from ._lm import lm_step as lm_step
 from ._lm_batched import batched_lm as batched_lm
 from ._options import Option as Option
-from ._options import check_number as check_number
 from ._problem import FitConfig as FitConfig
 from ._problem import FitResult as FitResult
 from ._problem import Linearisation as Linearisation
 from ._problem import fit_pixels as fit_pixels
 from ._problem import fit_samples as fit_samples
-from ._problem import sample_arrays as sample_arrays
 from ._residual import L2 as L2
 from ._residual import Cauchy as Cauchy
 from ._residual import GaussianNoise as GaussianNoise
@@ -85,17 +73,12 @@ from ._residual import ShotNoise as ShotNoise
 from ._residual import gaussian_prior as gaussian_prior
 from ._residual import make_residual as make_residual
 from ._residual import pixel_data as pixel_data
-from ._residual import replace_params as replace_params
-from ._select import keep_lower as keep_lower
-from ._shard import device_count as device_count
+from ._shard import device_count  # noqa: F401
 from ._shard import map_sharded as map_sharded
 from ._status import STATUS_MEANINGS as STATUS_MEANINGS
 from ._status import Status as Status
-from ._status import classify as classify
 from ._status import describe as describe
-from ._status import equilibrated_condition as equilibrated_condition
 from ._status import has_estimate as has_estimate
-from ._status import ill_conditioned as ill_conditioned
 from ._status import most_severe as most_severe
 from ._status import severity as severity
 from ._transform import Bijection as Bijection
@@ -107,4 +90,65 @@ from ._transform import ScaledSigmoid as ScaledSigmoid
 from ._transform import Softplus as Softplus
 from ._transform import UnitVector as UnitVector
 from ._work_store import WorkStore as WorkStore
-from ._work_store import fingerprint_hash as fingerprint_hash
+
+# The public names. Those imported above without ``as`` (cholesky_unrolled,
+# solve_lower_unrolled, solve_lower_t_unrolled, device_count) are helpers, reachable here
+# for the modules that import them from the package; new code imports them from their
+# modules.
+__all__ = [
+    "L2",
+    "STATUS_MEANINGS",
+    "Bijection",
+    "Cauchy",
+    "Distributed",
+    "Exp",
+    "FitConfig",
+    "FitInfo",
+    "FitResult",
+    "GaussianNoise",
+    "GaussianPrior",
+    "Huber",
+    "Identity",
+    "JaxoptLM",
+    "LMInfo",
+    "LMOptions",
+    "LMResult",
+    "LMState",
+    "LaplaceFlag",
+    "LaplaceResult",
+    "Linearisation",
+    "Log",
+    "Loss",
+    "NoiseModel",
+    "OptimistixLM",
+    "Option",
+    "ParamSpace",
+    "PixelData",
+    "ProcessGroupError",
+    "Residual",
+    "ScaledSigmoid",
+    "ShotNoise",
+    "Softplus",
+    "Solver",
+    "Status",
+    "UnitVector",
+    "WorkStore",
+    "batched_lm",
+    "describe",
+    "fit_pixels",
+    "fit_samples",
+    "gaussian_prior",
+    "has_estimate",
+    "initial_theta",
+    "laplace",
+    "leave_group",
+    "lm_init",
+    "lm_solve",
+    "lm_step",
+    "make_residual",
+    "map_sharded",
+    "most_severe",
+    "pixel_data",
+    "severity",
+    "solve",
+]

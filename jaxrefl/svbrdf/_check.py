@@ -22,7 +22,7 @@ they are computed as if the model were right. Bits of :class:`ModelCheck`:
   physics: the lobe may be narrower than any width the model allows, and the pixel's
   Laplace alpha and F0 intervals then describe the nearest lobe the model has, not the
   surface's. The uncertainty maps sample such a pixel with alpha's floor at 1e-3 where the
-  job gave none (:func:`jaxrefl.svbrdf.posterior_space`).
+  job gave none (:func:`jaxrefl.svbrdf._uncertainty.posterior_space`).
 * ``PPC_FAILED`` (2): a posterior predictive check on the pixel's own training photos
   fails: T = sum over its uncensored training observations of r^2 / v, with r the residual
   at the optimum, exceeds the chi-square quantile of n - P degrees of freedom at
