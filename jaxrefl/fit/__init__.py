@@ -37,11 +37,22 @@ from ._backends import solve as solve
 from ._distributed import Distributed as Distributed
 from ._distributed import ProcessGroupError as ProcessGroupError
 from ._distributed import leave_group as leave_group
+from ._distributed import (
+    process_barrier,  # noqa: F401
+    process_gather,  # noqa: F401
+    process_share,  # noqa: F401
+)
 from ._init import initial_theta as initial_theta
 from ._laplace import LaplaceFlag as LaplaceFlag
 from ._laplace import LaplaceResult as LaplaceResult
+from ._laplace import (
+    flag_counts,  # noqa: F401
+    same_residual,  # noqa: F401
+    undefined_correlations,  # noqa: F401
+)
 from ._laplace import laplace as laplace
 from ._linalg import (
+    cho_solve_unrolled,  # noqa: F401
     cholesky_unrolled,  # noqa: F401
     solve_lower_t_unrolled,  # noqa: F401
     solve_lower_unrolled,  # noqa: F401
@@ -55,11 +66,13 @@ from ._lm import lm_solve as lm_solve
 from ._lm import lm_step as lm_step
 from ._lm_batched import batched_lm as batched_lm
 from ._options import Option as Option
+from ._options import check_number  # noqa: F401
 from ._problem import FitConfig as FitConfig
 from ._problem import FitResult as FitResult
 from ._problem import Linearisation as Linearisation
 from ._problem import fit_pixels as fit_pixels
 from ._problem import fit_samples as fit_samples
+from ._problem import sample_arrays  # noqa: F401
 from ._residual import L2 as L2
 from ._residual import Cauchy as Cauchy
 from ._residual import GaussianNoise as GaussianNoise
@@ -73,11 +86,14 @@ from ._residual import ShotNoise as ShotNoise
 from ._residual import gaussian_prior as gaussian_prior
 from ._residual import make_residual as make_residual
 from ._residual import pixel_data as pixel_data
+from ._residual import replace_params  # noqa: F401
+from ._select import keep_lower  # noqa: F401
 from ._shard import device_count  # noqa: F401
 from ._shard import map_sharded as map_sharded
 from ._status import STATUS_MEANINGS as STATUS_MEANINGS
 from ._status import Status as Status
 from ._status import describe as describe
+from ._status import equilibrated_condition  # noqa: F401
 from ._status import has_estimate as has_estimate
 from ._status import most_severe as most_severe
 from ._status import severity as severity
@@ -90,11 +106,10 @@ from ._transform import ScaledSigmoid as ScaledSigmoid
 from ._transform import Softplus as Softplus
 from ._transform import UnitVector as UnitVector
 from ._work_store import WorkStore as WorkStore
+from ._work_store import fingerprint_hash  # noqa: F401
 
-# The public names. Those imported above without ``as`` (cholesky_unrolled,
-# solve_lower_unrolled, solve_lower_t_unrolled, device_count) are helpers, reachable here
-# for the modules that import them from the package; new code imports them from their
-# modules.
+# The public names. Those imported above without ``as`` are helpers the other packages of
+# jaxrefl share (each package uses another through its ``__init__`` only), not public.
 __all__ = [
     "L2",
     "STATUS_MEANINGS",

@@ -34,7 +34,6 @@ from jaxrefl import fit
 from jaxrefl import posterior as jp
 from jaxrefl.fit import PixelData
 from jaxrefl.io import MeasuredBRDF
-from jaxrefl.posterior._diagnostics import log_likelihood_draws
 
 from ._data import load_measured, restrict, to_rgb
 from ._fit import ModelFit, fit_model
@@ -138,7 +137,7 @@ class BRDFPosterior:
             stats={k: np.asarray(v)[:, :, ::step] for k, v in s.stats.items()},
         )
         one = jax.tree.map(lambda a: a[None], self.data)
-        ll = log_likelihood_draws(self.posterior, s, one).astype(np.float32)
+        ll = jp.log_likelihood_draws(self.posterior, s, one).astype(np.float32)
         idata = jp.to_inference_data(
             s, one, log_likelihood=ll, observation="sample", attrs={"file_thin": step}
         )

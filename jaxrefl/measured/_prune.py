@@ -52,8 +52,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxrefl._errors import JaxreflError
-from jaxrefl.fit import FitConfig, FitResult, PixelData, make_residual, pixel_data
-from jaxrefl.fit._problem import sample_arrays
+from jaxrefl.fit import (
+    FitConfig,
+    FitResult,
+    PixelData,
+    make_residual,
+    pixel_data,
+    sample_arrays,
+)
 
 from ._compact import Compacted, compact
 from ._components import Components, fit_components, param_space, start_from

@@ -61,11 +61,11 @@ from jaxrefl.fit import (
     Status,
     fit_pixels,
     initial_theta,
+    keep_lower,
     make_residual,
     pixel_data,
 )
-from jaxrefl.fit._problem import sample_arrays as _sample_arrays
-from jaxrefl.fit._select import keep_lower
+from jaxrefl.fit import sample_arrays as _sample_arrays
 
 from ._certificate import Certificate, certify
 from ._nested import nested_thetas

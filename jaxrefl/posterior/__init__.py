@@ -80,10 +80,10 @@ from ._sphere import direction_summary as direction_summary
 from ._uncertainty_map import METHODS as METHODS
 from ._uncertainty_map import UncertaintyMap as UncertaintyMap
 
-# The public names. Those imported above without ``as`` (HEARTBEAT_S, MCMC_METHODS,
-# NonFinite, log_likelihood_draws, sample_truncated, thin, uncertainty_channels) are helpers,
-# reachable here for the modules, benchmarks and tests that import them from the package;
-# new code imports them from their modules.
+# The public names. Those imported above without ``as`` are helpers, not public, that the
+# other packages of jaxrefl share (each package uses another through its ``__init__`` only):
+# HEARTBEAT_S, NonFinite, log_likelihood_draws, uncertainty_channels; and that benchmarks
+# import from the package: MCMC_METHODS, sample_truncated, thin.
 __all__ = [
     "METHODS",
     "UNCERTAINTY_MAP_GIBBS",

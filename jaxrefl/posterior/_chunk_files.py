@@ -16,8 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from jaxrefl.fit import WorkStore
-from jaxrefl.fit._work_store import fingerprint_hash
+from jaxrefl.fit import WorkStore, fingerprint_hash
 
 from ._samples import Samples
 

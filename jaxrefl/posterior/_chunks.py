@@ -36,8 +36,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxrefl.fit import PixelData
-from jaxrefl.fit._distributed import process_barrier, process_share
+from jaxrefl.fit import PixelData, process_barrier, process_share
 
 from ._choice import sample_pixels
 from ._chunk_files import fingerprint, load_chunk, open_pass, save_chunk

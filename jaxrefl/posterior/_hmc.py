@@ -48,8 +48,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from jaxrefl.fit import PixelData, map_sharded
-from jaxrefl.fit._shard import device_count
+from jaxrefl.fit import PixelData, device_count, map_sharded
 
 from ._bind import bind_once
 from ._driver import Kernel, chain_starts, package, run_chain

@@ -69,8 +69,8 @@ from jaxrefl.fit import (
     ScaledSigmoid,
     Softplus,
     make_residual,
+    replace_params,
 )
-from jaxrefl.fit._residual import replace_params
 from jaxrefl.scene import orthonormal_basis, to_local
 
 from ._priors import Jeffreys, MultivariateNormal, Prior, resolve_priors

@@ -25,7 +25,6 @@ from jaxtyping import ArrayLike, Float
 from jaxrefl import fit as jf
 from jaxrefl._errors import JaxreflError
 from jaxrefl.brdf import BRDF
-from jaxrefl.fit._options import check_number
 
 from ._brdf import fit_normal_brdf
 from ._robust import robust
@@ -73,7 +72,7 @@ class Robust(PSMethod):
 
     def __check_init__(self) -> None:
         for name in ("shadow", "scale_floor", "trim"):
-            check_number("Robust", name, getattr(self, name))
+            jf.check_number("Robust", name, getattr(self, name))
         if self.iters < 0:
             raise JaxreflError(f"Robust needs iters >= 0, got {self.iters}")
 
@@ -106,7 +105,7 @@ class NormalBRDF(PSMethod):
     def __check_init__(self) -> None:
         if self.init not in ("diffuse", "grid"):
             raise JaxreflError(f"NormalBRDF init must be 'diffuse' or 'grid', not {self.init!r}")
-        check_number("NormalBRDF", "shadow", self.shadow)
+        jf.check_number("NormalBRDF", "shadow", self.shadow)
         if self.batch < 1:
             raise JaxreflError(f"NormalBRDF needs batch >= 1, got {self.batch}")
 

@@ -31,9 +31,13 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from jaxrefl.fit import Status, has_estimate
-from jaxrefl.fit._linalg import cho_solve_unrolled, cholesky_unrolled
-from jaxrefl.fit._status import equilibrated_condition
+from jaxrefl.fit import (
+    Status,
+    cho_solve_unrolled,
+    cholesky_unrolled,
+    equilibrated_condition,
+    has_estimate,
+)
 
 __all__ = ["PSResult", "woodham"]
 

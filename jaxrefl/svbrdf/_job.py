@@ -48,8 +48,7 @@ import jax
 import numpy as np
 
 from jaxrefl._errors import JaxreflError
-from jaxrefl.fit import Distributed
-from jaxrefl.fit._distributed import process_barrier, process_share
+from jaxrefl.fit import Distributed, process_barrier, process_share
 
 # FitJob, CaptureFit and map_name are imported from here by other modules of the package.
 from jaxrefl.io import map_name

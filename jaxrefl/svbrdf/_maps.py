@@ -18,8 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxrefl import brdf, fit
-from jaxrefl.fit import Status
-from jaxrefl.fit._laplace import flag_counts, undefined_correlations
+from jaxrefl.fit import Status, undefined_correlations
 from jaxrefl.io import corr_name, map_name
 
 from ._check import ModelCheck, bound_bits, check_counts, ppc_failed
@@ -202,7 +201,7 @@ def capture_report(fitter, cat, capture, job, maps, compile_s, times, n_tiles, l
         },
         "pixels": n_px,
         "status_counts": fit.describe(maps["status"]),
-        "laplace_flag_counts": flag_counts(maps["laplace_flag"]),
+        "laplace_flag_counts": fit.flag_counts(maps["laplace_flag"]),
         # Pixels whose model cannot be right (jaxrefl.svbrdf._check): their Laplace and
         # predictive intervals are not calibrated.
         "misspecified_counts": check_counts(maps["misspecified"]),

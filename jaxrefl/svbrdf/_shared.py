@@ -44,7 +44,6 @@ import numpy as np
 
 from jaxrefl import fit
 from jaxrefl.fit import PixelData, Residual
-from jaxrefl.fit._linalg import cho_solve_unrolled, cholesky_unrolled
 
 __all__ = ["WidthUncertainty", "widen", "width_terms"]
 
@@ -70,9 +69,9 @@ def _terms(residual: Residual, theta, data: PixelData, formed):
         dg = jnp.diagonal(h_mat)
         sc = 1.0 / jnp.sqrt(jnp.where(dg > 0, dg, 1.0))
         a = h_mat * sc[:, None] * sc[None, :]
-        l_fac, pd = cholesky_unrolled(a)
+        l_fac, pd = fit.cholesky_unrolled(a)
         eye = jnp.eye(a.shape[0], dtype=a.dtype)
-        v = sc * cho_solve_unrolled(jnp.where(pd, l_fac, eye), sc * h)
+        v = sc * fit.cho_solve_unrolled(jnp.where(pd, l_fac, eye), sc * h)
         keep = ok & pd & jnp.all(jnp.isfinite(v))
         s = jnp.where(keep, c - h @ v, 0.0)
         return jnp.where(keep, v, jnp.nan), jnp.maximum(s, 0.0)

@@ -28,8 +28,6 @@ import numpy as np
 
 from jaxrefl import fit
 from jaxrefl._errors import JaxreflError
-from jaxrefl.fit._laplace import same_residual
-from jaxrefl.fit._select import keep_lower
 
 from ._data import pixel_block, resolvable_alpha
 from ._job_types import FitJob
@@ -331,11 +329,11 @@ _PER_PIXEL = ("params", "theta", "status", "iterations", "n_used")
 
 
 def _keep_lower(a, b):
-    """Per pixel, the fit result of lower cost (:func:`jaxrefl.fit._select.keep_lower`: a NaN cost
+    """Per pixel, the fit result of lower cost (:func:`jaxrefl.fit.keep_lower`: a NaN cost
     never wins)."""
     la, lb = a.linearisation, b.linearisation
     # The curvature goes with the theta it was taken at; without both there is none.
-    same = la is not None and lb is not None and same_residual(la.residual, lb.residual)
+    same = la is not None and lb is not None and fit.same_residual(la.residual, lb.residual)
 
     def candidate(r):
         out = {f: getattr(r, f) for f in _PER_PIXEL}
@@ -343,7 +341,7 @@ def _keep_lower(a, b):
             out["jtj"], out["active"] = r.linearisation.jtj, r.linearisation.active
         return out
 
-    cost, kept = keep_lower(a.cost, candidate(a), b.cost, candidate(b))
+    cost, kept = fit.keep_lower(a.cost, candidate(a), b.cost, candidate(b))
     lin = None
     if same:
         lin = replace(la, jtj=kept.pop("jtj"), active=kept.pop("active"))

@@ -31,8 +31,7 @@ from typing import Any
 import jax
 import numpy as np
 
-from jaxrefl.fit import WorkStore
-from jaxrefl.fit._distributed import process_barrier, process_gather
+from jaxrefl.fit import WorkStore, process_barrier, process_gather
 
 from ._job_types import FitJob
 from ._tile_fitter import STAGES, TileFitter
