@@ -267,7 +267,43 @@ def test_censoring_lowers_the_gain_of_a_candidate_that_saturates(truth_fit):
     fit_s, cap_s = fit, dataclasses.replace(cap, saturation_level=level)
     cens = svbrdf.plan_next(fit_s, cap_s, cands)
     assert cens.gain[0] < 0.9 * free.gain[0]
-    np.testing.assert_allclose(cens.gain[1], free.gain[1], rtol=1e-6)
+    assert cens.information[0] < 0.9 * free.information[0]
+    # OFF's photo is recorded uncensored: its information is the uncensored one (its
+    # variance share is not: the reference renderings include ON's, recorded saturated).
+    np.testing.assert_allclose(cens.information[1], free.information[1], rtol=1e-6)
+
+
+def test_recorded_slope_is_the_derivative_of_the_censored_mean():
+    """Phi(b) - Phi(a) against central differences of the closed-form mean of a normal
+    recorded censored at both levels (a Tobit observation)."""
+    from scipy.stats import norm
+
+    from jaxrefl.svbrdf._plan_info import recorded_slope
+
+    def censored_mean(mu, sd, lo, hi):
+        a, b = (lo - mu) / sd, (hi - mu) / sd
+        inner = mu * (norm.cdf(b) - norm.cdf(a)) + sd * (norm.pdf(a) - norm.pdf(b))
+        return lo * norm.cdf(a) + hi * norm.sf(b) + inner
+
+    sd, lo, hi, h = 0.05, 0.0, 1.0, 1e-6
+    for mu in (-0.1, 0.02, 0.5, 0.97, 1.2):
+        want = (censored_mean(mu + h, sd, lo, hi) - censored_mean(mu - h, sd, lo, hi)) / (2 * h)
+        np.testing.assert_allclose(recorded_slope(mu, sd, hi, lo), want, rtol=1e-6, atol=1e-9)
+    assert recorded_slope(0.5, sd) == 1.0
+
+
+def test_a_reference_recorded_saturated_has_no_variance_to_reduce(truth_fit):
+    """The variance criterion scores renderings as the camera records them: a reference
+    photo saturated everywhere is recorded the same whatever the parameters."""
+    fit, cap = truth_fit
+    cands = svbrdf.listed_candidates(cap, [ON, OFF])
+    ref = svbrdf.listed_candidates(cap, [ON])
+    # A level far below every pixel's predicted radiance in the reference photo.
+    low = dataclasses.replace(cap, saturation_level=1e-9)
+    cens = svbrdf.plan_next(fit, low, cands, reference=ref)
+    free = svbrdf.plan_next(fit, low, cands, svbrdf.PlanOptions(censoring=False), reference=ref)
+    assert np.all(free.variance_reduction > 0)
+    np.testing.assert_array_equal(cens.variance_reduction, 0.0)
 
 
 # ----------------------------------------------------------------- command line

@@ -8,10 +8,16 @@ Chaloner & Verdinelli 1995):
   10): the expected reduction of the predictive variance of reference renderings, summed
   over pixels, reference renderings and channels, as a share of its current value,
 
-      gain_c = [V(A) - V(A + F_c)] / V(A),   V(A) = sum_r sum_i sum_ch g_r^T A^-1 g_r
+      gain_c = [V(A) - V(A + F_c)] / V(A),   V(A) = sum_r sum_i sum_ch p_r^2 g_r^T A^-1 g_r
 
   with g_r = dy_r / dtheta the Jacobian of the rendering of pixel i under reference r
-  (radiance units, :func:`._plan_info.predictive_variance`). The reference renderings are
+  (radiance units, :func:`._plan_info.predictive_variance`) and p_r the slope of the value
+  the camera records (:func:`._plan_info.recorded_slope`: the probability that it is not
+  censored at the capture's saturation or dark level; 1 with ``censoring=False``): the
+  variance is that of the recorded rendering (delta method), so a reference highlight far
+  above the saturation level, recorded saturated whatever the parameters, has none to
+  reduce, and a candidate is not scored by what it teaches about values no photo records.
+  The reference renderings are
   the candidates themselves (or ``reference``): the views and flash positions the capture
   could have, so the criterion is the expected reduction of the squared error with which
   the fit predicts a photo taken at any of them; it weighs each pixel and parameter by how
@@ -97,6 +103,7 @@ from ._plan_info import (
     censoring_factor,
     photo_information,
     predictive_variance,
+    recorded_slope,
     schur,
 )
 from ._plan_light import fit_light, orientations, place_flash
@@ -414,26 +421,31 @@ def plan_next(
     inverse = jnp.asarray(np.argsort(_order(st.space, st.shared)))
     theta_j = jnp.asarray(st.theta, dtype)
 
+    sat, dark = capture.saturation_level, capture.dark_level
+
     def photo(c: Candidates, j: int):
-        """(Jacobian (n, C, q), Fisher information (n, q, q)) of a photo at c[j]."""
+        """(Jacobian (n, C, q), predicted radiance (n, C), noise variance (n, C)) of a photo
+        at c[j]."""
         wi, wo, sc = _candidate_geometry(points, c.camera_pos[j], c.light_pos[j], c.light_power[j])
         args = (jnp.asarray(wi, dtype), jnp.asarray(wo, dtype), jnp.asarray(sc, dtype))
         jac, mean = _prediction_jacobian(st.model, st.space, inverse, theta_j, *args)
         jac = np.nan_to_num(np.asarray(jac, np.float64))  # a non-finite row informs nothing
         mean = np.asarray(mean, np.float64)
         var = st.s2[:, None] * np.asarray(st.noise.std(jnp.asarray(mean)), np.float64) ** 2
-        sat, dark = capture.saturation_level, capture.dark_level
-        return jac, photo_information(jac, mean, var, sat, dark, censoring=options.censoring)
+        return jac, mean, var
 
     moment = np.zeros((n, q, q))
     for j in range(len(reference)):
-        g = photo(reference, j)[0]
-        moment += np.einsum("ncp,ncq->npq", g, g)
+        g, mean, var = photo(reference, j)
+        # The reference rendering as the camera records it (censored at its levels).
+        w = recorded_slope(mean, np.sqrt(var), sat, dark) ** 2 if options.censoring else 1.0
+        moment += np.einsum("ncp,ncq,nc->npq", g, g, np.broadcast_to(w, mean.shape))
     v_before = predictive_variance(a_pp, a_ps, a_ss, moment, tau, scale_up)
     m = len(candidates)
     gain_px, gain_sh, informed, v_red = np.zeros(m), np.zeros(m), np.zeros(m), np.zeros(m)
     for j in range(m):
-        f = photo(candidates, j)[1]
+        jac, mean, var = photo(candidates, j)
+        f = photo_information(jac, mean, var, sat, dark, censoring=options.censoring)
         a_after = a_pp + f[:, :p, :p]
         b_after, c_after = a_ps + f[:, :p, p:], a_ss + f[:, p:, p:]
         g_i = 0.5 * (_logdet(a_after) - ld_before)

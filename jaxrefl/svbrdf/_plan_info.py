@@ -23,7 +23,13 @@ from ._data import pixel_take
 from ._job import CaptureFit
 from ._models import TWO_STAGE, capture_model
 
-__all__ = ["censoring_factor", "photo_information", "predictive_variance", "schur"]
+__all__ = [
+    "censoring_factor",
+    "photo_information",
+    "predictive_variance",
+    "recorded_slope",
+    "schur",
+]
 
 # Standardised distances to the censoring bounds are clipped here: beyond 30 sigma the
 # normal's tail terms are 0 to float64 precision (and inf - inf would make NaN).
@@ -53,6 +59,20 @@ def censoring_factor(mean, std, saturation_level=np.inf, dark_level=-np.inf) -> 
     tails = np.exp(2 * log_phi_b - log_ndtr(-b)) + np.exp(2 * log_phi_a - log_ndtr(a))
     # Round-off can leave a hair outside (0, 1]; the factor is a share of the information.
     return np.clip(inner + tails, 0.0, 1.0)
+
+
+def recorded_slope(mean, std, saturation_level=np.inf, dark_level=-np.inf) -> np.ndarray:
+    """d E[recorded value] / d mean in [0, 1] of a normal observation N(mean, std^2) recorded
+    censored above ``saturation_level`` and below ``dark_level`` (a Tobit observation): with
+    a, b as in :func:`censoring_factor`, Phi(b) - Phi(a), the probability that it is recorded
+    uncensored. A reference rendering's predictive variance as the camera would record it
+    is this squared times the radiance's (the delta method): a highlight far above the
+    saturation level is recorded as saturated whatever the parameters."""
+    mean = np.asarray(mean, np.float64)
+    std = np.asarray(std, np.float64)
+    b = np.clip((saturation_level - mean) / std, -_Z_MAX, _Z_MAX)
+    a = np.clip((dark_level - mean) / std, -_Z_MAX, _Z_MAX)
+    return ndtr(b) - ndtr(a)
 
 
 def photo_information(
