@@ -102,7 +102,7 @@ from ._plan_info import (
     _state,
     censoring_factor,
     photo_information,
-    predictive_variance,
+    pixel_predictive_variance,
     recorded_slope,
     schur,
 )
@@ -126,7 +126,7 @@ __all__ = [
 # posterior volume shrinks by 10% (exp(-gain) = 0.9) or more.
 INFORMED_GAIN = -math.log(0.9)
 # The criteria of PlanOptions.criterion (module docstring), the default first.
-CRITERIA = ("variance", "information")
+CRITERIA = ("variance", "log_variance", "information")
 # tan of the half-vector angle, per unit alpha, where a GGX lobe falls to half its peak
 # (module docstring): sqrt(sqrt(2) - 1).
 _HALF_PEAK = math.sqrt(math.sqrt(2.0) - 1.0)
@@ -145,7 +145,9 @@ class PlanOptions:
                  False scores every observation as uncensored
     criterion:   what ranks the candidates (:data:`CRITERIA`, module docstring):
                  ``variance`` the expected reduction of the reference renderings'
-                 predictive variance, ``information`` the expected information gain
+                 predictive variance (a share of the sum over pixels), ``log_variance``
+                 the mean over pixels of the log of its reduction, ``information`` the
+                 expected information gain
     """
 
     max_pixels: int = 4096
@@ -309,7 +311,9 @@ class Plan:
     gain:           (M,) the criterion's score: ``variance`` the share of the reference
                     renderings' predictive variance a photo there is expected to remove,
                     ``information`` nats
-    variance_reduction: (M,) that share, for either criterion
+    variance_reduction: (M,) that share, for every criterion
+    log_variance_reduction: (M,) the mean over pixels of ln(V_i before / V_i after), for
+                    every criterion
     information:    (M,) nats, gain_pixels + gain_shared
     gain_pixels:    (M,) the information's per-pixel part (given the shared parameters)
     gain_shared:    (M,) the shared parameters' part (0 where none is shared)
@@ -328,6 +332,7 @@ class Plan:
     criterion: str
     gain: np.ndarray
     variance_reduction: np.ndarray
+    log_variance_reduction: np.ndarray
     information: np.ndarray
     gain_pixels: np.ndarray
     gain_shared: np.ndarray
@@ -349,7 +354,8 @@ class Plan:
     def ranking(self) -> list[dict[str, Any]]:
         """One dict per candidate, best first: ``photo`` (photo candidates) or ``position``
         (camera position, capture units), ``light_position``, ``gain`` (the criterion's),
-        ``variance_reduction``, ``information``, ``gain_pixels``, ``gain_shared``,
+        ``variance_reduction``, ``log_variance_reduction``, ``information``,
+        ``gain_pixels``, ``gain_shared``,
         ``share_informed``, ``highlight`` (x, y) and ``highlight_on_sample``."""
         cand = self.candidates
         out = []
@@ -361,6 +367,7 @@ class Plan:
             row["light_position"] = [float(v) for v in cand.light_pos[m]]
             row["gain"] = float(self.gain[m])
             row["variance_reduction"] = float(self.variance_reduction[m])
+            row["log_variance_reduction"] = float(self.log_variance_reduction[m])
             row["information"] = float(self.information[m])
             row["gain_pixels"] = float(self.gain_pixels[m])
             row["gain_shared"] = float(self.gain_shared[m])
@@ -440,9 +447,14 @@ def plan_next(
         # The reference rendering as the camera records it (censored at its levels).
         w = recorded_slope(mean, np.sqrt(var), sat, dark) ** 2 if options.censoring else 1.0
         moment += np.einsum("ncp,ncq,nc->npq", g, g, np.broadcast_to(w, mean.shape))
-    v_before = predictive_variance(a_pp, a_ps, a_ss, moment, tau, scale_up)
+    v_px_before = pixel_predictive_variance(a_pp, a_ps, a_ss, moment, tau, scale_up)
+    v_before = scale_up * float(np.sum(v_px_before))
+    # A pixel none of whose reference renderings is recorded uncensored has no variance to
+    # reduce: it is left out of the log ratio (0 / 0).
+    seen = v_px_before > 0
     m = len(candidates)
     gain_px, gain_sh, informed, v_red = np.zeros(m), np.zeros(m), np.zeros(m), np.zeros(m)
+    log_red = np.zeros(m)
     for j in range(m):
         jac, mean, var = photo(candidates, j)
         f = photo_information(jac, mean, var, sat, dark, censoring=options.censoring)
@@ -454,10 +466,13 @@ def plan_next(
         if s:
             after = _logdet(schur(a_after, b_after, c_after, tau, scale_up)[None])[0]
             gain_sh[j] = 0.5 * float(after - schur_before)
-        v_after = predictive_variance(a_after, b_after, c_after, moment, tau, scale_up)
+        v_px = pixel_predictive_variance(a_after, b_after, c_after, moment, tau, scale_up)
+        v_after = scale_up * float(np.sum(v_px))
         v_red[j] = (v_before - v_after) / v_before if v_before > 0 else 0.0
+        if np.any(seen):
+            log_red[j] = float(np.mean(np.log(v_px_before[seen] / v_px[seen])))
     info = gain_px + gain_sh
-    gain = v_red if options.criterion == "variance" else info
+    gain = {"variance": v_red, "log_variance": log_red, "information": info}[options.criterion]
     alpha = _median_alpha(capture_fit)
     heights = 0.5 * (candidates.camera_pos[:, 2] + candidates.light_pos[:, 2])
     radius = heights * np.tan(_HALF_PEAK * alpha) if alpha is not None else np.zeros(m)
@@ -466,6 +481,7 @@ def plan_next(
         criterion=options.criterion,
         gain=gain,
         variance_reduction=v_red,
+        log_variance_reduction=log_red,
         information=info,
         gain_pixels=gain_px,
         gain_shared=gain_sh,

@@ -12,10 +12,11 @@ downsampling the report's ``capture`` records.
 * ``plan.json``: ``ranking``, one entry per candidate, best first (:meth:`Plan.ranking`:
   ``photo`` for the photos of a capture, ``position`` the camera position (capture units,
   the sample frame: origin its centre, +z its normal), ``light_position``, ``gain`` (the
-  criterion's), ``variance_reduction`` (a share), ``information`` (nats), ``gain_pixels``,
-  ``gain_shared``, ``share_informed``, ``highlight`` and ``highlight_on_sample``), with
-  ``criterion``, ``criterion_meaning``, ``light``, ``candidates`` (their kind), ``pixels``,
-  ``pixels_sampled``, ``shared``, ``informed_gain``, ``units``, ``fit`` and ``capture``;
+  criterion's), ``variance_reduction`` (a share), ``log_variance_reduction`` (mean log
+  ratio), ``information`` (nats), ``gain_pixels``, ``gain_shared``, ``share_informed``,
+  ``highlight`` and ``highlight_on_sample``), with ``criterion``, ``criterion_meaning``,
+  ``light``, ``candidates`` (their kind), ``pixels``, ``pixels_sampled``, ``shared``,
+  ``informed_gain``, ``units``, ``fit`` and ``capture``;
 * ``highlights.png``: the sample (the mean of the fitted photos) with where the highlight
   of each of the best ``top`` candidates would fall (a circle of the lobe's half-peak
   radius, numbered by rank);
@@ -45,6 +46,8 @@ __all__ = ["read_fit", "write_plan"]
 _CRITERION = {
     "variance": "expected reduction of the predictive variance of renderings at the "
     "candidates, summed over pixels, renderings and channels, as a share of its value",
+    "log_variance": "expected reduction of the predictive variance of renderings at the "
+    "candidates, pixel by pixel: the mean over pixels of ln(variance before / after)",
     "information": "expected information gain about the fit's parameters, "
     "0.5 ln det(I + Sigma F) in nats",
 }
@@ -189,8 +192,10 @@ def write_plan(
         "informed_gain": INFORMED_GAIN,
         "units": {
             "position": "capture units (cm), sample frame: origin its centre, +z its normal",
-            "gain": "the criterion's: variance, a share; information, nats",
+            "gain": "the criterion's: variance, a share; log_variance, a mean log ratio; "
+            "information, nats",
             "variance_reduction": "share of the reference renderings' predictive variance",
+            "log_variance_reduction": "mean over pixels of ln(predictive variance before / after)",
             "information": "nats (the posterior volume shrinks by exp(-information))",
         },
         "fit": None if fit_dir is None else str(fit_dir),
@@ -255,6 +260,8 @@ def _positions_png(plan: Plan, capture, path: Path) -> Path:
     sc = ax.scatter(cand.camera_pos[:, 0], cand.camera_pos[:, 1], c=plan.gain, cmap="viridis", s=60)
     label = {
         "variance": "expected share of the predictive variance removed",
+        "log_variance": "expected reduction of the predictive variance of renderings at the "
+        "candidates, pixel by pixel: the mean over pixels of ln(variance before / after)",
         "information": "expected information gain (nats)",
     }[plan.criterion]
     fig.colorbar(sc, ax=ax, label=label)

@@ -26,6 +26,7 @@ from ._models import TWO_STAGE, capture_model
 __all__ = [
     "censoring_factor",
     "photo_information",
+    "pixel_predictive_variance",
     "predictive_variance",
     "recorded_slope",
     "schur",
@@ -264,25 +265,35 @@ def schur(a_pp, a_ps, a_ss, prior_precision: float, scale_up: float) -> np.ndarr
     return np.eye(s) * prior_precision + scale_up * np.sum(inner, axis=0)
 
 
-def predictive_variance(a_pp, a_ps, a_ss, moment, prior_precision: float, scale_up: float):
-    """sum over pixels, reference renderings and channels of the predictive variance g^T
-    Sigma g of a rendering, Sigma the inverse of the block-arrow joint precision (pixels'
-    blocks ``a_pp`` (n, P, P), their coupling ``a_ps`` (n, P, S) to the S shared parameters
-    and ``a_ss`` (n, S, S)); ``moment`` (n, P + S, P + S) is sum_r sum_c g g^T over the
-    reference renderings' Jacobians g (shared entries last). With y_i = A_i^-1 b_i:
+def pixel_predictive_variance(
+    a_pp, a_ps, a_ss, moment, prior_precision: float, scale_up: float
+) -> np.ndarray:
+    """(n,) each pixel's predictive variance of the reference renderings, summed over them
+    and the channels: g^T Sigma g, Sigma the inverse of the block-arrow joint precision
+    (pixels' blocks ``a_pp`` (n, P, P), their coupling ``a_ps`` (n, P, S) to the S shared
+    parameters and ``a_ss`` (n, S, S)); ``moment`` (n, P + S, P + S) is sum_r sum_c g g^T
+    over the reference renderings' Jacobians g (shared entries last). With y_i = A_i^-1 b_i:
 
-        sum_i tr(A_i^-1 M_pp,i) + tr(S^-1 sum_i (M_ss,i - 2 sym(M_sp,i y_i)
-                                               + y_i^T M_pp,i y_i))
+        v_i = tr(A_i^-1 M_pp,i) + tr(S^-1 (M_ss,i - 2 sym(M_sp,i y_i) + y_i^T M_pp,i y_i))
 
     (the pixel's variance given the shared parameters, plus theirs carried through the
-    Schur complement S, :func:`schur`); sums over pixels are scaled by ``scale_up``."""
+    Schur complement S, :func:`schur`, whose sum over pixels is scaled by ``scale_up``)."""
     p = a_pp.shape[-1]
     m_pp = moment[:, :p, :p]
-    v = scale_up * float(np.sum(np.trace(np.linalg.solve(a_pp, m_pp), axis1=1, axis2=2)))
+    v = np.trace(np.linalg.solve(a_pp, m_pp), axis1=1, axis2=2)
     if moment.shape[-1] == p:
         return v
     y = np.linalg.solve(a_pp, a_ps)
     cross = np.swapaxes(moment[:, :p, p:], 1, 2) @ y
     k = moment[:, p:, p:] - cross - np.swapaxes(cross, 1, 2) + np.swapaxes(y, 1, 2) @ m_pp @ y
     sch = schur(a_pp, a_ps, a_ss, prior_precision, scale_up)
-    return v + scale_up * float(np.trace(np.linalg.solve(sch, np.sum(k, axis=0))))
+    return v + np.trace(np.linalg.solve(sch[None], k), axis1=1, axis2=2)
+
+
+def predictive_variance(a_pp, a_ps, a_ss, moment, prior_precision: float, scale_up: float):
+    """sum over pixels of :func:`pixel_predictive_variance` (the same arguments), scaled by
+    ``scale_up``: the predictive variance of the reference renderings of every pixel with
+    an estimate."""
+    return scale_up * float(
+        np.sum(pixel_predictive_variance(a_pp, a_ps, a_ss, moment, prior_precision, scale_up))
+    )
