@@ -36,10 +36,12 @@ It prints the tables and writes them, dated and with the machine, to the section
 
 The light column (``--light-only`` runs it alone, into the section
 ``real_captures_light``): every photo held out in turn, the ``--light-model`` fitted with
-the flash as the capture states it (``FitJob(light="fixed")``) and with the light estimated
-in each fold from its training photos (``light="auto"``, :func:`jaxrefl.svbrdf.estimate_light`;
-a held-out photo keeps its prior gain), the held-out RMSE of each photo side by side and
-what each fold's ``auto`` kept.
+the flash as the capture states it (``FitJob(light="fixed")``), with each estimate forced in
+every fold (``offset``, ``offset+gains``: :func:`jaxrefl.svbrdf.estimate_light` on the fold's
+training photos; a held-out photo keeps its prior gain) and with ``light="auto"`` (an
+estimate kept only where the fold's own training photos support it): the held-out RMSE of
+each photo side by side, each against fixed's, the forced offsets with their Laplace std,
+and what each fold's ``auto`` kept. The section is written after each capture.
 
     python benchmarks/real_captures.py --light-only [--size 128] [--light-model pooled]
 """
@@ -342,6 +344,12 @@ def _targets(name: str, results: dict) -> str:
     return f"{name} ({tag}): " + "; ".join(lines)
 
 
+CAPTURES = "bath_tile,yellow_box"
+# The light column's rows: the stated flash, each estimate forced in every fold, and auto
+# (an estimate kept only where the fold's own training photos support it).
+LIGHT_ROWS = ("fixed", "offset", "offset+gains", "auto")
+
+
 def _light_fold_loo(cap, model: str, light: str) -> tuple[np.ndarray, list[dict]]:
     """Held-out RMSE per photo of ``model`` with the flash ``light``, and each fold's light."""
     from jaxrefl.svbrdf import FitJob, fit_capture
@@ -350,67 +358,102 @@ def _light_fold_loo(cap, model: str, light: str) -> tuple[np.ndarray, list[dict]
     per = np.full(k, np.nan)
     lights = []
     for i in range(k):
+        t0 = time.perf_counter()
         fit = fit_capture(cap, FitJob(model=model, holdout=(i,), light=light))
         v = fit.report["heldout_rmse_per_photo"][str(i)]
         per[i] = np.nan if v is None else v
-        lights.append(fit.report["light"])
+        lt = fit.report["light"]
+        lights.append(lt)
+        off = "" if lt["offset_std_cm"] is None else f", offset {_offset(lt)} cm"
+        print(
+            f"    {light}: photo {i} held out, RMSE {per[i]:.5f}, kept {lt['mode']}{off} "
+            f"({time.perf_counter() - t0:.0f} s)",
+            flush=True,
+        )
     return per, lights
 
 
-def light_column(name: str, size: int, model: str) -> str:
-    """The light column's table for capture ``name`` (module docstring)."""
+def _offset(lt: dict) -> str:
+    """A fold's estimated offset in the sample plane, x and y with their Laplace std."""
+    o, sd = lt["offset_cm"], lt["offset_std_cm"]
+    return f"({o[0]:+.2f} +- {sd[0]:.2f}, {o[1]:+.2f} +- {sd[1]:.2f})"
+
+
+def light_column(name: str, size: int, model: str, modes: tuple[str, ...] = LIGHT_ROWS) -> str:
+    """The light column's table for capture ``name`` (module docstring): the rows ``modes``
+    (``fixed`` always, the reference)."""
+    modes = ("fixed", *[m for m in modes if m != "fixed"])
     cap = flash_capture(name, size)
     k = cap.n_photos
-    t0 = time.perf_counter()
-    fixed, _ = _light_fold_loo(cap, model, "fixed")
-    t1 = time.perf_counter()
-    est, lights = _light_fold_loo(cap, model, "auto")
-    t2 = time.perf_counter()
+    per: dict[str, np.ndarray] = {}
+    lights: dict[str, list[dict]] = {}
+    secs: dict[str, float] = {}
+    for mode in modes:
+        t0 = time.perf_counter()
+        per[mode], lights[mode] = _light_fold_loo(cap, model, mode)
+        secs[mode] = time.perf_counter() - t0
+    fixed = per["fixed"]
+    label = {
+        "fixed": "fixed",
+        "offset": "offset (forced)",
+        "offset+gains": "offset+gains (forced)",
+        "auto": "auto",
+    }
     headers = ["light", *[f"photo {i}" for i in range(k)], "mean", "s (all folds)"]
     rows = [
-        ["fixed", *[_fmt(v) for v in fixed], _fmt(float(np.nanmean(fixed))), f"{t1 - t0:.0f}"],
-        ["estimated", *[_fmt(v) for v in est], _fmt(float(np.nanmean(est))), f"{t2 - t1:.0f}"],
-        [
-            "estimated / fixed",
-            *[_fmt(a / b, 3) for a, b in zip(est, fixed, strict=True)],
-            _fmt(float(np.nanmean(est)) / float(np.nanmean(fixed)), 3),
-            "",
-        ],
+        [label[m], *[_fmt(v) for v in per[m]], _fmt(float(np.nanmean(per[m]))), f"{secs[m]:.0f}"]
+        for m in modes
     ]
-    ratio = est / fixed
-    worse = [int(i) for i in np.flatnonzero(ratio > 1.01)]
-    better = [int(i) for i in np.flatnonzero(ratio < 0.99)]
-    kept = [lt["mode"] for lt in lights]
-    offsets = [lt["offset_cm"] for lt in lights if lt["mode"] != "fixed"]
+    notes = []
+    for m in modes[1:]:
+        ratio = per[m] / fixed
+        rows.append(
+            [
+                f"{label[m]} / fixed",
+                *[_fmt(v, 3) for v in ratio],
+                _fmt(float(np.nanmean(per[m])) / float(np.nanmean(fixed)), 3),
+                "",
+            ]
+        )
+        worse = [int(i) for i in np.flatnonzero(ratio > 1.01)]
+        better = [int(i) for i in np.flatnonzero(ratio < 0.99)]
+        # The noise of the mean ratio: the photos' spread (each photo is one replicate).
+        se = float(np.nanstd(ratio, ddof=1) / np.sqrt(np.sum(np.isfinite(ratio))))
+        notes.append(
+            f"{label[m]} / fixed per photo {np.nanmin(ratio):.3f} to {np.nanmax(ratio):.3f}, "
+            f"mean {np.nanmean(ratio):.3f} +- {se:.3f} (standard error over photos); photos "
+            f"more than 1% worse: {worse or 'none'}, more than 1% better: {better or 'none'}"
+        )
     text = [
         f"**{name}**, {size} x {size}, {k} photos, model `{model}`, each photo held out in "
         "turn (held-out RMSE, linear radiance):",
         "",
         table(headers, rows),
         "",
-        "auto kept " + ", ".join(f"{m} in {kept.count(m)} of {k} folds" for m in sorted(set(kept))),
     ]
-    text.append(
-        f"; per photo, estimated / fixed {np.nanmin(ratio):.3f} to {np.nanmax(ratio):.3f}; "
-        f"photos more than 1% worse: {worse or 'none'}, more than 1% better: {better or 'none'}"
-    )
-    if offsets:
-        o = np.asarray(offsets)
+    if "auto" in lights:
+        kept = [lt["mode"] for lt in lights["auto"]]
+        counts = [f"{m} in {kept.count(m)} of {k} folds" for m in sorted(set(kept))]
+        text.append("auto kept " + ", ".join(counts))
+    for note in notes:
+        text.append(f"; {note}")
+    for m in [m for m in ("offset", "offset+gains") if m in lights]:
         text.append(
-            "; offset (cm) over those folds: "
-            + ", ".join(
-                f"{c} {lo:+.2f} to {hi:+.2f}"
-                for c, lo, hi in zip("xyz", o.min(0), o.max(0), strict=True)
-            )
+            f"; {label[m]}'s offset (cm, x and y, Laplace std) per fold: "
+            + ", ".join(_offset(lt) for lt in lights[m])
         )
-    text.append(f"; first fold's why: {lights[0]['why']}")
+    if "auto" in lights:
+        est = [lt for lt in lights["auto"] if lt["mode"] != "fixed"]
+        if est:
+            text.append("; auto's offset (cm) where kept: " + ", ".join(_offset(lt) for lt in est))
+        text.append(f"; first fold's why: {lights['auto'][0]['why']}")
     return "\n".join(text[:5]) + " " + " ".join(text[5:])
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--size", type=int, default=256)
-    ap.add_argument("--captures", default="bath_tile,yellow_box")
+    ap.add_argument("--captures", default=CAPTURES)
     ap.add_argument("--models", default="lambert,ggx,pooled,auto,adam")
     ap.add_argument("--adam-steps", type=int, default=1000)
     ap.add_argument("--no-write", action="store_true", help="print only")
@@ -420,22 +463,34 @@ def main(argv=None) -> int:
         help="run only the light column: held-out RMSE per photo, light estimated vs fixed",
     )
     ap.add_argument("--light-model", default="pooled", help="the model of the light column")
+    ap.add_argument(
+        "--light-rows",
+        default=",".join(LIGHT_ROWS),
+        help="the light column's rows (fixed always): of " + ", ".join(LIGHT_ROWS),
+    )
     args = ap.parse_args(argv)
     if args.light_only:
+        rows = tuple(args.light_rows.split(","))
+        bad = [r for r in rows if r not in LIGHT_ROWS]
+        if bad:
+            ap.error(f"--light-rows: {', '.join(bad)} not among {', '.join(LIGHT_ROWS)}")
         date = datetime.date.today().isoformat()
         parts = [
             "## Real flash captures, the flash estimated or fixed (`benchmarks/real_captures.py "
             "--light-only`)",
             "",
             f"{date}; {machine()}; `--light-only --size {args.size} --light-model "
-            f"{args.light_model}`.",
+            f"{args.light_model}"
+            + ("" if args.captures == CAPTURES else f" --captures {args.captures}")
+            + ("" if rows == LIGHT_ROWS else f" --light-rows {args.light_rows}")
+            + "`.",
         ]
         for name in args.captures.split(","):
-            text = light_column(name, args.size, args.light_model)
+            text = light_column(name, args.size, args.light_model, rows)
             print(text, flush=True)
             parts += ["", text]
-        if not args.no_write:
-            print(f"wrote {write_section('real_captures_light', chr(10).join(parts))}")
+            if not args.no_write:
+                print(f"wrote {write_section('real_captures_light', chr(10).join(parts))}")
         return 0
     models = args.models.split(",")
     date = datetime.date.today().isoformat()
