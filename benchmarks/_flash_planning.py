@@ -2,7 +2,7 @@
 ``benchmarks/capture_planning.py`` run with ``--flash``.
 
     python benchmarks/capture_planning.py --flash [--size 64] [--subsets 40] [--model pooled]
-        [--family-size 32] [--budget 12] [--target 0.1]
+        [--family-size 32] [--budget 12] [--target 0.1] [--members a,b] [--random-orders 3]
 
 Real photos (``bath_tile``, ``yellow_box``, 9 photos each, read at ``--size``): for random
 subsets of 5 photos, fit ``--model`` on the 5, rank the other 4 by the plan (their camera
@@ -17,17 +17,19 @@ A second table scores every pick on the same held-out photo (each of the 4 in tu
 pick the best-ranked of the other 3), from the same fits. Every fit is of the full 9-photo
 capture with the photos not in use held out (weight 0), so one compiled fit serves all.
 
-Generated captures (``benchmarks/capture_family.py``: the members' true maps, rendered at
-``--family-size`` from any camera position by :func:`render_at`, the flash at its true
-offset and the capture told so): from the same 3 start photos (the member's own first
-three), add photos one at a time by the plan (the best of a hemisphere grid at 24 cm,
+Generated captures (``benchmarks/capture_family.py``, ``--members``, default
+:data:`FAMILY_MEMBERS`: the flash at the lens, near-mirror lacquer, a rough noisy dielectric,
+a grey gloss and a coloured metal; the members' true maps, rendered at ``--family-size``
+from any camera position by :func:`render_at`, the flash at its true offset and the capture
+told so): from the same 3 start photos (the member's own first three), add photos one at a
+time by the plan (the best of a hemisphere grid at 24 cm,
 :func:`jaxrefl.svbrdf.hemisphere_candidates`, after a refit; the default criterion, and
-``information``), at random from the same grid
-(3 orders), or in a fixed 3 x 3 pattern (a square grid 6 cm apart, 24 cm up, centre
-first); fit the per-pixel ``ggx`` model; photos until the median |ln alpha error| over the
-pixels is at most ``--target`` and half of it (``>budget`` where it is not reached within
-``--budget`` photos), the error at the budget, and the ratio of photos needed (random or
-3 x 3 over the plan's).
+``information``), at random from the same grid (``--random-orders`` orders), or in a fixed
+3 x 3 pattern (a square grid 6 cm apart, 24 cm up, centre first); fit the per-pixel ``ggx``
+model; photos until the median |ln alpha error| over the pixels is at most ``--target``
+and half of it (``>budget`` where it is not reached within ``--budget`` photos), the error
+at the budget, and the ratio of photos needed (random or 3 x 3 over the plan's), per
+member and on average.
 """
 
 from __future__ import annotations
@@ -42,13 +44,22 @@ from capture_family import FAMILY, NOISE_FLOOR, _maps, _rig
 
 from jaxrefl import svbrdf
 from jaxrefl.io import Capture, ObsStatus, load_capture
+from jaxrefl.svbrdf import _plan
 
 REAL = ("bath_tile", "yellow_box")
-FAMILY_MEMBERS = ("colocated_tiles", "grey_gloss")
+# What the generated part runs by default: one member for each of what users vary most
+# (flash offset 0, near-mirror, rough and noisy, grey F0 up to 0.5, a coloured metal).
+FAMILY_MEMBERS = (
+    "colocated_tiles",
+    "mirror_plastic",
+    "rough_dielectric",
+    "grey_gloss",
+    "gold_foil",
+)
 
 
 # ----------------------------------------------------------------------------- real photos
-CRITERIA = ("variance", "information")
+CRITERIA = _plan.CRITERIA  # every criterion of PlanOptions, the default first
 # Not a plan: the photo the fit predicts worst (needs the photos).
 WORST = "worst predicted"
 
@@ -74,9 +85,11 @@ def real_part(args, rng) -> None:
     print(
         f"{args.subsets} random subsets of 5 of the 9 photos per capture, {args.size} x "
         f"{args.size} pixels, model `{args.model}`; held-out RMSE (linear radiance) on the 3 "
-        "photos left after adding the pick. Criterion: `variance` (the default: expected "
-        "reduction of the predictive variance of renderings at the 4 candidates) and "
-        "`information` (expected information gain about the parameters).\n"
+        "photos left after adding the pick. Criteria (jaxrefl.svbrdf.PlanOptions; the "
+        f"default: `{svbrdf.PlanOptions().criterion}`): `variance` (expected reduction of the "
+        "predictive variance of renderings at the 4 candidates, summed over pixels), "
+        "`log_variance` (the same pixel by pixel: mean log ratio) and `information` (expected "
+        "information gain about the parameters).\n"
     )
     rows, fixed_rows = [], []
     for name in REAL:
@@ -231,22 +244,30 @@ def _needed(errors, start: int, target: float, budget: int) -> str:
     return f">{budget}"
 
 
+def _ratio(other: float, plan: float) -> str:
+    """Photos needed by ``other`` over the plan's; '-' where either misses the target."""
+    return f"{other / plan:.2f}" if np.isfinite(other) and np.isfinite(plan) else "-"
+
+
 def generated_part(args, rng) -> None:
     import dataclasses
 
+    criteria = args.criteria.split(",")
+    plans = [f"plan ({c})" for c in criteria]
     print("## Generated captures: photos until the maps are accurate\n")
     print(
         f"{args.family_size} x {args.family_size} pixels, per-pixel `ggx`, 3 start photos, "
         f"budget {args.budget} photos; target: median |ln alpha error| <= {args.target} "
-        f"(and <= {args.target / 2:g}). "
-        "Photos needed (start included) and the error at the budget.\n"
+        f"(and <= {args.target / 2:g}). Plans by criterion: {', '.join(criteria)} (the "
+        f"default: {svbrdf.PlanOptions().criterion}). Photos needed (start included) and the "
+        "error at the budget.\n"
     )
+    targets = (args.target, args.target / 2)
     rows = []
-    keys = ("plan", "plan (information)", "random", "3x3")
     counts: dict[float, dict[str, list[float]]] = {
-        t: {key: [] for key in keys} for t in (args.target, args.target / 2)
+        t: {key: [] for key in (*plans, "random", "3x3")} for t in targets
     }
-    for name in FAMILY_MEMBERS:
+    for name in args.members.split(","):
         t0 = time.perf_counter()
         m = dataclasses.replace(next(f for f in FAMILY if f.name == name), size=args.family_size)
         r0 = np.random.default_rng(m.seed)
@@ -254,38 +275,34 @@ def generated_part(args, rng) -> None:
         cams, lights = _rig(m, r0)
         offset = lights[0] - cams[0]
         start = cams[:3]
-        grid = None
+        grid = svbrdf.hemisphere_candidates(render_at(m, truth, start, start + offset, r0))
 
-        def plan_pick(result, cap, n, criterion="variance"):
-            nonlocal grid
-            taken = cap.select(list(range(n)))
-            if grid is None:
-                grid = svbrdf.hemisphere_candidates(taken)
-            options = svbrdf.PlanOptions(criterion=criterion)
-            plan = svbrdf.plan_next(result, cap, grid, options)
-            return grid.camera_pos[plan.best]
+        def plan_pick(result, cap, n, criterion, g=grid):
+            plan = svbrdf.plan_next(result, cap, g, svbrdf.PlanOptions(criterion=criterion))
+            return g.camera_pos[plan.best]
 
-        seq = {"plan": _sequence(m, truth, offset, start, plan_pick, args.budget, 1)}
-        seq["plan (information)"] = _sequence(
-            m,
-            truth,
-            offset,
-            start,
-            lambda res, cap, n: plan_pick(res, cap, n, "information"),
-            args.budget,
-            1,
-        )
-        grid_pos = svbrdf.hemisphere_candidates(render_at(m, truth, start, start + offset, r0))
+        seq = {
+            key: _sequence(
+                m,
+                truth,
+                offset,
+                start,
+                lambda res, cap, n, c=c: plan_pick(res, cap, n, c),
+                args.budget,
+                1,
+            )
+            for key, c in zip(plans, criteria, strict=True)
+        }
         rand = []
-        for s in range(3):
-            order = np.random.default_rng(100 + s).permutation(len(grid_pos))
+        for s in range(args.random_orders):
+            order = np.random.default_rng(100 + s).permutation(len(grid))
             rand.append(
                 _sequence(
                     m,
                     truth,
                     offset,
                     start,
-                    lambda res, cap, n, o=order, g=grid_pos: g.camera_pos[o[n - 3]],
+                    lambda res, cap, n, o=order, g=grid: g.camera_pos[o[n - 3]],
                     args.budget,
                     1,
                 )
@@ -295,62 +312,64 @@ def generated_part(args, rng) -> None:
         seq["3x3"] = _sequence(
             m, truth, offset, start, lambda res, cap, n, p=pattern: p[(n - 3) % 9], args.budget, 1
         )
+        need = {
+            t: {key: _needed(seq[key], 3, t, args.budget) for key in (*plans, "3x3")}
+            for t in targets
+        }
         for t, cnt in counts.items():
-            for key in ("plan", "plan (information)", "3x3"):
-                nd = _needed(seq[key], 3, t, args.budget)
-                cnt[key].append(float(nd) if not nd.startswith(">") else np.inf)
-            need = [_needed(e, 3, t, args.budget) for e in rand]
+            for key in (*plans, "3x3"):
+                cnt[key].append(_count(need[t][key]))
             cnt["random"].append(
-                float(np.mean([float(n) if not n.startswith(">") else np.inf for n in need]))
+                float(np.mean([_count(_needed(e, 3, t, args.budget)) for e in rand]))
             )
-        need_rand = [_needed(e, 3, args.target, args.budget) for e in rand]
-        strict = args.target / 2
-        need_rand2 = [_needed(e, 3, strict, args.budget) for e in rand]
+        c = counts[args.target]
+        # The error over photos 4 .. budget (after the start), the plan's as a share of
+        # random's: below 1, the plan's maps are better on average along the way.
+        mean_rand = np.mean([e[1:] for e in rand])
         rows.append(
             [
                 name,
-                _needed(seq["plan"], 3, args.target, args.budget),
-                _needed(seq["plan (information)"], 3, args.target, args.budget),
-                ", ".join(need_rand),
-                _needed(seq["3x3"], 3, args.target, args.budget),
-                _needed(seq["plan"], 3, strict, args.budget),
-                _needed(seq["plan (information)"], 3, strict, args.budget),
-                ", ".join(need_rand2),
-                _needed(seq["3x3"], 3, strict, args.budget),
-                f"{seq['plan'][-1]:.3f}",
-                f"{seq['plan (information)'][-1]:.3f}",
+                *[need[args.target][k] for k in plans],
+                ", ".join(_needed(e, 3, args.target, args.budget) for e in rand),
+                need[args.target]["3x3"],
+                *[need[targets[1]][k] for k in plans],
+                ", ".join(_needed(e, 3, targets[1], args.budget) for e in rand),
+                need[targets[1]]["3x3"],
+                *[f"{seq[k][-1]:.3f}" for k in plans],
                 f"{np.mean([e[-1] for e in rand]):.3f}",
                 f"{seq['3x3'][-1]:.3f}",
+                *[_ratio(c["random"][-1], c[k][-1]) for k in plans],
+                _ratio(c["3x3"][-1], c[plans[0]][-1]),
+                *[f"{np.mean(seq[k][1:]) / mean_rand:.2f}" for k in plans],
                 f"{time.perf_counter() - t0:.0f}",
             ]
         )
+        curves = [f"{k} " + " ".join(f"{e:.3f}" for e in seq[k]) for k in plans]
+        curves.append(
+            f"random (mean of {len(rand)}) " + " ".join(f"{e:.3f}" for e in np.mean(rand, 0))
+        )
+        curves.append("3x3 " + " ".join(f"{e:.3f}" for e in seq["3x3"]))
         print(
-            f"{name}: median |ln alpha error| by photo count 3..{args.budget}: plan "
-            + " ".join(f"{e:.3f}" for e in seq["plan"])
-            + "; plan (information) "
-            + " ".join(f"{e:.3f}" for e in seq["plan (information)"])
-            + "; random (mean of 3) "
-            + " ".join(f"{e:.3f}" for e in np.mean(rand, axis=0))
-            + "; 3x3 "
-            + " ".join(f"{e:.3f}" for e in seq["3x3"])
+            f"{name}: median |ln alpha error| by photo count 3..{args.budget}: " + "; ".join(curves)
         )
     print()
+    strict = f"{targets[1]:g}"
     print(
         table(
             [
                 "member",
-                "plan",
-                "plan (information)",
-                "random (3 orders)",
+                *plans,
+                f"random ({args.random_orders} orders)",
                 "3 x 3 pattern",
-                f"plan (<= {args.target / 2:g})",
-                "plan (information)",
-                "random",
-                "3 x 3",
-                f"plan error at {args.budget}",
-                "plan (information) error",
+                *[f"{k} (<= {strict})" for k in plans],
+                f"random (<= {strict})",
+                f"3 x 3 (<= {strict})",
+                *[f"{k} error at {args.budget}" for k in plans],
                 "random error",
                 "3 x 3 error",
+                *[f"random / {k}" for k in plans],
+                f"3 x 3 / {plans[0]}",
+                *[f"{k} / random mean error" for k in plans],
                 "s",
             ],
             rows,
@@ -358,11 +377,14 @@ def generated_part(args, rng) -> None:
     )
     print(
         "\nphotos needed, ratio to the plan's (the mean over members where both reach the "
-        "target; random: the mean of its 3 orders, where all 3 reach it):"
+        f"target; random: the mean of its {args.random_orders} orders, where all reach it; "
+        "per member in the table's ratio columns, at the first target). plan / random mean "
+        "error: the median |ln alpha error| averaged over photos 4 .. budget, the plan's over "
+        "random's (below 1: the plan's maps are better along the way):"
     )
     for t, cnt in counts.items():
         parts = []
-        for plan_key in ("plan", "plan (information)"):
+        for plan_key in plans:
             for key in ("random", "3x3"):
                 both = [
                     (b, a)
@@ -372,6 +394,11 @@ def generated_part(args, rng) -> None:
                 r = f"{np.mean([b / a for b, a in both]):.2f}" if both else "- (not reached)"
                 parts.append(f"{key} / {plan_key} {r} ({len(both)} of {len(cnt[key])})")
         print(f"- median |ln alpha error| <= {t:g}: " + ", ".join(parts))
+
+
+def _count(needed: str) -> float:
+    """Photos needed as a number, inf where the target was not reached."""
+    return np.inf if needed.startswith(">") else float(needed)
 
 
 def main(argv: list[str]) -> int:
@@ -384,6 +411,13 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--budget", type=int, default=12, help="photos at most (generated)")
     ap.add_argument("--target", type=float, default=0.1, help="median |ln alpha error|")
     ap.add_argument("--skip-real", action="store_true", help="only the generated part")
+    ap.add_argument("--members", default=",".join(FAMILY_MEMBERS), help="generated members")
+    ap.add_argument("--random-orders", type=int, default=3, help="random orders a member")
+    ap.add_argument(
+        "--criteria",
+        default=",".join(dict.fromkeys([svbrdf.PlanOptions().criterion, "information"])),
+        help="plan criteria of the generated part (the default's first)",
+    )
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
     rng = np.random.default_rng(0)
