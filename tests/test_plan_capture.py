@@ -187,8 +187,9 @@ def test_highlight_beside_the_sample_scores_below_one_crossing_it(truth_fit, cri
 
 def test_predictive_variance_with_a_shared_parameter_matches_the_joint_inverse():
     """The block-arrow form (pixels' blocks, their coupling to one shared parameter, the
-    Schur complement) against the dense joint precision inverted, scale_up 1 and 2."""
-    from jaxrefl.svbrdf._plan_info import predictive_variance
+    Schur complement) against the dense joint precision inverted, scale_up 1 and 2: the
+    sum over pixels and each pixel's own terms (the log_variance criterion's)."""
+    from jaxrefl.svbrdf._plan_info import pixel_predictive_variance, predictive_variance
 
     rng = np.random.default_rng(1)
     n, p, s = 5, 3, 1
@@ -207,7 +208,6 @@ def test_predictive_variance_with_a_shared_parameter_matches_the_joint_inverse()
         size = n * copies * p + s
         joint = np.zeros((size, size))
         joint[-s:, -s:] = tau * np.eye(s)
-        want = 0.0
         for c in range(copies):
             for i in range(n):
                 o = (c * n + i) * p
@@ -216,18 +216,18 @@ def test_predictive_variance_with_a_shared_parameter_matches_the_joint_inverse()
                 joint[-s:, o : o + p] = prec[i, p:, :p]
                 joint[-s:, -s:] += prec[i, p:, p:]
         cov = np.linalg.inv(joint)
+        per_pixel = np.zeros((copies, n))
         for c in range(copies):
             for i in range(n):
                 idx = [*range((c * n + i) * p, (c * n + i + 1) * p), *range(size - s, size)]
-                want += np.trace(cov[np.ix_(idx, idx)] @ moment[i])
-        got = predictive_variance(
-            prec[:, :p, :p] + tau * np.eye(p),
-            prec[:, :p, p:],
-            prec[:, p:, p:],
-            moment,
-            tau,
-            scale_up,
-        )
+                per_pixel[c, i] = np.trace(cov[np.ix_(idx, idx)] @ moment[i])
+        want = float(np.sum(per_pixel))
+        # Each pixel's own terms (every copy of a pixel has the same).
+        blocks_args = (prec[:, :p, :p] + tau * np.eye(p), prec[:, :p, p:], prec[:, p:, p:])
+        got_px = pixel_predictive_variance(*blocks_args, moment, tau, scale_up)
+        for c in range(copies):
+            np.testing.assert_allclose(got_px, per_pixel[c], rtol=1e-10)
+        got = predictive_variance(*blocks_args, moment, tau, scale_up)
         np.testing.assert_allclose(got, want, rtol=1e-10)
 
 

@@ -1,7 +1,7 @@
 """Where to take the next photo: candidate camera-and-flash positions ranked by what a
 photo there is expected to teach the fit.
 
-Criterion (``PlanOptions.criterion``; both linearised at the fit's theta, Bayesian design,
+Criterion (``PlanOptions.criterion``; all linearised at the fit's theta, Bayesian design,
 Chaloner & Verdinelli 1995):
 
 * ``variance`` (the default; V- or I-optimal design, Atkinson, Donev & Tobias 2007, ch.
@@ -17,13 +17,24 @@ Chaloner & Verdinelli 1995):
   variance is that of the recorded rendering (delta method), so a reference highlight far
   above the saturation level, recorded saturated whatever the parameters, has none to
   reduce, and a candidate is not scored by what it teaches about values no photo records.
-  The reference renderings are
-  the candidates themselves (or ``reference``): the views and flash positions the capture
-  could have, so the criterion is the expected reduction of the squared error with which
-  the fit predicts a photo taken at any of them; it weighs each pixel and parameter by how
-  much it changes a rendering, in the units of the photos, where the information counts
-  every identified direction of every pixel alike (a nat on a dark pixel's albedo the same
-  as on a highlight's width).
+  The reference renderings are the candidates themselves (or ``reference``): the views
+  and flash positions the capture could have, so the criterion is the expected reduction
+  of the squared error with which the fit predicts a photo taken at any of them; it weighs
+  each pixel and parameter by how much it changes a rendering, in the units of the photos,
+  where the information counts every identified direction of every pixel alike (a nat on
+  a dark pixel's albedo the same as on a highlight's width).
+* ``log_variance``: the same predictive variance pixel by pixel, V_i(A) (V's terms of pixel
+  i, :func:`._plan_info.pixel_predictive_variance`), and the mean over pixels of the log of
+  its reduction,
+
+      gain_c = mean_i ln[V_i(A) / V_i(A + F_c)]
+
+  (pixels whose V_i is 0, no reference rendering recorded uncensored, left out). A pixel
+  counts by the factor its variance shrinks, as the information counts nats, but only in
+  the directions that change its recorded renderings; the share ``variance`` is led by the
+  pixels with the largest variance (bright highlights, lobes the photos have not pinned
+  down), which suits an error summed over pixels in radiance (held-out RMSE), where
+  ``log_variance`` suits an error every pixel counts alike in (a median over the map).
 * ``information`` (D-optimal; the capture-wide form of
   :func:`jaxrefl.measured.rank_candidates`): the expected information gain about the
   parameters, gain_c = 1/2 ln det(A + F_c) - 1/2 ln det(A) nats, the mutual information
@@ -65,9 +76,13 @@ Chaloner & Verdinelli 1995):
   sampled pixels whose own information gain (given the shared width) is at least
   :data:`INFORMED_GAIN` (their posterior volume shrinks by 10% or more).
 
-What neither criterion sees: the model's own error (a bias, e.g. the relief of an embossed
+What no criterion sees: the model's own error (a bias, e.g. the relief of an embossed
 sample that a per-pixel lobe on a flat normal cannot render) is not reduced by any photo,
-and the linearisation takes the fit's theta for the truth.
+and the linearisation takes the fit's theta for the truth. A pixel whose lobe no photo has
+pinned down often has its width at a bound of the parameter's range, where the bijection
+to theta is flat: its Jacobians there are near 0, so no candidate is credited with what it
+would teach that pixel (its share of V and of the information is near 0, whatever it
+would gain if its lobe were a typical one).
 
 Candidates (:class:`Candidates`): a grid over the hemisphere at the capture's distance
 (:func:`hemisphere_candidates`), listed positions (:func:`listed_candidates`) or the
