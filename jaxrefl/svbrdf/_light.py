@@ -35,13 +35,13 @@ curvature) and P the prior's precision; gains' std by the delta method, g std(lo
 Kept only where held-out observations support it (``auto``, :func:`estimate_light`): the
 subsample is split into two halves of pixels; for each candidate (``fixed``, ``offset``,
 ``offset+gains``) the light is estimated on one half and scored on the other by
-leave-one-photo-out over the training photos under one shared width fitted on the first half
-(each pixel's coefficients fitted on the other photos, photo j predicted; photo j's gain was
-estimated on the other half's pixels), and the halves swap. The simplest candidate within
-:data:`jaxrefl.svbrdf.TOLERANCE` (relative) of the lowest RMSE wins, as ``auto`` chooses
-models. Everything is deterministic given the capture and the held-out photos (a fixed
-subsample seed, a NumPy optimiser), so every process of a distributed fit finds the same
-light.
+leave-one-photo-out over the training photos under one shared width, the one that predicts
+the first half's training photos best held out in turn (each pixel's coefficients fitted on
+the other photos, photo j predicted at its prior gain), and the halves swap. The simplest
+candidate within :data:`jaxrefl.svbrdf.TOLERANCE` (relative) of the lowest RMSE wins, as
+``auto`` chooses models. Everything is deterministic given the capture and the held-out
+photos (a fixed subsample seed, a NumPy optimiser), so every process of a distributed fit
+finds the same light.
 """
 
 from __future__ import annotations

@@ -19,11 +19,15 @@ freedom sqrt(n / (n - M)), give a noise scale linear in the prediction, sigma(y)
 1 / sigma^2 (:meth:`LightProblem.noise_weights`).
 
 Held-out score (:meth:`LightProblem.loo_sse`): under a light, one GGX width shared by every
-pixel (the ``pooled`` model's lobe) is fitted on one half of the pixels, and the other half's
-training photos are predicted one at a time from the others (leave-one-photo-out), each
-pixel's coefficients fitted on the other photos, the predicted photo at its prior gain (a
-photo the fit did not see has no estimated gain: scoring it at its estimated one would
-credit the gains with what no held-out photo gets). Two nuisance models, each where it holds:
+pixel (the ``pooled`` model's lobe) is chosen on one half of the pixels, the width whose
+leave-one-photo-out predictions of that half's training photos are best (as ``pooled``
+chooses its width by held-out photos: the width that best fits the training photos is
+narrower, and its lobes predict unseen highlights wildly, a score the light's moves then
+shuffle at random), and the other half's training photos are predicted one at a time from
+the others (leave-one-photo-out), each pixel's coefficients fitted on the other photos, the
+predicted photo at its prior gain (a photo the fit did not see has no estimated gain:
+scoring it at its estimated one would credit the gains with what no held-out photo gets).
+Two nuisance models, each where it holds:
 
 * the estimate needs each pixel's own width: a light fitted under one shared width absorbs
   the widths' spatial variation (on generated captures with widths varying 5-fold, an
@@ -248,18 +252,6 @@ def _predict_shared(x, la, d: LightData, w):
 
 
 @jax.jit
-def _shared_sse(x, d: LightData, w):
-    """(G,) weighted squared error under the light x with one width for every pixel, at each
-    of the grid's widths."""
-
-    def one(la):
-        e = d.obs - _predict_shared(x, la, d, w)
-        return jnp.sum(w * e * e)
-
-    return jax.lax.map(one, d.grid)
-
-
-@jax.jit
 def _loo_sse(x, la, d: LightData, train, log_g_prior):
     """Each pixel's leave-one-photo-out squared error and count (N,) over the training photos
     ``train`` (K,) under the light x and the shared width exp(la), unweighted (radiance
@@ -278,6 +270,13 @@ def _loo_sse(x, la, d: LightData, train, log_g_prior):
 
     sse, n = jax.lax.map(fold, jnp.arange(k))
     return jnp.sum(sse, 0), jnp.sum(n, 0)
+
+
+@jax.jit
+def _loo_width_sse(x, d: LightData, train, log_g_prior):
+    """(G,) the leave-one-photo-out squared error of all pixels (:func:`_loo_sse`) under the
+    light x with one width for every pixel, at each of the grid's widths."""
+    return jax.lax.map(lambda la: jnp.sum(_loo_sse(x, la, d, train, log_g_prior)[0]), d.grid)
 
 
 def _light_data(capture, pick: np.ndarray, rot: np.ndarray, alphas) -> LightData:
@@ -430,13 +429,13 @@ class LightProblem:
         self, theta, mode: str, fit_half: int, score_half: int
     ) -> tuple[np.ndarray, np.ndarray]:
         """The held-out score of the light x0 + A theta (module docstring): the shared width
-        that fits ``fit_half``'s training photos best under that light (the grid's best, then
-        one parabolic step), then each pixel's leave-one-photo-out squared error and its
-        count (N,) on ``score_half`` with that width."""
+        that predicts ``fit_half``'s training photos best held out in turn under that light
+        (the grid's best, then one parabolic step), then each pixel's leave-one-photo-out
+        squared error and its count (N,) on ``score_half`` with that width."""
         x0, a = self.embed(mode)
         x = jnp.asarray(x0 + a @ theta)
-        w = self.unit_weights([fit_half])[0]
-        errs = np.asarray(_shared_sse(x, self.halves[fit_half], w))
+        train, log_g = jnp.asarray(self.train), jnp.asarray(x0[3:])
+        errs = np.asarray(_loo_width_sse(x, self.halves[fit_half], train, log_g))
         grid = np.asarray(self.halves[fit_half].grid)
         i = int(np.argmin(errs))
         la = float(grid[i])
@@ -446,9 +445,7 @@ class LightProblem:
             # No upward curvature: the grid's best stays.
             if curv > 0:
                 la += float(np.clip(0.5 * h * (errs[i - 1] - errs[i + 1]) / curv, -h, h))
-        s, n = _loo_sse(
-            x, la, self.halves[score_half], jnp.asarray(self.train), jnp.asarray(x0[3:])
-        )
+        s, n = _loo_sse(x, la, self.halves[score_half], train, log_g)
         return np.asarray(s), np.asarray(n)
 
     def log_posterior(self, thetas: np.ndarray, mode: str, weights) -> np.ndarray:
