@@ -50,13 +50,16 @@ from jaxrefl._errors import JaxreflError
 from jaxrefl._names import PRIOR_SOURCES
 from jaxrefl.fit import PixelData
 
-from ._check import NEAR
 from ._data import pixel_block
 from ._job import CaptureFit, FitJob, fit_capture, map_name
 from ._light_map import light_spread, widen_for_light
+
+# WIDEN_SHARE, WIDER: the names this module's docstrings refer to
+from ._map_model import WIDEN_SHARE, WIDER, map_model  # noqa: F401
 from ._models import capture_model
 from ._population import population_priors
 from ._uncertainty_plots import write_uncertainty_plots
+from ._width_map import WidthSpread, pixel_widths, relax_shared_width
 
 __all__ = [
     "CaptureUncertainty",
@@ -71,12 +74,6 @@ __all__ = [
 ]
 
 NOISE = "Gaussian, unknown scale per pixel (Jeffreys prior)"
-#: Models whose fit may pile against a cap that another candidate lifts -> that candidate.
-WIDER: dict[str, str] = {"ggx": "ggx_rgb"}
-#: Share of fitted pixels at the cap above which the map's model is widened: a capped
-#: pixel's interval cannot reach a truth above the cap, and a 90% interval map is held to
-#: 85-95% coverage, so more than 5% capped pixels would put the map outside it.
-WIDEN_SHARE = 0.05
 _NOISE_START = 1e-2  # the chains' starting noise scale where the fit gave none
 _PPC_DRAWS = 50  # posterior predictive draws per MCMC pixel in posterior.nc
 LOG_LIKELIHOOD_MAX = 20_000_000  # pointwise log-likelihood values in posterior.nc (float32: 80 MB)
@@ -97,12 +94,16 @@ class CaptureUncertainty:
     timings:   seconds of each stage: :func:`fit_capture` (``fit_s``, a widened model's
                second fit included), the priors (``priors_s``),
                :func:`jaxrefl.posterior.adaptive_uncertainty` (``posterior_s``; its own
-               ``timings`` split it), and the call (``total_s``)
+               ``timings`` split it), the light's widening (``light_s``), the
+               per-pixel widths (``width_s``) and the call (``total_s``)
     model_choice: the model sampled and why (:func:`uncertainty_maps`)
     time_limit_s: the time limit the map was made under (None: none)
     light_std: (N, P) the estimated light's share of each pixel's std over the model's
                parameters (:mod:`jaxrefl.svbrdf._light_map`: ``map``'s std, q05 and q95
                include it); None where the light is the stated one
+    width_spread: ``pooled``: each pixel's own width around the shared one
+               (:class:`jaxrefl.svbrdf._width_map.WidthSpread`: ``map`` includes it and
+               has ``alpha`` as its last column); None for the other models
     """
 
     fit: CaptureFit
@@ -118,6 +119,7 @@ class CaptureUncertainty:
     model_choice: dict[str, Any] = field(default_factory=dict)
     time_limit_s: float | None = None
     light_std: np.ndarray | None = None
+    width_spread: WidthSpread | None = None
 
     @property
     def model(self) -> str:
@@ -203,6 +205,8 @@ class CaptureUncertainty:
             # the flash the posterior was sampled under (FitJob.light; the fit's estimate)
             "light": self.fit.report.get("light"),
             "light_std": self.light_std_summary(),
+            # pooled: the per-pixel widths around the shared one (._width_map)
+            "width_spread": None if self.width_spread is None else self.width_spread.summary(),
             "uncertainty": self.map.report(),
             # pixels of uncertainty.exr whose non-finite values no method code explains
             "nonfinite_counts": self.nonfinite_counts(),
@@ -434,12 +438,12 @@ def uncertainty_maps(
 
     The model is the job's; ``auto`` (the default) chooses it as :func:`fit_capture` does,
     by held-out photos (:func:`jaxrefl.svbrdf.choose_model`). A model whose fit piles most
-    pixels against a cap that a candidate lifts is not sampled: where more than
-    :data:`WIDEN_SHARE` of the fitted pixels have their grey F0 at (within
-    :data:`jaxrefl.svbrdf._check.NEAR` of) the dielectric cap 0.25 of ``ggx``, the capture
-    is fitted again with :data:`WIDER` ``ggx_rgb`` (coloured F0 up to 1, metals), and
-    ``model_choice`` in the report says so and why. Sampling pixels whose mode sits at a
-    limit of the model would spend the MCMC budget on intervals that cannot be calibrated.
+    pixels against a cap that a candidate lifts is not sampled (:mod:`._map_model`: more
+    than :data:`WIDEN_SHARE` of the pixels at ``ggx``'s F0 cap -> :data:`WIDER` ``ggx_rgb``).
+    ``pooled``'s posterior is conditional on its one shared width; the map relaxes it to a
+    population of per-pixel widths (partial pooling, :mod:`._width_map`): each pixel's
+    parameters move and widen with its own width, which the map gives as a last column
+    ``alpha`` (the report's ``width_spread``: the population's centre and spread).
     """
     if jnp.asarray(0.0).dtype != jnp.float64:  # jax_enable_x64 is off
         raise JaxreflError(
@@ -475,21 +479,7 @@ def uncertainty_maps(
     say(f"fit: {h} x {w} pixels, {capture.n_photos} photos, model {job.model}")
     fit_dir = None if out_dir is None else Path(out_dir) / "fit"
     cf = fit_capture(capture, job, fit_dir, progress=progress, distributed=distributed)
-    choice = _model_choice(cf, job.model)
-    wider = WIDER.get(cf.job.model)
-    if wider is not None and choice["capped_share"] > WIDEN_SHARE:
-        choice["widened"] = {
-            "from": cf.job.model,
-            "to": wider,
-            "why": f"{choice['capped_share']:.0%} of the fitted pixels have F0 at the "
-            f"{cf.job.model} model's cap (more than {WIDEN_SHARE:.0%}): {wider} lifts it",
-        }
-        say(f"fit: {choice['widened']['why']}; fitting {wider}")
-        wdir = None if out_dir is None else Path(out_dir) / f"fit_{wider}"
-        wjob = replace(cf.job, model=wider, config=cf.job.config.replace(loss=None))
-        cf = fit_capture(capture, wjob, wdir, progress=progress, distributed=distributed)
-        choice["model"] = cf.job.model
-        choice["capped_share_after"] = _model_choice(cf, wider)["capped_share"]
+    cf, choice = map_model(capture, cf, job.model, out_dir, progress, distributed, say)
     t_fit = time.perf_counter() - t0
     say(f"fit: model {cf.job.model} ({choice['why']}), {t_fit:.1f} s")
     if cf.light is not None and cf.light.mode != "fixed":
@@ -525,6 +515,26 @@ def uncertainty_maps(
         log=log,
     )
     t_post = time.perf_counter() - t1
+    # pooled: each pixel's own width around the shared one (._width_map)
+    t_width = time.perf_counter()
+    spread = pixel_widths(
+        cf,
+        lp,
+        data,
+        fit_theta(cf, lp.space),
+        capture,
+        None if out_dir is None else Path(out_dir) / "fit_widths",
+        progress=progress,
+        distributed=distributed,
+    )
+    if spread is not None:
+        umap = relax_shared_width(umap, spread, lp.space.lower, lp.space.upper)
+        say(
+            f"widths: per-pixel around the shared {spread.alpha:.3g}, population centre "
+            f"{spread.centre:.3g}, log std {spread.tau:.2f}, "
+            f"{time.perf_counter() - t_width:.1f} s"
+        )
+    t_width = time.perf_counter() - t_width
     # The light's own uncertainty widens every pixel's intervals (._light_map).
     t_light = time.perf_counter()
     var = light_spread(cf, lp, data, capture, fit_theta(cf, lp.space), seed=options.seed)
@@ -548,34 +558,15 @@ def uncertainty_maps(
             "priors_s": t_pri,
             "posterior_s": t_post,
             "light_s": t_light,
+            "width_s": t_width,
             "total_s": time.perf_counter() - t0,
         },
         prior_summary=prior_summary,
         model_choice=choice,
         time_limit_s=time_limit_s,
         light_std=light_std,
+        width_spread=spread,
     )
-
-
-def _model_choice(cf: CaptureFit, requested: str) -> dict[str, Any]:
-    """How the map's model was chosen (the report's ``model_choice``): the model, the one
-    asked for, why (auto's reason, or given), and the share of fitted pixels whose grey F0
-    piles against its cap (0 for a model without one)."""
-    auto = cf.report.get("auto")
-    why = "given" if auto is None else f"auto: {auto.get('why', 'chosen by held-out photos')}"
-    _model, space = cf.model()
-    spec = np.array([lab.split(".")[0] == "specular" for lab in space.labels])
-    share = 0.0
-    theta = np.asarray(cf.theta)
-    ok = np.all(np.isfinite(theta), -1)
-    if cf.job.model in WIDER and spec.any() and ok.any():
-        t = jnp.asarray(theta[ok])
-        x = np.asarray(space.natural_vector(t))
-        near = np.asarray(space.at_bound(t, NEAR))
-        lower, upper = np.asarray(space.lower), np.asarray(space.upper)
-        capped = near & (upper - x <= x - lower) & spec
-        share = float(np.mean(np.any(capped, -1)))
-    return {"model": cf.job.model, "requested": requested, "why": why, "capped_share": share}
 
 
 def write_uncertainty(result: CaptureUncertainty, out_dir: str | Path) -> list[Path]:

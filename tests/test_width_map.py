@@ -1,0 +1,169 @@
+"""Each pixel's own width around the pooled model's shared one (svbrdf._width_map): the
+empirical-Bayes population, the per-pixel widths against a known truth, and the map it
+relaxes."""
+
+from __future__ import annotations
+
+import jax
+import numpy as np
+import pytest
+
+from jaxrefl import fit
+from jaxrefl import posterior as jp
+from jaxrefl.demo import demo_scene, photograph_maps
+from jaxrefl.svbrdf import FitJob, fit_capture
+from jaxrefl.svbrdf._data import pixel_block
+from jaxrefl.svbrdf._population import ALPHA_FLOOR_LOG_STD
+from jaxrefl.svbrdf._uncertainty import fit_theta, map_posterior
+from jaxrefl.svbrdf._width_map import TAU_GRID, pixel_widths, population, relax_shared_width
+
+SIZE = 16
+
+
+def _hierarchy(rng, n, c, tau):
+    """Estimates l_i ~ N(log alpha_i, V_i), log alpha_i ~ N(c, tau^2) (module docstring)."""
+    var = rng.uniform(0.05, 0.5, n) ** 2
+    return c + tau * rng.standard_normal(n) + np.sqrt(var) * rng.standard_normal(n), var
+
+
+@pytest.mark.parametrize(("c", "tau"), [(-1.5, 0.3), (-0.6, 0.15), (-2.0, 0.6)])
+def test_population_recovers_the_centre_and_spread(c, tau):
+    rng = np.random.default_rng(1)
+    est, var = _hierarchy(rng, 4000, c, tau)
+    # pixels that saw nothing of their lobe carry no information and change nothing
+    est = np.concatenate([est, rng.uniform(-7, 0, 500)])
+    var = np.concatenate([var, np.full(500, np.inf)])
+    # a few fits at a wrong optimum, far out, must not set the spread
+    est[:20] = c + 5.0
+    c_hat, tau_hat = population(est, var)
+    assert c_hat == pytest.approx(c, abs=0.03)
+    assert tau_hat == pytest.approx(tau, rel=0.1)
+
+
+def test_population_of_one_width_is_narrow_and_of_nothing_is_undefined():
+    rng = np.random.default_rng(2)
+    est, var = _hierarchy(rng, 4000, -1.0, 0.0)
+    _c, tau_hat = population(est, var)
+    assert tau_hat < 0.03
+    c_none, tau_none = population(np.zeros(10), np.full(10, np.inf))
+    assert np.isnan(c_none) and tau_none == TAU_GRID[0]
+
+
+def _capture(alpha_map, seed=5):
+    scene = demo_scene(size=SIZE)
+    rng = np.random.default_rng(seed)
+    truth = {
+        "albedo": rng.uniform(0.1, 0.4, (SIZE, SIZE, 3)),
+        "specular": rng.uniform(0.3, 0.6, (SIZE, SIZE, 3)),
+        "alpha": alpha_map,
+    }
+    return photograph_maps(scene, truth, 0.003, rng), truth
+
+
+def _widths(cap):
+    with jax.enable_x64(True):
+        job = FitJob(model="pooled", config=fit.FitConfig(dtype=np.float64))
+        cf = fit_capture(cap, job)
+        lp, _ = map_posterior(cf)
+        data = pixel_block(cap, 0, SIZE * SIZE, dtype=np.float64)
+        return cf, lp, pixel_widths(cf, lp, data, fit_theta(cf, lp.space), cap)
+
+
+@pytest.fixture(scope="module")
+def varying():
+    """Widths spread by a factor of ~1.5 (log std 0.4) around 0.2, left half smoother."""
+    rng = np.random.default_rng(4)
+    alpha = 0.2 * np.exp(0.4 * rng.standard_normal((SIZE, SIZE)))
+    alpha[:, : SIZE // 2] *= 0.6
+    cap, truth = _capture(np.clip(alpha, 0.03, 0.9))
+    return (truth, *_widths(cap))
+
+
+def test_each_pixel_gets_its_own_width_near_the_truth(varying):
+    truth, _cf, _lp, sp = varying
+    t = truth["alpha"].reshape(-1)
+    ok = np.isfinite(sp.mean)
+    assert ok.mean() > 0.95
+    err = np.abs(np.log(sp.mean[ok] / t[ok]))
+    shared = np.abs(np.log(sp.alpha / t[ok]))
+    # the pixels' own widths are much closer to the truth than the one shared width
+    assert np.median(err) < 0.5 * np.median(shared)
+    assert np.corrcoef(np.log(sp.mean[ok]), np.log(t[ok]))[0, 1] > 0.8
+    # the population's spread is the truth's (log std ~0.45 with the halves), not 0
+    assert 0.25 < sp.tau < 0.8
+    cover = np.mean((sp.q05[ok] <= t[ok]) & (t[ok] <= sp.q95[ok]))
+    assert 0.75 < cover <= 1.0
+
+
+def test_a_shared_width_stays_shared(varying):
+    _truth, _cf, _lp, sp_varying = varying
+    cap, _truth = _capture(np.full((SIZE, SIZE), 0.2))
+    _cf, _lp, sp = _widths(cap)
+    # the population's spread is its floor (one material's), well below the varying one's
+    assert sp.tau == pytest.approx(ALPHA_FLOOR_LOG_STD)
+    assert sp_varying.tau > 1.5 * sp.tau
+    ok = np.isfinite(sp.mean)
+    assert np.mean((sp.q05[ok] <= 0.2) & (0.2 <= sp.q95[ok])) > 0.85
+    assert np.median(np.abs(np.log(sp.mean[ok] / 0.2))) < 0.05
+
+
+def test_relaxed_map_widens_inside_the_box_and_adds_the_width(varying):
+    _truth, cf, lp, sp = varying
+    n, d = SIZE * SIZE, len(lp.labels)
+    rng = np.random.default_rng(0)
+    mean = np.asarray(lp.space.natural_vector(fit_theta(cf, lp.space)), np.float64)
+    mean = np.concatenate([mean, np.full((n, d - mean.shape[1]), 0.01)], 1)
+    std = np.abs(rng.normal(0.01, 0.003, (n, d)))
+    umap = jp.UncertaintyMap(
+        labels=lp.labels,
+        mean=mean,
+        std=std,
+        q05=mean - 1.645 * std,
+        q95=mean + 1.645 * std,
+        method=np.zeros(n, np.uint8),
+        rhat=np.full(n, np.nan),
+        ess_bulk=np.full(n, np.nan),
+        ess_tail=np.full(n, np.nan),
+        divergences=np.zeros(n, np.int32),
+        mcmc_pixels=np.zeros(0, np.int64),
+        samples=None,
+        laplace_std=std,
+        rerun=np.zeros(n, bool),
+        rhat_first=np.full(n, np.nan),
+    )
+    out = relax_shared_width(umap, sp, lp.space.lower, lp.space.upper)
+    p = len(lp.space.labels)
+    assert out.labels == (*lp.labels, "alpha")
+    assert out.mean.shape == (n, d + 1)
+    np.testing.assert_allclose(out.mean[:, -1], sp.mean)
+    np.testing.assert_allclose(out.q95[:, -1], sp.q95)
+    assert np.all(out.std[:, :p] >= std[:, :p] - 1e-15)
+    lo, hi = np.asarray(lp.space.lower), np.asarray(lp.space.upper)
+    assert np.all(out.q05[:, :p] >= lo - 1e-12) and np.all(out.q95[:, :p] <= hi + 1e-12)
+    assert np.all(out.q05 <= out.q95)
+    # columns past the model's parameters (the noise scale) are left as they were
+    np.testing.assert_array_equal(out.std[:, p:d], std[:, p:d])
+
+
+def test_pooled_uncertainty_map_gives_each_pixel_its_width(varying, tmp_path):
+    """Through uncertainty_maps and write_uncertainty: the widths are the map's last column,
+    in uncertainty.exr and the report; the draws stay the pooled posterior's."""
+    from jaxrefl.io import read_exr
+    from jaxrefl.svbrdf import uncertainty_maps, write_uncertainty
+
+    truth, _cf, _lp, _sp = varying
+    cap, _ = _capture(truth["alpha"])
+    with jax.enable_x64(True):
+        job = FitJob(model="pooled", light="fixed", config=fit.FitConfig(dtype=np.float64))
+        res = uncertainty_maps(cap, job)
+    assert res.map.labels[-1] == "alpha"
+    assert "alpha" not in res.map.samples.labels
+    rep = res.report()
+    assert rep["width_spread"]["pixels_informing"] > 0
+    assert rep["timings"]["width_s"] >= 0
+    t = truth["alpha"].reshape(-1)
+    cover = np.mean((res.map.q05[:, -1] <= t) & (t <= res.map.q95[:, -1]))
+    assert cover > 0.75
+    write_uncertainty(res, tmp_path)
+    ch = read_exr(tmp_path / "uncertainty.exr").channels
+    np.testing.assert_allclose(ch["alpha_q95.Y"].reshape(-1), res.map.q95[:, -1], rtol=1e-3)
