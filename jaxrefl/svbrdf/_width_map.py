@@ -228,7 +228,7 @@ def pixel_widths(
     # Two estimates of the capture's typical width (the pooled fit's and the per-pixel
     # population's centre) that disagree say the data do not pin it down: the spread is
     # widened to hold both within its 90% range; and never below one material's spread.
-    tau = max(tau_eb, ALPHA_FLOOR_LOG_STD, abs(c - np.log(alpha)) / _Z95)
+    tau = float(max(tau_eb, ALPHA_FLOOR_LOG_STD, abs(c - np.log(alpha)) / _Z95))
     prec = np.where(np.isfinite(v_i), 1.0 / v_i, 0.0) + tau**-2
     m = (np.where(np.isfinite(v_i), est / v_i, 0.0) + c / tau**2) / prec
     w = np.where(np.isfinite(v_i), (1.0 / v_i) / prec, 0.0)
