@@ -98,6 +98,10 @@ def canonical(name: str) -> str:
 # --priors): estimated from the reliably fitted pixels, or the model's defaults.
 PRIOR_SOURCES = ("population", "default")
 
+# What ranks a capture plan's candidates (jaxrefl.svbrdf.PlanOptions.criterion, plan
+# --criterion), the default first: jaxrefl/svbrdf/_plan.py says what each computes.
+PLAN_CRITERIA = ("variance", "log_variance", "information")
+
 
 def describe(name: str) -> list[str]:
     """What ``name`` (any spelling) means in each table it belongs to, one line each;

@@ -1,7 +1,7 @@
 """Where to take the next photo: candidate positions ranked by what a photo there teaches.
 
     jaxrefl plan FIT_DIR --out PLAN_DIR [--candidates-from CAPTURE --photos 1,2,4,7]
-                 [--positions FILE] [--criterion variance|information] [--max-pixels N]
+                 [--positions FILE] [--criterion variance|log_variance|information] [--max-pixels N]
                  [--top N] [--no-censoring]
 
 FIT_DIR is the output folder of ``jaxrefl fit`` (its maps.exr and report.json; the capture
@@ -35,6 +35,7 @@ import argparse
 from pathlib import Path
 
 from jaxrefl._errors import JaxreflError
+from jaxrefl._names import PLAN_CRITERIA
 
 from ._main import check_out_dir, photo_indices, positive_int
 
@@ -76,10 +77,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--criterion",
-        choices=("variance", "information"),
-        default="variance",
+        choices=PLAN_CRITERIA,
+        default=PLAN_CRITERIA[0],
         help="rank by the expected reduction of the predictive variance of renderings at the "
-        "candidates (default) or by the expected information gain about the parameters",
+        "candidates (variance, the default; log_variance: the mean over pixels of its log) or "
+        "by the expected information gain about the parameters (information)",
     )
     p.add_argument("--top", type=positive_int, default=3, help="candidates drawn in highlights.png")
     p.add_argument(

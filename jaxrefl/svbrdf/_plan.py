@@ -107,6 +107,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxrefl._errors import JaxreflError
+from jaxrefl._names import PLAN_CRITERIA
 
 from ._job import CaptureFit
 from ._plan_info import (
@@ -141,7 +142,7 @@ __all__ = [
 # posterior volume shrinks by 10% (exp(-gain) = 0.9) or more.
 INFORMED_GAIN = -math.log(0.9)
 # The criteria of PlanOptions.criterion (module docstring), the default first.
-CRITERIA = ("variance", "log_variance", "information")
+CRITERIA = PLAN_CRITERIA
 # tan of the half-vector angle, per unit alpha, where a GGX lobe falls to half its peak
 # (module docstring): sqrt(sqrt(2) - 1).
 _HALF_PEAK = math.sqrt(math.sqrt(2.0) - 1.0)
