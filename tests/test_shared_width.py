@@ -37,7 +37,9 @@ def pooled_fit():
     """The capture and its float64 pooled fit with photo 8 held out."""
     cap = _capture()
     with jax.enable_x64(True):
-        job = FitJob(model="pooled", holdout=(8,), config=fit.FitConfig(dtype=np.float64))
+        job = FitJob(
+            model="pooled", holdout=(8,), light="fixed", config=fit.FitConfig(dtype=np.float64)
+        )
         return cap, fit_capture(cap, job)
 
 

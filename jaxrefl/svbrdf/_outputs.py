@@ -91,8 +91,11 @@ def _strided(capture, step: int):
 
 
 def predict_photos(result: CaptureFit, capture, photos, step: int = 1) -> tuple[Any, Any]:
-    """(photographed, fitted) linear radiance (len(photos), H/step, W/step, C)."""
-    sub = _strided(capture.select(list(photos)), step)
+    """(photographed, fitted) linear radiance (len(photos), H/step, W/step, C); the fitted
+    under the light the fit used (``result.light``: its estimate of the flash, as the report's
+    held-out errors are)."""
+    lit = capture if result.light is None else result.light.apply(capture)
+    sub = _strided(lit.select(list(photos)), step)
     k, h, w, c = sub.shape
     model, space = result.model()
     theta = result.theta.reshape(*result.maps["status"].shape, -1)[::step, ::step]
