@@ -497,13 +497,14 @@ def uncertainty_maps(
     lit = capture if cf.light is None else cf.light.apply(capture)
     data = pixel_block(lit, 0, h * w, photos=train, dtype=np.float64)
     theta_std = laplace_theta_std(cf, lp.space)
+    theta0 = fit_theta(cf, lp.space)
     noise0 = cf.maps["noise_std"].reshape(-1)
     noise0 = np.where(np.isfinite(noise0) & (noise0 > 0), noise0, _NOISE_START)
     t1 = time.perf_counter()
     umap = jp.adaptive_uncertainty(
         lp,
         data,
-        fit_theta(cf, lp.space),
+        theta0,
         theta_std,
         cf.maps["laplace_flag"].reshape(-1),
         options,
@@ -521,7 +522,7 @@ def uncertainty_maps(
         cf,
         lp,
         data,
-        fit_theta(cf, lp.space),
+        theta0,
         capture,
         None if out_dir is None else Path(out_dir) / "fit_widths",
         progress=progress,
@@ -537,7 +538,7 @@ def uncertainty_maps(
     t_width = time.perf_counter() - t_width
     # The light's own uncertainty widens every pixel's intervals (._light_map).
     t_light = time.perf_counter()
-    var = light_spread(cf, lp, data, capture, fit_theta(cf, lp.space), seed=options.seed)
+    var = light_spread(cf, lp, data, capture, theta0, seed=options.seed)
     light_std = None
     if var is not None:
         umap, light_std = widen_for_light(umap, var, lp.space.lower, lp.space.upper)

@@ -130,7 +130,11 @@ class WidthSpread:
 @eqx.filter_jit
 def _slopes(residual, theta, data):
     """(N, P) v_i = H_i^-1 J_i^T j_i (module docstring) at the shared width: minus the slope
-    of each pixel's conditional optimum in theta per unit of log alpha."""
+    of each pixel's conditional optimum in theta per unit of log alpha. The terms of
+    :func:`jaxrefl.svbrdf._shared.width_terms`, but for every pixel the map holds: a ridge
+    in place of its refusal of a curvature that is not positive definite, so a pixel that
+    saw only part of its lobe still gets the width's share in the directions it saw (the
+    sampled pixels are mostly such)."""
     log_alpha = jnp.log(residual.space.fixed["alpha"])
 
     def pixel(t, d):
