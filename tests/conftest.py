@@ -24,10 +24,19 @@ from __future__ import annotations
 
 import json
 import os
+import warnings
 from pathlib import Path
 
 import jax
 import pytest
+
+# ArviZ writes a once-a-day stamp into the user's cache folder when it is first imported,
+# through a fixed temporary file name: two test workers importing it at once on a fresh
+# machine race on that file (FileNotFoundError at collection). Imported here, in the process
+# that starts the workers, it writes the stamp once before they exist.
+with warnings.catch_warnings():
+    warnings.simplefilter("ignore")
+    import arviz  # noqa: F401
 
 from jaxrefl.cli._compile import prefer_loop_emitters
 
