@@ -338,8 +338,9 @@ def test_auto_on_one_and_two_photos_says_what_is_possible():
     two = choose_model(cap.select([2, 6]), svbrdf.FitJob(tile_pixels=_TILE))
     assert two.model == "lambert" and set(two.cv_rmse) == {"lambert"}
     assert "not scored" in two.skipped["ggx"] and "needs 3" in two.skipped["ggx_rgb"]
+    two_models = svbrdf.AutoOptions(candidates=("ggx_rgb", "ggx"))
     with pytest.raises(JaxreflError, match=r"1 photo of .*: ggx_rgb needs 3, ggx needs 2; add"):
-        choose_model(cap.select([2]), svbrdf.FitJob(), candidates=("ggx_rgb", "ggx"))
+        choose_model(cap.select([2]), svbrdf.FitJob(auto=two_models))
     with pytest.raises(JaxreflError, match="pooled needs at least two training photos"):
         svbrdf.fit_capture(cap.select([2]), svbrdf.FitJob(model="pooled", tile_pixels=_TILE))
 

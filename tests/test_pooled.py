@@ -18,7 +18,7 @@ from jaxrefl import brdf, fit
 from jaxrefl.demo import demo_capture, demo_scene
 from jaxrefl.io import ObsStatus
 from jaxrefl.io._capture import Capture
-from jaxrefl.svbrdf import FitJob, fit_capture, leave_one_out
+from jaxrefl.svbrdf import AutoOptions, FitJob, fit_capture, leave_one_out
 from jaxrefl.svbrdf._pooled import choose_pooled
 
 ALPHA = 0.03
@@ -268,11 +268,13 @@ def test_auto_leaves_out_what_a_matte_capture_does_not_need(shared_lobe_capture)
     img = truth["albedo"][None] / np.pi * geo["irradiance"] * geo["cos_i"][..., None]
     img = img * (1.0 + 0.005 * np.random.default_rng(1).standard_normal(img.shape))
     matte = Capture(**{**cap.__dict__, "images": img.astype(np.float32)}).select(SIX)
-    choice = choose_model(matte, FitJob(alpha_min=1e-3), ("lambert", "pooled", "ggx"))
+    three = AutoOptions(candidates=("lambert", "pooled", "ggx"))
+    choice = choose_model(matte, FitJob(alpha_min=1e-3, auto=three))
     assert choice.model == "lambert"
     assert set(choice.cv_rmse) == {"lambert", "pooled", "ggx"}
-    with pytest.raises(ValueError, match="auto"):
-        choose_model(matte, FitJob(), ("auto",))
+    assert choice.as_dict()["candidates"] == ["lambert", "pooled", "ggx"]
+    with pytest.raises(ValueError, match="other than 'auto'"):
+        AutoOptions(candidates=("auto",))
 
 
 def test_tilted_model_compiles_once_for_every_tile(shared_lobe_capture):
@@ -321,7 +323,8 @@ def test_auto_keeps_a_per_pixel_lobe_where_roughness_varies(shared_lobe_capture)
     img = img * (1.0 + 0.01 * np.random.default_rng(5).standard_normal(img.shape))
     demo = Capture(**{**cap.__dict__, "images": img.astype(np.float32)})
     # 256 pixels a fold in one tile of 2048 rows: half the default rows, the same choice.
-    choice = choose_model(demo, FitJob(holdout=(8,), tile_pixels=2048), max_pixels=2048)
+    job = FitJob(holdout=(8,), tile_pixels=2048, auto=AutoOptions(max_pixels=2048))
+    choice = choose_model(demo, job)
     assert choice.model == "ggx", choice.as_dict()["why"]
     assert set(choice.cv_rmse) == {"lambert", "pooled", "ggx", "ggx_rgb"}
     assert "no sign of it" in choice.skipped["ggx_normal"]
@@ -390,12 +393,10 @@ def test_leave_one_out_compacts_by_the_work_of_all_folds(shared_lobe_capture, mo
     seen.clear()
     # The default model: fit_capture hands the job's choice to the selection (here of one
     # candidate, which keeps the test to one compiled model) and to the chosen model's fit.
-    choose = _job.choose_model
-    monkeypatch.setattr(
-        _job, "choose_model", lambda c, j, **kw: choose(c, j, candidates=("lambert",), **kw)
-    )
-    res = fit_capture(cap, FitJob(tile_pixels=64, holdout=(5,), compact=True))
+    one = AutoOptions(candidates=("lambert",))
+    res = fit_capture(cap, FitJob(tile_pixels=64, holdout=(5,), compact=True, auto=one))
     assert res.job.model == "lambert" and res.job.compact is True
+    assert res.report["auto"]["candidates"] == ["lambert"] and res.job.auto == one
     assert seen == [("lambert", True), ("lambert", True)]
 
 

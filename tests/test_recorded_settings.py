@@ -26,6 +26,28 @@ def test_every_field_of_a_capture_job_is_recorded():
         svbrdf.FitJob(compact="yes")
 
 
+def test_the_model_choice_settings_are_the_jobs_and_recorded():
+    """The candidates, the selection's pixel count and its seed change which model ``auto``
+    picks (and ``pooled``'s width): they are the job's ``auto``, in its record (the
+    manifest's fingerprint) and checked when built."""
+    auto = svbrdf.AutoOptions(candidates=("lambert", "GGX"), max_pixels=512, seed=3)
+    assert auto.candidates == ("lambert", "ggx")  # canonical names
+    rec = svbrdf.FitJob(auto=auto).to_json()["auto"]
+    assert rec == {"candidates": ["lambert", "ggx"], "max_pixels": 512, "seed": 3}
+    assert svbrdf.FitJob().to_json()["auto"]["candidates"] == list(svbrdf.AUTO_CANDIDATES)
+    assert svbrdf.FitJob(auto=auto).to_json() != svbrdf.FitJob().to_json()
+    with pytest.raises(ValueError, match="unknown model 'phong'"):
+        svbrdf.AutoOptions(candidates=("lambert", "phong"))
+    with pytest.raises(ValueError, match="names a model twice"):
+        svbrdf.AutoOptions(candidates=("ggx", "ggx"))
+    with pytest.raises(ValueError, match="max_pixels must be >= 1"):
+        svbrdf.AutoOptions(max_pixels=0)
+    with pytest.raises(ValueError, match="seed must be an integer"):
+        svbrdf.AutoOptions(seed=0.5)
+    with pytest.raises(ValueError, match=r"FitJob\.auto must be an AutoOptions"):
+        svbrdf.FitJob(auto={"seed": 1})
+
+
 def test_the_size_rule_decides_compaction_where_the_job_does_not():
     size_rule = svbrdf.FitJob()
     assert size_rule.compacts(COMPACT_MIN_PIXELS) and not size_rule.compacts(COMPACT_MIN_PIXELS - 1)

@@ -20,12 +20,13 @@ Quick use::
     u.map.std, u.report()["uncertainty"]["method_counts"]
 
 Parts: :mod:`._models` (named capture models), :mod:`._auto` (the capture's model chosen by
-held-out photos), :mod:`._data` (capture pixels as least-squares
-data: weights, censoring, geometry), :mod:`._pooled` (one lobe shape per capture, chosen by
-held-out photos), :mod:`._job` (tiled fit with Laplace uncertainty: :func:`fit_capture`),
-:mod:`._job_types` (:class:`FitJob`, :class:`CaptureFit`), :mod:`._tile_fitter` (one tile:
-fit, Laplace, held-out errors), :mod:`._tile_store` (tiles on disk: resume, several
-processes), :mod:`._maps` (tiles to maps and report),
+held-out photos, under the :class:`AutoOptions` of :mod:`._auto_options`), :mod:`._data`
+(capture pixels as least-squares data: weights, censoring, geometry), :mod:`._pooled` (one
+lobe shape per capture, chosen by held-out photos), :mod:`._job` (tiled fit with Laplace
+uncertainty: :func:`fit_capture`), :mod:`._job_types` (:class:`FitJob`,
+:class:`CaptureFit`), :mod:`._tile_fitter` (one tile: fit, Laplace, held-out errors),
+:mod:`._tile_store` (tiles on disk: resume, several processes), :mod:`._maps` (tiles to
+maps and report),
 :mod:`._holdout` (leave-one-photo-out against a baseline), :mod:`._outputs` (EXR maps,
 report, previews), :mod:`._export` (textures, a Mitsuba 3 scene and a glTF 2.0 material
 for renderers), :mod:`._uncertainty` (the fit's Laplace std, then MCMC where Laplace is
@@ -40,9 +41,10 @@ reduction of the renderings' predictive variance, or by expected information gai
 an uncertainty map's intervals).
 """
 
-from ._auto import AUTO_CANDIDATES as AUTO_CANDIDATES
 from ._auto import ModelChoice as ModelChoice
 from ._auto import choose_model as choose_model
+from ._auto_options import AUTO_CANDIDATES as AUTO_CANDIDATES
+from ._auto_options import AutoOptions as AutoOptions
 from ._check import ModelCheck as ModelCheck
 from ._data import is_colocated as is_colocated
 from ._data import pixel_block as pixel_block
@@ -101,6 +103,7 @@ __all__ = [
     "AUTO_CANDIDATES",
     "CAPTURE_MODELS",
     "DEFAULT_LOSS",
+    "AutoOptions",
     "Candidates",
     "CaptureFit",
     "CaptureUncertainty",

@@ -1,7 +1,8 @@
 """Choosing a capture's model by held-out photos: add what the scene needs, leave out the rest.
 
 ``FitJob(model="auto")`` (the default) fits a capture with whichever candidate of
-:data:`AUTO_CANDIDATES` predicts photos it was not fitted to best:
+``FitJob.auto.candidates`` (:class:`~jaxrefl.svbrdf.AutoOptions`; default
+:data:`~jaxrefl.svbrdf.AUTO_CANDIDATES`) predicts photos it was not fitted to best:
 
 * ``lambert``: diffuse only;
 * ``ggx``: a dielectric (grey F0 in [0, 0.25]) with a per-pixel lobe;
@@ -19,13 +20,14 @@ The score is the leave-one-photo-out RMSE over the *training* photos (the job's 
 honest one): for each training photo j, every candidate is fitted on the other training
 photos and predicts photo j's uncensored observations; the squared errors of all folds are
 summed. The folds share one random set of pixels (a paired comparison: every candidate is
-scored on the same observations), and they are stacked into the rows of tiles of the job's
-tiling (one tile at the defaults), each row with its own training photos, and the
-chosen model's compiled programs serve the full fit too. ``pooled``'s shared width and F0
-prior are chosen once from all training photos (one scalar and a per-channel prior, fitted to
-every selection pixel; the per-pixel parameters are fitted per fold).
+scored on the same observations; ``AutoOptions.max_pixels`` and ``seed``), and they are
+stacked into the rows of tiles of the job's tiling (one tile at the defaults), each row with
+its own training photos, and the chosen model's compiled programs serve the full fit too.
+``pooled``'s shared width and F0 prior are chosen once from all training photos (one scalar
+and a per-channel prior, fitted to every selection pixel; the per-pixel parameters are
+fitted per fold).
 
-The winner is the first candidate (in :data:`AUTO_CANDIDATES` order, simplest first) whose
+The winner is the first candidate (in the candidates' order, simplest first) whose
 score is within :data:`TOLERANCE` (relative) of the lowest: the ranking is a measurement, and
 a difference smaller than the folds' scatter is not evidence for extra parameters. The
 report's ``auto`` entry lists every candidate's score and says why the winner won.
@@ -51,6 +53,7 @@ import numpy as np
 
 from jaxrefl._errors import JaxreflError
 
+from ._auto_options import AutoOptions
 from ._data import stack_folds, subsample
 from ._job_types import FitJob
 from ._models import capture_model
@@ -58,17 +61,12 @@ from ._pooled import PoolChoice
 from ._tile_fitter import TileFitter
 
 __all__ = [
-    "AUTO_CANDIDATES",
-    "SELECTION_PIXELS",
     "TOLERANCE",
     "ModelChoice",
     "choose_model",
     "photos_needed",
 ]
 
-# In order of complexity (parameters per pixel, then shared structure): ties go to the first.
-AUTO_CANDIDATES: tuple[str, ...] = ("lambert", "pooled", "ggx", "ggx_rgb", "ggx_normal")
-SELECTION_PIXELS = 4096
 # Candidates that refine another (name -> the model they extend) are scored only when that
 # model is the best so far (a per-pixel normal on a lobe the photos do not support cannot
 # help) and the photos show their extra parameters (EVIDENCE_RATIO).
@@ -100,6 +98,7 @@ class ModelChoice:
     evidence: per refinement tested, its score statistic over that statistic's expectation
               where the refinement is not needed (:data:`EVIDENCE_RATIO`)
     note:     why no candidate was scored, where none was (too few training photos)
+    options:  the settings of the choice (``FitJob.auto``)
     """
 
     model: str
@@ -110,6 +109,7 @@ class ModelChoice:
     pooled: PoolChoice | None = None
     evidence: dict[str, float] = field(default_factory=dict)
     note: str | None = None
+    options: AutoOptions = field(default_factory=AutoOptions)
 
     def as_dict(self) -> dict[str, Any]:
         ranked = sorted(self.cv_rmse.items(), key=lambda kv: kv[1])
@@ -139,6 +139,7 @@ class ModelChoice:
             "skipped": dict(self.skipped),
             "evidence": dict(self.evidence),
             "tolerance": TOLERANCE,
+            **self.options.to_json(),
         }
 
 
@@ -157,25 +158,19 @@ def photos_needed(model: str, channels: int, alpha_min: float | None = None) -> 
     return -(-space.size // channels)
 
 
-def choose_model(
-    capture,
-    job: FitJob,
-    candidates: tuple[str, ...] = AUTO_CANDIDATES,
-    *,
-    max_pixels: int = SELECTION_PIXELS,
-    seed: int = 0,
-) -> ModelChoice:
-    """Score every candidate by leave-one-photo-out over the photos ``job`` trains on
-    (module docstring) and choose one. ``job`` gives everything but the model (noise, loss
-    -- None: each model's default --, dtype, alpha_min, tiling). ``max_pixels``: selection
-    rows in all (pixels x folds; at least 256 pixels a fold). Candidates the training photos
+def choose_model(capture, job: FitJob) -> ModelChoice:
+    """Score every candidate of ``job.auto`` (:class:`~jaxrefl.svbrdf.AutoOptions`: the
+    candidates, the selection's pixel count and seed) by leave-one-photo-out over the photos
+    ``job`` trains on (module docstring) and choose one. ``job`` gives everything but the
+    model (noise, loss -- None: each model's default --, dtype, alpha_min, tiling, the
+    choice's settings). Candidates the training photos
     cannot fit or score are skipped (module docstring, "Small captures"); where none can be
     fitted a :class:`~jaxrefl.JaxreflError` lists what each needs. The per-pixel fits gather
     their slow pixels into the lean LM's compaction stages as the fit does (``job.compact``,
     :meth:`FitJob.compacts`: the selection's tiles have the fit's shape, so they share its
     compiled programs)."""
-    if not candidates or "auto" in candidates:
-        raise JaxreflError("candidates must name one or more models other than 'auto'")
+    opts = job.auto
+    candidates = opts.candidates
     k = capture.n_photos
     train = [i for i in range(k) if i not in job.holdout]
     n = len(train)
@@ -210,9 +205,10 @@ def choose_model(
             f"too few training photos ({n}) to score any candidate by leave-one-out; "
             f"{', '.join(fits)} can be fitted, and the simplest, {fits[0]}, is chosen"
         )
-        return ModelChoice(fits[0], {}, 0, tuple(train), skipped, note=note)
-    per_fold = max(256, max_pixels // len(train))
-    data = subsample(capture, per_fold, seed, job.dtype)
+        return ModelChoice(fits[0], {}, 0, tuple(train), skipped, note=note, options=opts)
+    # Fewer pixels a fold than this would leave each fold's score to a handful of pixels.
+    per_fold = max(256, opts.max_pixels // len(train))
+    data = subsample(capture, per_fold, opts.seed, job.dtype)
     size = job.tile_pixels
     stacked, mask, held = stack_folds(data, train, k, size)
     cv: dict[str, float] = {}
@@ -265,4 +261,6 @@ def choose_model(
         cv[m] = score(m, fitter)[1]
     best = min(cv.values())
     chosen = next(m for m in candidates if cv[m] <= best * (1.0 + TOLERANCE))
-    return ModelChoice(chosen, cv, int(data.obs.shape[0]), tuple(train), skipped, pool, evidence)
+    return ModelChoice(
+        chosen, cv, int(data.obs.shape[0]), tuple(train), skipped, pool, evidence, options=opts
+    )

@@ -17,6 +17,7 @@ from jaxrefl import brdf, fit
 from jaxrefl._errors import JaxreflError
 from jaxrefl._names import LIGHT_CHOICES, LIGHT_DEFAULT
 
+from ._auto_options import AutoOptions
 from ._models import ALPHA_RANGE, capture_model
 
 if TYPE_CHECKING:
@@ -85,6 +86,10 @@ class FitJob:
                 default): the size rule, stages where the capture has
                 :data:`COMPACT_MIN_PIXELS` pixels or more (:meth:`compacts`);
                 :func:`~jaxrefl.svbrdf.fit_capture` records the value it ran with
+    auto:       how ``auto`` chooses the model (:class:`~jaxrefl.svbrdf.AutoOptions`: the
+                candidates, the selection's pixel count and seed); recorded with the job
+                whatever the model, since ``pooled``'s shared width where it wins is the
+                selection's
     """
 
     model: str = "auto"
@@ -95,6 +100,7 @@ class FitJob:
     tilt_std: float = 0.1
     light: str = LIGHT_DEFAULT
     compact: bool | None = None
+    auto: AutoOptions = field(default_factory=AutoOptions)
 
     def __post_init__(self) -> None:
         if self.light not in LIGHT_CHOICES:
@@ -126,6 +132,10 @@ class FitJob:
             raise JaxreflError(f"compact must be True, False or None, not {self.compact!r}")
         if self.compact is not None:
             object.__setattr__(self, "compact", bool(self.compact))
+        if not isinstance(self.auto, AutoOptions):
+            raise JaxreflError(
+                f"FitJob.auto must be an AutoOptions, not {type(self.auto).__name__}"
+            )
 
     def compacts(self, n_pixels: int) -> bool:
         """Whether the lean LM runs compaction stages for a capture of ``n_pixels`` pixels
@@ -150,6 +160,7 @@ class FitJob:
             "tilt_std": self.tilt_std,
             "light": self.light,
             "compact": self.compact,
+            "auto": self.auto.to_json(),
         }
 
 
