@@ -53,14 +53,18 @@ import numpy as np
 
 from jaxrefl._errors import JaxreflError
 
-from ._auto_options import AutoOptions
+from ._auto_options import AUTO_CANDIDATES, SELECTION_PIXELS, AutoOptions
 from ._data import stack_folds, subsample
 from ._job_types import FitJob
 from ._models import capture_model
 from ._pooled import PoolChoice
 from ._tile_fitter import TileFitter
 
+# AUTO_CANDIDATES and SELECTION_PIXELS are the defaults of AutoOptions, named here too for
+# the modules of this package that size their samples as the choice does.
 __all__ = [
+    "AUTO_CANDIDATES",
+    "SELECTION_PIXELS",
     "TOLERANCE",
     "ModelChoice",
     "choose_model",
