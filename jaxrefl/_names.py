@@ -22,9 +22,11 @@ __all__ = [
     "ALIASES",
     "CAPTURE_MODELS",
     "FAMILIES",
+    "ILLUMINANTS",
     "LIGHT_CHOICES",
     "LIGHT_DEFAULT",
     "MEASURED_MODELS",
+    "SPECTRAL_CHOICES",
     "canonical",
     "describe",
 ]
@@ -36,6 +38,12 @@ LIGHT_CHOICES: tuple[str, ...] = ("fixed", "offset", "offset+gains", "auto")
 #: ``svbrdf.FitJob``: ``auto`` moves it from where the capture states it only where held-out
 #: photos support the move (docs/light.md).
 LIGHT_DEFAULT = "auto"
+
+#: How a measured fit takes spectral data (``jaxrefl fit-brdf --spectral``,
+#: ``measured.MeasuredOptions.spectral``): as RGB, or one problem a band; the default first.
+SPECTRAL_CHOICES: tuple[str, ...] = ("rgb", "bands")
+#: The illuminants of their RGB conversion (``--illuminant``, ``MeasuredOptions.illuminant``).
+ILLUMINANTS: tuple[str, ...] = ("D65", "E")
 
 #: BRDF families of :func:`jaxrefl.brdf.get` -> one line.
 FAMILIES: dict[str, str] = {

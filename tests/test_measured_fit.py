@@ -100,8 +100,7 @@ def test_cornell_as_rgb_and_per_band(shared_data):
     rb = jm.fit_brdf(
         bands,
         ["lambert"],
-        spectral="bands",
-        options=jm.MeasuredOptions(retry_float64=False),
+        options=jm.MeasuredOptions(retry_float64=False, spectral="bands"),
         timing=False,
     )
     lam = rb.fits["lambert"]

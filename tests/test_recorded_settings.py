@@ -55,7 +55,7 @@ def test_the_size_rule_decides_compaction_where_the_job_does_not():
     assert svbrdf.FitJob(compact=True).compacts(1) is True
 
 
-def _lambert_material(k: int = 64) -> MeasuredBRDF:
+def _lambert_material(k: int = 64, spectral: bool = False) -> MeasuredBRDF:
     rng = np.random.default_rng(0)
 
     def hemi():
@@ -64,6 +64,10 @@ def _lambert_material(k: int = 64) -> MeasuredBRDF:
         s = np.sqrt(1 - u * u)
         return np.stack([s * np.cos(phi), s * np.sin(phi), u], -1)
 
+    if spectral:  # four bands, reflectance falling with wavelength
+        nm = np.array([450.0, 500.0, 550.0, 600.0])
+        values = np.full((k, 4), 0.5 / np.pi) * np.array([1.0, 0.9, 0.8, 0.7])
+        return MeasuredBRDF(hemi(), hemi(), values, tuple(f"{w:g}nm" for w in nm), nm, "matte")
     values = np.full((k, 3), 0.5 / np.pi) * np.array([1.0, 0.8, 0.6])
     return MeasuredBRDF(hemi(), hemi(), values, ("R", "G", "B"), name="matte")
 
@@ -73,10 +77,13 @@ def test_every_measured_option_is_in_the_report_settings():
     opts = jm.MeasuredOptions(max_theta_deg=70.0, cosine=False, retry_float64=False)
     rep = jm.fit_brdf(m, ["lambert"], options=opts, timing=False, starts=None)
     fields = {f.name for f in dataclasses.fields(jm.MeasuredOptions)}
+    # RGB data: the spectral choice and the illuminant do not apply, and say so.
     assert {k: rep.settings[k] for k in fields} == {
         "max_theta_deg": 70.0,
         "cosine": False,
         "retry_float64": False,
+        "spectral": None,
+        "illuminant": None,
     }
     # The angle limit is the one applied: every sample kept is within it.
     cos_lim = np.cos(np.radians(70.0))
@@ -86,3 +93,34 @@ def test_every_measured_option_is_in_the_report_settings():
         jm.MeasuredOptions(max_theta_deg=95.0)
     with pytest.raises(ValueError, match="cosine True or False"):
         jm.MeasuredOptions(cosine=1)
+
+
+def test_the_spectral_choice_and_illuminant_are_options_and_recorded():
+    """How spectral data are fitted (RGB under an illuminant, or a problem a band) is a field
+    of :class:`MeasuredOptions`, which fit_brdf, fit_model and the report follow alike."""
+    m = _lambert_material(spectral=True)
+    kw = {"timing": False, "starts": None}
+    e = jm.MeasuredOptions(illuminant="E", retry_float64=False)
+    rgb = jm.fit_brdf(m, ["lambert"], options=e, **kw)
+    assert (rgb.settings["spectral"], rgb.settings["illuminant"]) == ("rgb", "E")
+    assert rgb.settings["channels"] == "joint" and rgb.measured.channels == ("R", "G", "B")
+    # Equal energy maps a flat spectrum to equal channels: these fall with wavelength, so red
+    # (long) is below blue (short), the fit's albedo too, and D65 gives other colours.
+    albedo = rgb.fits["lambert"].params["albedo"]
+    assert albedo[0] < albedo[2]
+    d65 = jm.fit_brdf(m, ["lambert"], options=jm.MeasuredOptions(retry_float64=False), **kw)
+    assert d65.settings["illuminant"] == "D65"
+    assert not np.allclose(d65.fits["lambert"].params["albedo"], albedo, rtol=1e-3)
+    # fit_model takes the same options: the same RGB fit.
+    one = jm.fit_model(jm.build_model("lambert"), m, options=e, **kw)
+    np.testing.assert_allclose(one.params["albedo"], albedo, rtol=1e-6)
+
+    bands = jm.MeasuredOptions(spectral="bands", retry_float64=False)
+    per_band = jm.fit_brdf(m, ["lambert"], options=bands, **kw)
+    assert (per_band.settings["spectral"], per_band.settings["illuminant"]) == ("bands", None)
+    assert per_band.settings["channels"] == "separate"
+    assert per_band.fits["lambert"].params["albedo"].shape == (4,)
+    with pytest.raises(ValueError, match="spectral one of 'rgb', 'bands'"):
+        jm.MeasuredOptions(spectral="xyz")
+    with pytest.raises(ValueError, match="illuminant one of 'D65', 'E'"):
+        jm.MeasuredOptions(illuminant="A")

@@ -22,7 +22,7 @@ import argparse
 from pathlib import Path
 
 from jaxrefl._errors import JaxreflError
-from jaxrefl._names import MEASURED_MODELS, canonical
+from jaxrefl._names import ILLUMINANTS, MEASURED_MODELS, SPECTRAL_CHOICES, canonical
 
 from ._main import check_out_dir, finite_float, non_negative_int, positive_int
 from ._options import BACKENDS, DTYPES, fit_config
@@ -65,14 +65,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", required=True, type=Path, help="output folder (created)")
     p.add_argument(
         "--spectral",
-        choices=("rgb", "bands"),
-        default="rgb",
+        choices=SPECTRAL_CHOICES,
+        default=SPECTRAL_CHOICES[0],
         help="spectral data: convert to RGB or fit every band separately",
     )
     p.add_argument(
         "--illuminant",
-        choices=("D65", "E"),
-        default="D65",
+        choices=ILLUMINANTS,
+        default=ILLUMINANTS[0],
         help="illuminant of the spectral-to-RGB conversion (CIE D65 daylight, or equal energy)",
     )
     p.add_argument(
@@ -193,10 +193,12 @@ def run(args: argparse.Namespace) -> int:
     report = jm.fit_brdf(
         m,
         names,
-        spectral=args.spectral,
-        illuminant=args.illuminant,
         options=jm.MeasuredOptions(
-            max_theta_deg=max_theta, cosine=not args.no_cosine, retry_float64=not args.no_retry
+            max_theta_deg=max_theta,
+            cosine=not args.no_cosine,
+            retry_float64=not args.no_retry,
+            spectral=args.spectral,
+            illuminant=args.illuminant,
         ),
         config=fit_config(args.backend, args.dtype, max_iters=args.max_iters),
         progress=lambda name: print(f"  fitting {name} ...", flush=True),

@@ -10,6 +10,8 @@ the samples a fit should see.
   white-normalised so that a constant f_r maps to the same f_r in every channel). f_r stays
   in 1/sr: the conversion is linear and maps a constant spectrum to itself.
 * :func:`restrict` keeps finite samples above the horizon within ``max_theta_deg``.
+* :func:`fit_channels` gives the channels a fit sees and whether they are fitted jointly, as
+  :class:`~jaxrefl.measured.MeasuredOptions` says (spectra to RGB, or one problem a band).
 """
 
 from __future__ import annotations
@@ -30,11 +32,15 @@ from jaxrefl.io import (
 )
 from jaxrefl.spectral import spectrum_to_rgb
 
+from ._fit_options import MeasuredOptions
 from ._metrics import usable_samples
 
-__all__ = ["detect_format", "load_measured", "restrict", "to_rgb"]
+__all__ = ["Channels", "detect_format", "fit_channels", "load_measured", "restrict", "to_rgb"]
 
 Format = Literal["cornell", "curet", "merl"]
+# ``joint``: one problem, a colour per channel and a shared roughness; ``separate``: one
+# problem a channel (theta of shape (C, P)).
+Channels = Literal["joint", "separate"]
 
 
 def detect_format(path: str | Path) -> Format:
@@ -128,3 +134,14 @@ def restrict(measured: MeasuredBRDF, max_theta_deg: float | None = 80.0) -> Meas
         "dropped": int((~ok).sum()),
     }
     return out
+
+
+def fit_channels(measured: MeasuredBRDF, options: MeasuredOptions) -> tuple[MeasuredBRDF, Channels]:
+    """The samples as a fit under ``options`` sees them, and how their channels are fitted:
+    spectral data as RGB under ``options.illuminant``, fitted jointly (``spectral="rgb"``), or
+    as they are, one problem a band (``"bands"``); other data jointly, as they are."""
+    if measured.wavelengths_nm is None:
+        return measured, "joint"
+    if options.spectral == "bands":
+        return measured, "separate"
+    return to_rgb(measured, options.illuminant), "joint"

@@ -6,9 +6,9 @@ the measured highlight and quasi-random ones, the best kept and certified; ``sta
 fits the single automatic start with :func:`jaxrefl.fit.fit_samples`), by the lean batched
 Levenberg-Marquardt by default (a :class:`jaxrefl.fit.FitConfig` picks the solver, noise,
 loss and dtype), and returns a :class:`ModelFit`; :func:`fit_brdf` prepares the samples
-once (spectra to RGB or per band, angle limit, solid-angle weights) and fits a whole set of
-models into a :class:`FitReport` whose :meth:`FitReport.to_dict` is the ``report.json``
-of ``jaxrefl fit-brdf``.
+once (spectra to RGB or per band as :class:`~jaxrefl.measured.MeasuredOptions` says, angle
+limit, solid-angle weights) and fits a whole set of models into a :class:`FitReport` whose
+:meth:`FitReport.to_dict` is the ``report.json`` of ``jaxrefl fit-brdf``.
 
 What is minimised (:class:`~jaxrefl.measured.MeasuredOptions`, with the samples a fit uses):
 with ``cosine=True`` (default) the residual is (f̂ - f) cos(theta_i) per sample and channel,
@@ -29,7 +29,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field, replace
-from typing import Any, Literal
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -41,7 +41,7 @@ from jaxrefl.fit import FitConfig, FitResult, Status, fit_samples
 from jaxrefl.io import MeasuredBRDF
 
 from ._certificate import Certificate
-from ._data import restrict, to_rgb
+from ._data import Channels, fit_channels, restrict
 from ._fit_options import MeasuredOptions
 from ._metrics import METRICS, error_metrics, sample_weights, usable_samples
 from ._models import MODEL_DESCRIPTIONS, fresnel_name, resolve_models
@@ -52,7 +52,6 @@ from ._starts import fit_multistart
 
 __all__ = ["FitReport", "ModelFit", "fit_brdf", "fit_model", "predict"]
 
-Channels = Literal["joint", "separate"]
 _FLOAT32 = np.dtype(np.float32)
 _FLOAT64 = np.dtype(np.float64)
 _MEASURED_CONFIG = FitConfig(dtype=np.float32)
@@ -155,7 +154,7 @@ class ModelFit:
     compile_time_s: the extra time of the first call (compilation), NaN if not timed
     n_params:       free parameters per problem (P), times C problems when per channel
     dtype:          precision of the kept result (``np.dtype``, float32 or float64)
-    channels:       ``"joint"`` or ``"separate"`` (see :func:`fit_model`)
+    channels:       ``"joint"`` or ``"separate"`` (:func:`~jaxrefl.measured._data.fit_channels`)
     config:         the fit's configuration (solver, noise, loss; its dtype the one asked for)
     retry:          None, or what the float64 retry found (reasons, costs, which was kept)
     certificate:    how far the starts agree on the optimum (:class:`Certificate` of the
@@ -214,7 +213,6 @@ def fit_model(
     measured: MeasuredBRDF,
     *,
     name: str | None = None,
-    channels: Channels = "joint",
     options: MeasuredOptions = _OPTIONS,
     config: FitConfig = _MEASURED_CONFIG,
     weight: np.ndarray | None = None,
@@ -224,10 +222,9 @@ def fit_model(
 ) -> ModelFit:
     """Fit ``model`` to ``measured`` (module docstring) and compute the error metrics.
 
-    channels:      ``"joint"`` (colour parameters per channel, shared roughness) or
-                   ``"separate"`` (each channel its own problem, e.g. spectral bands)
-    options:       the samples used, what is minimised and the float64 retry
-                   (:class:`MeasuredOptions`: angle limit, cosine residual, retry)
+    options:       the samples and channels used, what is minimised and the float64 retry
+                   (:class:`MeasuredOptions`: angle limit, cosine residual, retry; spectral
+                   data as RGB under an illuminant, fitted jointly, or one problem a band)
     config:        solver, noise, loss and dtype (:class:`jaxrefl.fit.FitConfig`); dtype
                    float32 (default; None means float32 here, the fast one) or float64,
                    which works whether or not JAX runs with x64 enabled (it is switched on
@@ -248,6 +245,7 @@ def fit_model(
     """
     name = name or type(model).__name__
     max_theta_deg, cosine = options.max_theta_deg, options.cosine
+    measured, channels = fit_channels(measured, options)
     ok = usable_samples(measured.wi, measured.wo, measured.values, max_theta_deg)
     data = measured.select(ok)
     w = None if weight is None else np.asarray(weight, dtype=np.float64)[ok]
@@ -262,8 +260,7 @@ def fit_model(
         nested = fit_model(
             inner,
             data,
-            channels=channels,
-            # ``data`` is within the angle limit already.
+            # ``data`` is within the angle limit already (and its channels as fitted here).
             options=replace(options, max_theta_deg=None),
             config=config,
             timing=False,
@@ -431,8 +428,6 @@ def fit_brdf(
     measured: MeasuredBRDF,
     models: Iterable[str] | Mapping[str, BRDF] | None = None,
     *,
-    spectral: Literal["rgb", "bands"] = "rgb",
-    illuminant: Literal["D65", "E"] = "D65",
     options: MeasuredOptions = _OPTIONS,
     config: FitConfig = _MEASURED_CONFIG,
     timing: bool = True,
@@ -440,25 +435,13 @@ def fit_brdf(
     starts: MultiStart | None = _MULTISTART,
 ) -> FitReport:
     """Fit every model in ``models`` (default: :data:`~jaxrefl.measured.DEFAULT_MODELS`) to
-    one material and collect a :class:`FitReport`.
-
-    spectral:   for spectral data (``wavelengths_nm`` set, e.g. Cornell): ``"rgb"`` converts
-                to linear sRGB under ``illuminant`` with the CIE 1931 CMFs (:func:`to_rgb`)
-                and fits the three channels jointly; ``"bands"`` fits every band as its own
-                problem (its own roughness too). Other data is fitted jointly as it is.
-    The other options are those of :func:`fit_model`.
+    one material and collect a :class:`FitReport`. The options are those of :func:`fit_model`
+    (spectral data, e.g. Cornell's: as RGB under ``options.illuminant`` with the CIE 1931
+    CMFs, :func:`to_rgb`, fitted jointly, or one problem a band: ``options.spectral``).
     """
     built = resolve_models(models)
     weight_all = sample_weights(measured)
-    channels: Channels = "joint"
-    data = measured
-    if measured.wavelengths_nm is not None:
-        if spectral == "rgb":
-            data = to_rgb(measured, illuminant)
-        elif spectral == "bands":
-            channels = "separate"
-        else:
-            raise JaxreflError(f"spectral must be 'rgb' or 'bands', not {spectral!r}")
+    data, channels = fit_channels(measured, options)
     max_theta_deg = options.max_theta_deg
     ok = usable_samples(data.wi, data.wo, data.values, max_theta_deg)
     prepared = restrict(data, max_theta_deg)
@@ -479,8 +462,7 @@ def fit_brdf(
             model,
             prepared,
             name=name,
-            channels=channels,
-            # ``prepared`` is within the angle limit already.
+            # ``prepared`` is within the angle limit already, its channels as fitted here.
             options=replace(options, max_theta_deg=None),
             config=config,
             weight=weight,
@@ -489,11 +471,13 @@ def fit_brdf(
             nested=found[0] if found else None,
         )
     fits = {k: fits[k] for k in built}
+    opts = {k: v for k, v in options.to_json().items() if k != "type"}
     settings = {
-        "spectral": spectral if measured.wavelengths_nm is not None else None,
-        "illuminant": illuminant if channels == "joint" and data is not measured else None,
+        # The spectral choice applies to spectral data alone, the illuminant to their RGB.
+        "spectral": options.spectral if measured.wavelengths_nm is not None else None,
+        "illuminant": options.illuminant if data is not measured else None,
         "channels": channels,
-        **{k: v for k, v in options.to_json().items() if k != "type"},
+        **{k: v for k, v in opts.items() if k not in ("spectral", "illuminant")},
         "config": config.to_json(),
         "starts": None if starts is None else starts.to_json(),
     }

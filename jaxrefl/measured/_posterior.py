@@ -32,10 +32,11 @@ import numpy as np
 
 from jaxrefl import fit
 from jaxrefl import posterior as jp
+from jaxrefl._errors import JaxreflError
 from jaxrefl.fit import PixelData
 from jaxrefl.io import MeasuredBRDF
 
-from ._data import load_measured, restrict, to_rgb
+from ._data import fit_channels, load_measured, restrict
 from ._fit import ModelFit, fit_model
 from ._fit_options import MeasuredOptions
 from ._models import build_model
@@ -187,19 +188,26 @@ def sample_posterior(
     starts: MultiStart | None = _MULTISTART,
 ) -> BRDFPosterior:
     """The posterior of ``model`` (a :func:`build_model` name) given ``measured`` (module
-    docstring); spectral data are converted to RGB (:func:`to_rgb`) first.
+    docstring); spectral data are converted to RGB (:func:`to_rgb`, under
+    ``options.illuminant``) first.
 
     measured:      a :class:`jaxrefl.io.MeasuredBRDF`, or a file :func:`load_measured` reads
     sampler:       :class:`jaxrefl.posterior.EmceeOptions` (None: its defaults) or
                    :class:`jaxrefl.posterior.HMCOptions`
     options:       the samples used and the residual (:class:`MeasuredOptions`: the angle
-                   limit, the cosine factor; the fit runs in float64, so no retry)
+                   limit, the cosine factor, the illuminant of spectral data; the fit runs in
+                   float64, so no retry; ``spectral="bands"`` is refused: one posterior is
+                   of one jointly fitted problem)
     seed, progress: the sampler's seed and progress bar (emcee only)
     starts:        the least-squares fit's starts (:class:`MultiStart`; None: one start)
     """
     m = measured if isinstance(measured, MeasuredBRDF) else load_measured(measured)
-    if m.wavelengths_nm is not None:
-        m = to_rgb(m)
+    m, channels = fit_channels(m, options)
+    if channels != "joint":
+        raise JaxreflError(
+            "sample_posterior samples one problem, the channels fitted jointly: use "
+            "MeasuredOptions(spectral='rgb') for spectral data, or select one band"
+        )
     m = restrict(m, options.max_theta_deg)
     sampler = jp.EmceeOptions() if sampler is None else sampler
     brdf = build_model(model)
