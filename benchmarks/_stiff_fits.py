@@ -46,7 +46,8 @@ from jaxrefl.fit import (
     has_estimate,
     pixel_data,
 )
-from jaxrefl.measured import RetryResult, cost64, fit_pixels_retry, x64
+from jaxrefl.measured import RetryResult, fit_pixels_retry
+from jaxrefl.measured._retry import cost64, x64
 
 __all__ = ["STIFF_CASES", "StiffProblem", "StiffRow", "run_stiff", "stiff_problems"]
 

@@ -41,14 +41,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import machine, run_and_record, table  # noqa: E402
 
 from jaxrefl.fit import fit_pixels, pixel_data  # noqa: E402
-from jaxrefl.measured import (  # noqa: E402
-    Components,
-    information,
-    param_space,
-    posterior_std,
-    rank_candidates,
-)
-from jaxrefl.measured._plan import PRIOR_WIDTH  # noqa: E402
+from jaxrefl.measured import Components, information, rank_candidates  # noqa: E402
+from jaxrefl.measured._components import param_space  # noqa: E402
+from jaxrefl.measured._plan import PRIOR_WIDTH, posterior_std  # noqa: E402
 
 START = 3
 

@@ -30,7 +30,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import machine, run_and_record, table
 
 from jaxrefl.fit import FitConfig, LMOptions, fit_pixels, pixel_data
-from jaxrefl.measured import Components, param_space
+from jaxrefl.measured import Components
+from jaxrefl.measured._components import param_space
 
 CONFIG = FitConfig(solver=LMOptions(max_iters=20))
 

@@ -48,6 +48,8 @@ from _common import machine, table, write_section  # noqa: E402
 
 from jaxrefl import fit  # noqa: E402
 from jaxrefl import measured as jm  # noqa: E402
+from jaxrefl.measured._nested import nested_model  # noqa: E402
+from jaxrefl.measured._seeds import random_thetas  # noqa: E402
 
 DATA = Path(os.environ.get("JAXREFL_SHARED_DATA", HERE.parent.parent / "shared" / "data"))
 N_REF = 64
@@ -68,7 +70,7 @@ def _cost(result: fit.FitResult, m) -> float:
 
 def _reference(model, m) -> float:
     space = fit.ParamSpace(model, channels=len(m.channels))
-    thetas = jm.random_thetas(space, N_REF, REF_SEED, sobol=False)
+    thetas = random_thetas(space, N_REF, REF_SEED, sobol=False)
     cfg = fit.FitConfig(solver=fit.LMOptions(max_iters=REF_ITERS), dtype=np.float32)
     r, _, _ = jm.fit_multistart(model, m.wi, m.wo, m.values, config=cfg, thetas=thetas)
     return _cost(r, m)
@@ -177,7 +179,7 @@ def main(argv=None) -> int:
                 (rows if cornell else curet_rows).append(kept[(label, name)])
                 continue
             model = jm.build_model(name)
-            inner = jm.nested_model(model)
+            inner = nested_model(model)
             # As fit-brdf: a nested model starts from the fit of the smaller one (when that
             # row was resumed from --rows, fit_model fits the smaller one itself).
             seed = next((v for v in done.values() if v.model == inner), None)

@@ -11,7 +11,8 @@ import pytest
 
 from jaxrefl.brdf import CookTorrance, Lambert, Sum, directional_albedo
 from jaxrefl.fit import Exp
-from jaxrefl.measured import Components, RetroLobe, param_space, start_from
+from jaxrefl.measured import Components
+from jaxrefl.measured._components import RetroLobe, param_space, start_from
 
 
 def _dirs(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:

@@ -13,6 +13,8 @@ from jaxrefl import fit
 from jaxrefl import measured as jm
 from jaxrefl.brdf import MERL, Ward
 from jaxrefl.io import MeasuredBRDF, write_merl
+from jaxrefl.measured._data import detect_format
+from jaxrefl.measured._metrics import sample_weights
 
 
 def _gonio(k: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -121,7 +123,7 @@ def test_merl_file_from_an_analytic_model(tmp_path):
     write_merl(path, MERL.from_brdf(model, truth, dtype=jnp.float64))
     m = jm.load_measured(path, merl_samples=1500, seed=3)
     assert len(m) == 1500 and m.meta["format"] == "MERL binary"
-    w = jm.sample_weights(m)
+    w = sample_weights(m)
     assert w.std() > 0.1  # cells of unequal solid angle
     cfg = fit.FitConfig(dtype=np.float64)
     rep = jm.fit_brdf(m, ["ggx"], config=cfg, timing=False)
@@ -135,7 +137,7 @@ def test_merl_file_from_an_analytic_model(tmp_path):
 
 def test_curet_needs_a_sample(shared_data):
     path = shared_data / "brdf/curet/abrdf.dat"
-    assert jm.detect_format(path) == "curet"
+    assert detect_format(path) == "curet"
     with pytest.raises(ValueError, match="choose one"):
         jm.load_measured(path)
     m = jm.load_measured(path, curet_sample=15)

@@ -15,7 +15,14 @@ import numpy as np
 from jaxrefl import fit
 from jaxrefl import measured as jm
 from jaxrefl.io import MeasuredBRDF
-from jaxrefl.measured._retry import GAIN_RTOL, cost64, fit_pixels_retry, retry_mask, step_gain
+from jaxrefl.measured._retry import (
+    GAIN_RTOL,
+    cost64,
+    fit_pixels_retry,
+    float64_reasons,
+    retry_mask,
+    step_gain,
+)
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 from _stiff_fits import stiff_problems
@@ -56,7 +63,7 @@ def test_collinear_lights_are_detected_and_redone_in_float64():
     assert one.cost == one.retry["float64_cost"]
     plain = jm.fit_model(pr.model, m, options=replace(opts, retry_float64=False), **kw)
     assert plain.retry is None and plain.dtype == "float32" and plain.cost > one.cost
-    assert jm.float64_reasons(plain.result) == ["status ILL_CONDITIONED"]
+    assert float64_reasons(plain.result) == ["status ILL_CONDITIONED"]
 
 
 def test_exponent_1e4_stopped_short_is_detected_by_the_float64_step():

@@ -15,6 +15,11 @@ from jaxrefl import measured as jm
 from jaxrefl._jsonsafe import report_json
 from jaxrefl.cli._fit_brdf import _with_fresnel
 from jaxrefl.io import MeasuredBRDF
+from jaxrefl.measured._certificate import certify
+from jaxrefl.measured._models import fresnel_name
+from jaxrefl.measured._nested import nested_model, nested_thetas
+from jaxrefl.measured._retry import x64
+from jaxrefl.measured._seeds import random_thetas
 
 ALBEDO = np.array([0.3, 0.2, 0.1])
 # 15 starts: the automatic one, 6 data-driven, 8 quasi-random (one compilation for all).
@@ -80,7 +85,7 @@ def test_certificate_flags_a_bimodal_problem(sharp_ggx):
     space = fit.ParamSpace(model, channels=3)
     broad = {"albedo": ALBEDO, "specular": np.full(3, 0.04), "alpha": 0.05}
     sharp = {**broad, "alpha": 0.0025}
-    with jm.x64():
+    with x64():
         t_broad = np.asarray(space.from_natural(broad, dtype=jnp.float64))
         t_sharp = np.asarray(space.from_natural(sharp, dtype=jnp.float64))
 
@@ -101,15 +106,15 @@ def test_certificate_flags_a_bimodal_problem(sharp_ggx):
 
 
 def test_certify_counts_and_thresholds():
-    c = jm.certify(np.array([10.0, 10.05, 10.2, 20.0, np.nan]), rtol=0.01, min_share=0.5)
+    c = certify(np.array([10.0, 10.05, 10.2, 20.0, np.nan]), rtol=0.01, min_share=0.5)
     assert (c.n_starts, c.n_agree, c.doubtful) == (5, 2, True)
     assert c.excess["failed"] == 1 and c.excess["min"] == pytest.approx(0.02)
     assert c.excess["max"] == pytest.approx(1.0) and c.best_cost == 10.0
     # Round-off of an exact fit (below a millionth of the data's cost) agrees.
-    c = jm.certify(np.array([1e-12, 1e-10, 5.0]), scale=100.0)
+    c = certify(np.array([1e-12, 1e-10, 5.0]), scale=100.0)
     assert c.n_agree == 2
     # Two problems (channels fitted separately): the worse one counts.
-    c = jm.certify(np.array([[1.0, 1.0, 1.0], [1.0, 3.0, 3.0]]), min_share=0.5)
+    c = certify(np.array([[1.0, 1.0, 1.0], [1.0, 3.0, 3.0]]), min_share=0.5)
     assert c.n_agree == 1 and c.doubtful and c.best_cost == 2.0
     with pytest.raises(ValueError, match="min_share"):
         jm.MultiStart(min_share=1.5)
@@ -137,7 +142,7 @@ def test_fresnel_choice_is_selectable_and_in_the_report():
     assert jm.fresnel_variant("beckmann", "dielectric") == ("beckmann_dielectric")
     assert jm.fresnel_variant("ggx_dielectric", "schlick") == "ggx"
     assert jm.fresnel_variant("ward", "dielectric") == "ward"
-    assert jm.fresnel_name(jm.build_model("ward")) is None
+    assert fresnel_name(jm.build_model("ward")) is None
     with pytest.raises(ValueError, match="fresnel"):
         jm.fresnel_variant("ward", "conductor")
     assert _with_fresnel(["lambert", "ggx"], "both") == [
@@ -158,15 +163,15 @@ def test_nested_starts_find_the_second_lafortune_lobe():
     l1, l2 = jm.build_model("lafortune_1"), jm.build_model("lafortune_2")
     f = np.asarray(l2.eval({"albedo": jnp.asarray(ALBEDO), "lobes": jnp.asarray(lobes)}, wi, wo))
     m = MeasuredBRDF(wi, wo, f, ("R", "G", "B"), name="synthetic lafortune_2")
-    assert jm.nested_model(l2) == l1 and jm.nested_model(l1) is None
-    assert jm.nested_model(jm.build_model("ggx")) is None
+    assert nested_model(l2) == l1 and nested_model(l1) is None
+    assert nested_model(jm.build_model("ggx")) is None
     kw = dict(
         config=F64,
         timing=False,
         options=jm.MeasuredOptions(retry_float64=False, max_theta_deg=None),
     )
     one = jm.fit_model(l1, m, starts=STARTS, **kw)
-    with jm.x64():
+    with x64():
         r, cert, costs = jm.fit_multistart(l2, wi, wo, f, config=F64, starts=STARTS,
                                            nested=one.result)  # fmt: skip
     # 15 starts without nesting (automatic, data-driven, quasi-random), then 25 with a new
@@ -179,7 +184,7 @@ def test_nested_starts_find_the_second_lafortune_lobe():
     np.testing.assert_allclose(got[np.argsort(got[:, 3])[::-1]], lobes, rtol=1e-5)
     np.testing.assert_allclose(r.params["albedo"], ALBEDO, rtol=1e-5)
     with pytest.raises(ValueError, match="nested model"):
-        jm.nested_thetas(r.space, l2, {}, wi, wo, f)
+        nested_thetas(r.space, l2, {}, wi, wo, f)
     # fit_brdf fits the one-lobe model first, whatever the order asked, and nests from it
     # (the same compiled programs as above).
     rep = jm.fit_brdf(m, ["lafortune_2", "lafortune_1"], starts=STARTS, **kw)
@@ -205,7 +210,7 @@ def test_continued_and_perturbed_starts_reach_the_best_of_64(shared_data):
     cfg = fit.FitConfig(solver=fit.LMOptions(max_iters=200), dtype=np.float32)
     ref, _, _ = jm.fit_multistart(
         model, m.wi, m.wo, m.values, config=cfg,
-        thetas=jm.random_thetas(space, 64, 1, sobol=False),
+        thetas=random_thetas(space, 64, 1, sobol=False),
     )  # fmt: skip
     d = (jm.predict(ref, m.wi, m.wo) - np.asarray(m.values)) * m.wi[:, 2:3]
     best = float(0.5 * np.sum(d * d))

@@ -6,14 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from jaxrefl.measured import (
-    Components,
-    greedy_design,
-    information,
-    param_space,
-    posterior_std,
-    rank_candidates,
-)
+from jaxrefl.measured import Components, greedy_design, information, rank_candidates
+from jaxrefl.measured._components import param_space
+from jaxrefl.measured._plan import posterior_std
 
 MODEL = Components(lobe="ggx", fresnel=False).build()
 SPACE = param_space(MODEL, 1)

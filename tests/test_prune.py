@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 
 from jaxrefl.fit import FitConfig, LMOptions, Status, pixel_data
-from jaxrefl.measured import Components, compact, prune
+from jaxrefl.measured import Components, prune
+from jaxrefl.measured._compact import compact
 
 TRIALS = 20  # per true model
 K = 48

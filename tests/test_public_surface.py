@@ -37,6 +37,7 @@ REACHABLE = {
         "solve_lower_unrolled",
         "undefined_correlations",
     },
+    "measured": {"fresnel_variant"},
     "svbrdf": {
         "fit_theta",
         "gain_prior",

@@ -29,18 +29,8 @@ material: emcee or HMC after the least-squares fit).
 """
 
 from ._certificate import Certificate as Certificate
-from ._certificate import certify as certify
-from ._compact import REASONS as REASONS
-from ._compact import Compacted as Compacted
-from ._compact import compact as compact
-from ._components import COMPONENT_NAMES as COMPONENT_NAMES
 from ._components import Components as Components
-from ._components import Renamed as Renamed
-from ._components import RetroLobe as RetroLobe
 from ._components import fit_components as fit_components
-from ._components import param_space as param_space
-from ._components import start_from as start_from
-from ._data import detect_format as detect_format
 from ._data import load_measured as load_measured
 from ._data import restrict as restrict
 from ._data import to_rgb as to_rgb
@@ -51,29 +41,15 @@ from ._fit import fit_model as fit_model
 from ._fit import predict as predict
 from ._fit_options import MeasuredOptions as MeasuredOptions
 from ._metrics import METRICS as METRICS
-from ._metrics import cosine_weighted_l2 as cosine_weighted_l2
 from ._metrics import error_metrics as error_metrics
-from ._metrics import log_l2 as log_l2
-from ._metrics import relative_l2 as relative_l2
-from ._metrics import sample_weights as sample_weights
-from ._metrics import usable_samples as usable_samples
 from ._models import DEFAULT_MODELS as DEFAULT_MODELS
-from ._models import FRESNEL_CHOICES as FRESNEL_CHOICES
-from ._models import MODEL_DESCRIPTIONS as MODEL_DESCRIPTIONS
 from ._models import MODEL_NAMES as MODEL_NAMES
 from ._models import build_model as build_model
-from ._models import fresnel_name as fresnel_name
-from ._models import fresnel_variant as fresnel_variant
-from ._models import resolve_models as resolve_models
-from ._nested import nested_model as nested_model
-from ._nested import nested_thetas as nested_thetas
+from ._models import fresnel_variant  # noqa: F401
 from ._plan import Ranking as Ranking
 from ._plan import greedy_design as greedy_design
 from ._plan import information as information
-from ._plan import posterior_std as posterior_std
 from ._plan import rank_candidates as rank_candidates
-from ._plots import in_plane_samples as in_plane_samples
-from ._plots import incidence_angles as incidence_angles
 from ._plots import plot_fit_lobes as plot_fit_lobes
 from ._posterior import BRDFPosterior as BRDFPosterior
 from ._posterior import sample_posterior as sample_posterior
@@ -82,19 +58,50 @@ from ._prune import CRITERIA as CRITERIA
 from ._prune import GroupPruning as GroupPruning
 from ._prune import PruneReport as PruneReport
 from ._prune import PruneStep as PruneStep
-from ._prune import criteria as criteria
-from ._prune import kmeans as kmeans
 from ._prune import measured_pixel_data as measured_pixel_data
 from ._prune import prune as prune
 from ._retry import RetryResult as RetryResult
-from ._retry import cost64 as cost64
 from ._retry import fit_pixels_retry as fit_pixels_retry
-from ._retry import float64_reasons as float64_reasons
-from ._retry import x64 as x64
-from ._seeds import LobeMoments as LobeMoments
-from ._seeds import lobe_moments as lobe_moments
-from ._seeds import random_thetas as random_thetas
-from ._seeds import seed_params as seed_params
-from ._seeds import start_thetas as start_thetas
 from ._start_options import MultiStart as MultiStart
 from ._starts import fit_multistart as fit_multistart
+
+# The public names. fresnel_variant, imported above without ``as``, is a helper of the
+# command line's --fresnel, reachable here for it; every other helper is imported from
+# its module.
+__all__ = [
+    "CRITERIA",
+    "DEFAULT_MODELS",
+    "METRICS",
+    "MODEL_NAMES",
+    "BRDFPosterior",
+    "Certificate",
+    "Components",
+    "FitReport",
+    "GroupPruning",
+    "MeasuredOptions",
+    "ModelFit",
+    "MultiStart",
+    "PruneReport",
+    "PruneStep",
+    "Ranking",
+    "RetryResult",
+    "build_model",
+    "error_metrics",
+    "fit_brdf",
+    "fit_components",
+    "fit_model",
+    "fit_multistart",
+    "fit_pixels_retry",
+    "greedy_design",
+    "information",
+    "load_measured",
+    "measured_pixel_data",
+    "plot_fit_lobes",
+    "predict",
+    "prune",
+    "rank_candidates",
+    "restrict",
+    "sample_posterior",
+    "to_rgb",
+    "write_posterior",
+]
