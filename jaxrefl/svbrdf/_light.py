@@ -29,8 +29,12 @@ Levenberg-Marquardt on the light, a noise scale linear in the prediction
 (:mod:`jaxrefl.svbrdf._light_problem`). Laplace: the covariance of (d, log g) is
 (J^T J + P)^-1 at the optimum, J the whitened profiled residual's Jacobian (its Gauss-Newton
 curvature is the Schur complement of the per-pixel parameters: the light's marginal
-curvature) and P the prior's precision; gains' std by the delta method, g std(log g).
-:func:`light_draws` samples that Gaussian.
+curvature) and P the prior's precision. It holds where the residuals are the noise model's;
+real photos' are not, and the reported covariance is the Laplace's with the offset widened,
+direction by direction, to the spread of its delete-one-photo jackknife where that is wider
+(:mod:`jaxrefl.svbrdf._light_cov`); gains' std by the delta method, g std(log g).
+:func:`light_draws` samples that Gaussian, and the maps' light term
+(:mod:`jaxrefl.svbrdf._light_map`) propagates it.
 
 Kept only where held-out observations support it (``auto``, :func:`estimate_light`): the
 subsample is split into two halves of pixels; for each candidate (``fixed``, ``offset``,
@@ -55,6 +59,7 @@ import numpy as np
 from jaxrefl._errors import JaxreflError
 from jaxrefl._names import LIGHT_CHOICES
 
+from ._light_cov import COVARIANCE, robust_cov
 from ._light_prior import GainPrior, gain_prior
 from ._light_problem import (
     ESTIMATED_OFFSET,
@@ -89,14 +94,20 @@ class LightEstimate:
 
     mode:        what was estimated: ``fixed``, ``offset`` or ``offset+gains``
     asked:       the job's ``light`` (``auto`` or one of the modes)
-    offset_cm:   d (3,), in ``frame``; offset_std_cm its Laplace std (None: fixed)
+    offset_cm:   d (3,), in ``frame``; offset_std_cm its std from ``cov`` (None: fixed)
     photo_gain:  g (K,); photo_gain_std (K,) (0 for a gain not estimated but known from
                  EXIF, its prior's std where held out, None when fixed)
     estimated:   (K,) whether each photo's gain was estimated
     corr:        correlation matrix over ``labels`` (offset x, y, z, then log gains)
     cov:         their covariance (3 + K, 3 + K) (a held-out photo's log gain: its prior
-                 variance, independent of the rest); None when fixed
-    cv_rmse:     held-out RMSE per candidate (``auto``)
+                 variance, independent of the rest): the Laplace's, its offset widened to
+                 the delete-one-photo jackknife's where that is wider
+                 (:mod:`jaxrefl.svbrdf._light_cov`); None when fixed
+    cov_laplace: the Laplace covariance alone, the posterior's if the noise model held
+    cv_rmse:     held-out RMSE per candidate (``auto``), under the shared width
+    model_cv_rmse: held-out RMSE of the job's named model under the estimate ``auto`` kept
+                 and under ``fixed`` (:mod:`jaxrefl.svbrdf._light_check`); empty where not
+                 checked
     why:         one sentence, the form of ``auto``'s
     """
 
@@ -110,7 +121,9 @@ class LightEstimate:
     labels: tuple[str, ...] = ()
     corr: np.ndarray | None = None
     cov: np.ndarray | None = None
+    cov_laplace: np.ndarray | None = None
     cv_rmse: dict[str, float] = field(default_factory=dict)
+    model_cv_rmse: dict[str, float] = field(default_factory=dict)
     why: str = ""
     frame: str = ""
     prior: GainPrior | None = None
@@ -135,7 +148,8 @@ class LightEstimate:
         )
 
     def interval90(self) -> dict[str, list[list[float]]] | None:
-        """Central 90% Laplace intervals of the offset (cm) and gains (log-normal)."""
+        """Central 90% intervals of the offset (cm) and gains (log-normal) of ``cov``'s
+        Gaussian."""
         if self.offset_std_cm is None or self.photo_gain_std is None:
             return None
         lo = self.offset_cm - _Z90 * self.offset_std_cm
@@ -159,6 +173,10 @@ class LightEstimate:
             "frame": self.frame,
             "offset_cm": lst(self.offset_cm),
             "offset_std_cm": lst(self.offset_std_cm),
+            "offset_std_cm_laplace": None
+            if self.cov_laplace is None
+            else lst(np.sqrt(np.diag(self.cov_laplace)[:3])),
+            "covariance": None if self.cov is None else COVARIANCE,
             "photo_gain": lst(self.photo_gain),
             "photo_gain_std": lst(self.photo_gain_std),
             "photo_gain_estimated": None
@@ -169,6 +187,7 @@ class LightEstimate:
             "corr": None if self.corr is None else np.asarray(self.corr).tolist(),
             "why": self.why,
             "cv_rmse": dict(self.cv_rmse),
+            "model_cv_rmse": dict(self.model_cv_rmse),
             "gain_prior": None if self.prior is None else self.prior.as_dict(),
             "noise_model": None
             if self.noise is None
@@ -204,15 +223,22 @@ def _final(problem: LightProblem, mode: str, asked: str, cv: dict, why: str) -> 
     problem.weights = weights
     x0, a = problem.embed(mode)
     x = x0 + a @ theta
-    # Laplace: the whitened J (prior rows included) gives the posterior precision.
-    cov = a @ np.linalg.inv(jac.T @ jac) @ a.T
+    # Laplace (the whitened J, prior rows included, gives the posterior precision), widened
+    # where the photos scatter the estimate more than the noise model allows (._light_cov).
+    rc = robust_cov(problem, mode, theta, jac, weights, ESTIMATED_OFFSET)
     k = problem.k
     held = 3 + np.flatnonzero(~problem.train)
-    if mode == "offset+gains":
-        cov[held, held] = problem.prior.log_std**2
-    # The offset's components not estimated keep their prior (independent of the rest).
-    for i in range(ESTIMATED_OFFSET, 3):
-        cov[i, i] = OFFSET_PRIOR_CM[i] ** 2
+
+    def natural(c_theta):
+        cov = a @ c_theta @ a.T
+        if mode == "offset+gains":
+            cov[held, held] = problem.prior.log_std**2
+        # The offset's components not estimated keep their prior (independent of the rest).
+        for i in range(ESTIMATED_OFFSET, 3):
+            cov[i, i] = OFFSET_PRIOR_CM[i] ** 2
+        return cov
+
+    cov, cov_laplace = natural(rc.cov), natural(rc.laplace)
     std = np.sqrt(np.maximum(np.diag(cov), 0.0))
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = cov / np.outer(std, std)
@@ -231,6 +257,7 @@ def _final(problem: LightProblem, mode: str, asked: str, cv: dict, why: str) -> 
         labels=labels,
         corr=corr,
         cov=cov,
+        cov_laplace=cov_laplace,
         cv_rmse=cv,
         why=why,
         frame=problem.frame,
@@ -332,7 +359,7 @@ def estimate_light(
 
 
 def light_draws(estimate: LightEstimate, n: int, seed=0) -> list[tuple[np.ndarray, np.ndarray]]:
-    """``n`` draws (offset_cm (3,), photo_gain (K,)) of the light from its Laplace posterior:
+    """``n`` draws (offset_cm (3,), photo_gain (K,)) of the light from its posterior:
     (d, log g) ~ N((offset_cm, log photo_gain), ``estimate.cov``) (module docstring), the
     gains log-normal; a held-out photo's gain from its prior. The covariance is singular
     where the gains' geometric mean is fixed (and in ``offset``, which estimates no gain):
