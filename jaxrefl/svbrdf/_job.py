@@ -7,10 +7,10 @@ prediction error. Pixels go through in tiles of ``tile_pixels`` (row-major, the 
 padded), so the working set is one tile whatever the image size; every tile has the same
 shape and reuses one compiled program.
 
-The parts: the job's types (:mod:`._job_types`), the light (:mod:`._light`) and the model
-(:mod:`._auto`) chosen first, one tile fitted (:mod:`._tile_fitter`), the tiles kept on disk
-for resume and shared between processes (:mod:`._tile_store`), and the tiles turned into maps
-and a report (:mod:`._maps`).
+The parts: the job's types (:mod:`._job_types`), the light (:mod:`._light`; checked by a
+named model, :mod:`._light_check`) and the model (:mod:`._auto`) chosen first, one tile
+fitted (:mod:`._tile_fitter`), the tiles kept on disk for resume and shared between
+processes (:mod:`._tile_store`), and the tiles turned into maps and a report (:mod:`._maps`).
 
 Interruption and resume: with an ``out_dir``, each finished tile is written there; a rerun
 with the same job and capture computes only the missing tiles, and a different job or capture
@@ -56,6 +56,7 @@ from jaxrefl.io import map_name
 from ._auto import ModelChoice, choose_model
 from ._job_types import CaptureFit, FitJob
 from ._light import estimate_light
+from ._light_check import check_light
 from ._maps import capture_maps, capture_report, distributed_timings, widen_shared
 from ._tile_fitter import TileFitter
 from ._tile_store import TileStore, fit_tiles, manifest, tile_ranges
@@ -112,6 +113,8 @@ def fit_capture(
     # The light first (the capture as the estimate places it): every model sees the same.
     t_light = time.perf_counter()
     light = estimate_light(capture, job.light, job.holdout, alpha_min=job.alpha_min)
+    # A named model keeps auto's light only where it predicts held-out photos no worse.
+    light = check_light(capture, light, job)
     capture = light.apply(capture)
     light_s = time.perf_counter() - t_light
     choice: ModelChoice | None = None
