@@ -40,8 +40,10 @@ the flash as the capture states it (``FitJob(light="fixed")``), with each estima
 every fold (``offset``, ``offset+gains``: :func:`jaxrefl.svbrdf.estimate_light` on the fold's
 training photos; a held-out photo keeps its prior gain) and with ``light="auto"`` (an
 estimate kept only where the fold's own training photos support it): the held-out RMSE of
-each photo side by side, each against fixed's, the forced offsets with their Laplace std,
-and what each fold's ``auto`` kept. The section is written after each capture.
+each photo side by side, each against fixed's, the forced offsets with their reported std
+(the Laplace's widened to the delete-one-photo jackknife's: :mod:`jaxrefl.svbrdf._light_cov`)
+beside the spread of the folds' offsets, and what each fold's ``auto`` kept (the named model
+checks its estimate: :mod:`jaxrefl.svbrdf._light_check`). The section is written after each capture.
 
     python benchmarks/real_captures.py --light-only [--size 128] [--light-model pooled]
 """
@@ -374,9 +376,24 @@ def _light_fold_loo(cap, model: str, light: str) -> tuple[np.ndarray, list[dict]
 
 
 def _offset(lt: dict) -> str:
-    """A fold's estimated offset in the sample plane, x and y with their Laplace std."""
+    """A fold's estimated offset in the sample plane, x and y with their reported std."""
     o, sd = lt["offset_cm"], lt["offset_std_cm"]
     return f"({o[0]:+.2f} +- {sd[0]:.2f}, {o[1]:+.2f} +- {sd[1]:.2f})"
+
+
+def _spread(lts: list[dict]) -> str:
+    """The folds' offsets against their stds: the jackknife standard error of the offset
+    over the folds (each fold leaves one photo out), beside the folds' mean reported std
+    and mean Laplace std (x and y, cm)."""
+    o = np.asarray([lt["offset_cm"][:2] for lt in lts])
+    g = o.shape[0]
+    jack = np.sqrt((g - 1) / g * np.sum((o - o.mean(0)) ** 2, 0))
+    rep = np.mean([lt["offset_std_cm"][:2] for lt in lts], 0)
+    lap = np.mean([lt["offset_std_cm_laplace"][:2] for lt in lts], 0)
+    return (
+        f"jackknife SE over the folds ({jack[0]:.3f}, {jack[1]:.3f}), mean reported std "
+        f"({rep[0]:.3f}, {rep[1]:.3f}), mean Laplace std ({lap[0]:.3f}, {lap[1]:.3f})"
+    )
 
 
 def light_column(name: str, size: int, model: str, modes: tuple[str, ...] = LIGHT_ROWS) -> str:
@@ -439,13 +456,19 @@ def light_column(name: str, size: int, model: str, modes: tuple[str, ...] = LIGH
         text.append(f"; {note}")
     for m in [m for m in ("offset", "offset+gains") if m in lights]:
         text.append(
-            f"; {label[m]}'s offset (cm, x and y, Laplace std) per fold: "
-            + ", ".join(_offset(lt) for lt in lights[m])
+            f"; {label[m]}'s offset (cm, x and y, reported std: {lights[m][0]['covariance']}) "
+            "per fold: " + ", ".join(_offset(lt) for lt in lights[m]) + f"; {_spread(lights[m])}"
         )
     if "auto" in lights:
         est = [lt for lt in lights["auto"] if lt["mode"] != "fixed"]
         if est:
             text.append("; auto's offset (cm) where kept: " + ", ".join(_offset(lt) for lt in est))
+        checked = [lt for lt in lights["auto"] if lt.get("model_cv_rmse")]
+        vetoed = [lt for lt in checked if lt["mode"] == "fixed"]
+        text.append(
+            f"; {model} checked auto's estimate in {len(checked)} of {k} folds and sent it back "
+            f"to fixed in {len(vetoed)}"
+        )
         text.append(f"; first fold's why: {lights['auto'][0]['why']}")
     return "\n".join(text[:5]) + " " + " ".join(text[5:])
 
