@@ -1,8 +1,10 @@
 """The light's uncertainty carried into an uncertainty map's per-pixel intervals.
 
 The map's posterior is sampled under one light: the fit's estimate (``FitJob.light``,
-:class:`jaxrefl.svbrdf.LightEstimate`). The light itself is known only to its Laplace
-posterior, so each pixel's parameters have a second source of spread: the parameters that
+:class:`jaxrefl.svbrdf.LightEstimate`). The light itself is known only to its reported
+covariance (the Laplace's, its offset widened to the delete-one-photo jackknife's where the
+photos disagree more than the noise model allows: :mod:`jaxrefl.svbrdf._light_cov`), so each
+pixel's parameters have a second source of spread: the parameters that
 would fit the pixel under another draw of the light. To first order (the delta method,
 through the implicit function theorem at the pixel's optimum theta*), a light that changes
 the pixel's predictions by dp moves its optimum by
