@@ -16,7 +16,13 @@ from jaxrefl.svbrdf import FitJob, fit_capture, uncertainty_maps, write_uncertai
 from jaxrefl.svbrdf._data import pixel_block
 from jaxrefl.svbrdf._population import ALPHA_FLOOR_LOG_STD
 from jaxrefl.svbrdf._uncertainty import fit_theta, map_posterior
-from jaxrefl.svbrdf._width_map import TAU_GRID, pixel_widths, population, relax_shared_width
+from jaxrefl.svbrdf._width_map import (
+    TAU_GRID,
+    pixel_widths,
+    population,
+    population_bounds,
+    relax_shared_width,
+)
 
 SIZE = 16
 
@@ -39,6 +45,36 @@ def test_population_recovers_the_centre_and_spread(c, tau):
     c_hat, tau_hat = population(est, var)
     assert c_hat == pytest.approx(c, abs=0.03)
     assert tau_hat == pytest.approx(tau, rel=0.1)
+
+
+def _shrunk_cover(est, var, theta, c, tau):
+    """Share of the normal-normal 90% intervals (module docstring of _width_map) that cover
+    the true log widths ``theta``."""
+    prec = 1.0 / var + tau**-2
+    m = (est / var + c / tau**2) / prec
+    return np.mean(np.abs(m - theta) <= 1.645 / np.sqrt(prec))
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_population_bounds_hold_widths_whose_precision_follows_them(seed):
+    # Narrow lobes seen sharply, wide ones hardly: V_i grows 200x across the widths. The
+    # deconvolved population collapses onto the narrow ones and its intervals miss; the
+    # map's bounds keep 90% intervals near 90%, and stay near it where V_i is independent.
+    rng = np.random.default_rng(seed)
+    theta = rng.uniform(-2.3, -0.5, 4000)
+    var = 0.01 * np.exp(3.0 * (theta + 2.3))
+    est = theta + np.sqrt(var) * rng.standard_normal(theta.size)
+    c_eb, tau_eb = population(est, var)
+    c, tau = population_bounds(est, var, c_eb)
+    assert _shrunk_cover(est, var, theta, c_eb, tau_eb) < 0.7
+    assert 0.85 < _shrunk_cover(est, var, theta, c, tau) < 0.95
+    theta2 = rng.normal(-1.5, 0.3, 4000)
+    var2 = rng.uniform(0.01, 0.2, 4000)
+    est2 = theta2 + np.sqrt(var2) * rng.standard_normal(4000)
+    c2, tau2 = population_bounds(est2, var2, -1.5)
+    assert 0.85 < _shrunk_cover(est2, var2, theta2, c2, tau2) < 0.96
+    # no informing pixel: the shared width at the floor
+    assert population_bounds(np.zeros(3), np.full(3, np.inf), -1.0) == (-1.0, ALPHA_FLOOR_LOG_STD)
 
 
 def test_population_of_one_width_is_narrow_and_of_nothing_is_undefined():
@@ -145,6 +181,9 @@ def test_relaxed_map_widens_inside_the_box_and_adds_the_width(varying):
     np.testing.assert_allclose(out.mean[:, -1], sp.mean)
     np.testing.assert_allclose(out.q95[:, -1], sp.q95)
     assert np.all(out.std[:, :p] >= std[:, :p] - 1e-15)
+    # no wider than the uniform distribution over the box (unless the map was already)
+    box_sd = (np.asarray(lp.space.upper) - np.asarray(lp.space.lower))[:p] / np.sqrt(12.0)
+    assert np.all(out.std[:, :p] <= np.maximum(std[:, :p], box_sd) + 1e-15)
     lo, hi = np.asarray(lp.space.lower), np.asarray(lp.space.upper)
     assert np.all(out.q05[:, :p] >= lo - 1e-12) and np.all(out.q95[:, :p] <= hi + 1e-12)
     assert np.all(out.q05 <= out.q95)

@@ -14,20 +14,20 @@ pixel's own estimate comes from the per-pixel model: a ``ggx_rgb`` fit of the ca
 the same light, whose Laplace approximation gives l_i = log alpha_i-hat with variance V_i
 (the delta method from its ``alpha_std``; V_i = inf where it has none, or where the width
 sits at a bound of its range: a one-sided statement). Given the population, l_i ~ N(c,
-tau^2 + V_i): (c, tau) maximise that marginal likelihood over the pixels (empirical Bayes,
-Efron & Morris 1973; :func:`population`), and each pixel's width is the normal-normal
-posterior
+tau^2 + V_i), and each pixel's width is the normal-normal posterior
 
     log alpha_i | data ~ N(m_i, 1 / P_i),   P_i = 1 / V_i + 1 / tau^2,
     m_i = (l_i / V_i + c / tau^2) / P_i,
 
-plus the shared width's own Laplace variance (the pooled fit's ``alpha_std``). tau is at
-least :data:`jaxrefl.svbrdf._population.ALPHA_FLOOR_LOG_STD` (one material's spread, as the
-per-pixel models' population prior), and at least |c - log alpha_shared| / 1.645: where the
-pooled fit's width and the per-pixel fits' centre disagree, the photos do not pin the
-capture's typical width down, and the population holds both within its 90% range. A pixel no
-photo's highlight reached (V_i = inf) gets the population's width; one that sees its lobe
-its own, shrunk towards the population by its uncertainty.
+plus the shared width's own Laplace variance (the pooled fit's ``alpha_std``). The
+empirical-Bayes (c, tau) maximise the marginal likelihood over the pixels (Efron & Morris
+1973; :func:`population`), but that deconvolution assumes V_i independent of alpha_i, and
+flash photos see narrow lobes sharply and wide ones hardly; so c is the informing pixels'
+median estimate and tau is at least their estimates' robust spread, one material's spread
+(:data:`jaxrefl.svbrdf._population.ALPHA_FLOOR_LOG_STD`) and |c - log alpha_shared| / 1.645
+(:func:`population_bounds` gives the reasons). A pixel no photo's highlight reached (V_i =
+inf) gets the population's width; one that sees its lobe its own, shrunk towards the
+population by its uncertainty.
 
 The other parameters follow their pixel's width. Their values at the per-pixel fit's width
 are that fit's; at the posterior mean m_i they lie, to first order in log alpha, on the line
@@ -63,6 +63,7 @@ __all__ = [
     "WidthSpread",
     "pixel_widths",
     "population",
+    "population_bounds",
     "relax_shared_width",
 ]
 
@@ -188,6 +189,34 @@ def population(
     return c_k, tau_k
 
 
+def population_bounds(est: np.ndarray, var: np.ndarray, shared: float) -> tuple[float, float]:
+    """(c, tau) of the map's width population from the per-pixel estimates ``est`` with
+    variances ``var`` (inf: no information) and the pooled fit's log width ``shared``.
+
+    :func:`population`'s deconvolution assumes each estimate's variance is independent of
+    the width it estimates. Flash photos break that: they see a narrow lobe sharply and a
+    wide one hardly (on a dim or rough capture V_i grows by two orders of magnitude from the
+    narrowest to the widest tercile), so the deconvolved population collapses onto the
+    narrow lobes, and precision weights pull its centre there (the dependence of means on
+    variances of Weinstein et al. 2018, *JASA* 113:698, "Group-linear empirical Bayes
+    estimates for a heteroscedastic normal mean"). So the centre is the informing pixels'
+    median estimate, unweighted, and tau is the largest of: the empirical-Bayes spread; the
+    estimates' own robust spread (1.4826 x their median absolute deviation: no
+    deconvolution, which is the population's spread plus the estimates' noise, an upper
+    bound under independence); one material's spread
+    (:data:`~jaxrefl.svbrdf._population.ALPHA_FLOOR_LOG_STD`); and |c - shared| / 1.645,
+    since two estimates of the typical width that disagree say the photos do not pin it
+    down, and the population holds both within its 90% range. (log ``shared``, the floor)
+    where no pixel informs its width: the population is the shared width."""
+    _c_eb, tau_eb = population(est, var)
+    ok = np.isfinite(est) & np.isfinite(var) & (var > 0)
+    if not ok.any():
+        return float(shared), float(ALPHA_FLOOR_LOG_STD)
+    c = float(np.median(est[ok]))
+    spread = 1.4826 * float(np.median(np.abs(est[ok] - c)))
+    return c, float(max(tau_eb, spread, ALPHA_FLOOR_LOG_STD, abs(c - shared) / _Z95))
+
+
 def pixel_widths(
     cf,
     lp,
@@ -226,13 +255,7 @@ def pixel_widths(
     with np.errstate(divide="ignore", invalid="ignore"):
         v_i = np.where(inside & np.isfinite(a_sd) & (a_sd > 0), (a_sd / a_hat) ** 2, np.inf)
     est = np.log(np.where(a_hat > 0, a_hat, np.nan))
-    c, tau_eb = population(est, v_i)
-    if not np.isfinite(c):
-        c = np.log(alpha)  # no pixel informs its width: the population is the shared width
-    # Two estimates of the capture's typical width (the pooled fit's and the per-pixel
-    # population's centre) that disagree say the data do not pin it down: the spread is
-    # widened to hold both within its 90% range; and never below one material's spread.
-    tau = float(max(tau_eb, ALPHA_FLOOR_LOG_STD, abs(c - np.log(alpha)) / _Z95))
+    c, tau = population_bounds(est, v_i, np.log(alpha))
     prec = np.where(np.isfinite(v_i), 1.0 / v_i, 0.0) + tau**-2
     m = (np.where(np.isfinite(v_i), est / v_i, 0.0) + c / tau**2) / prec
     w = np.where(np.isfinite(v_i), (1.0 / v_i) / prec, 0.0)
@@ -293,7 +316,9 @@ def relax_shared_width(umap, spread: WidthSpread, lower, upper):
     m0 = mean[:, :p]
     m1 = np.clip(m0 + move, lo, hi)
     s0 = std[:, :p]
-    s1 = np.sqrt(s0**2 + extra)
+    # A normal wider than the box says less than the box does: the widened spread stops at
+    # that of the uniform distribution over it (never below the map's own spread).
+    s1 = np.maximum(s0, np.minimum(np.sqrt(s0**2 + extra), (hi - lo) / np.sqrt(12.0)))
     with np.errstate(invalid="ignore", divide="ignore"):
         factor = np.where(s0 > 0, s1 / s0, 1.0)
     q05[:, :p] = np.clip(m1 - (m0 - q05[:, :p]) * factor, lo, hi)
