@@ -111,7 +111,9 @@ def test_population_priors_of_a_grey_capture(grey_capture, monkeypatch):
     none, why = svbrdf.population_priors(cf, svbrdf.capture_model("lambert")[1])
     assert none == {} and "no per-pixel lobe" in why["why"]
     with pytest.raises(ValueError, match="priors must be one of"):
-        svbrdf.uncertainty_maps(cap, priors="uniform")
+        jp.AdaptiveOptions(priors="uniform")
+    with pytest.raises(ValueError, match="priors must be one of"):
+        jp.AdaptiveOptions(priors=0.5)  # type: ignore[arg-type]
     # what it changes on the flagged pixels (those with alpha at its floor among them),
     # sampled as uncertainty_maps samples them
     floor = (cf.maps["misspecified"].reshape(-1) & svbrdf.ModelCheck.ALPHA_AT_FLOOR) != 0

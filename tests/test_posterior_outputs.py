@@ -533,9 +533,9 @@ def test_vectorised_diagnostics_match_arviz():
 
 def test_chunk_folder_resumes_without_sampling_again(lambert, monkeypatch, tmp_path):
     """With ``chunk_dir`` every chunk's draws (both passes) are written as they finish; a
-    rerun reads them and samples nothing, with the same map; another seed, or another box
-    of the parameters, matches none of them (stand-in sampler whose chains disagree on some
-    pixels: a second pass runs)."""
+    rerun reads them and samples nothing, with the same map; another seed, another box of
+    the parameters, or other priors match none of them (stand-in sampler whose chains
+    disagree on some pixels: a second pass runs)."""
     from jaxrefl.posterior import _chunks
 
     lp, data, r, lap = lambert
@@ -581,6 +581,14 @@ def test_chunk_folder_resumes_without_sampling_again(lambert, monkeypatch, tmp_p
     narrow = fit.ParamSpace(m, channels=3, bounds={"albedo": (0.0, 0.99)})
     lp_narrow = jp.log_posterior(m, narrow, fit.GaussianNoise(SIGMA))
     jp.adaptive_uncertainty(lp_narrow, data, th, sd, flag, o, chunk_dir=folder)
+    assert len(calls) == 3
+    # other priors (another posterior): other chunks
+    calls.clear()
+    lp_prior = jp.log_posterior(
+        m, lp.space, fit.GaussianNoise(SIGMA), priors={"albedo": jp.Normal(0.5, 0.3)}
+    )
+    assert repr(lp_prior.priors) != repr(lp.priors)
+    jp.adaptive_uncertainty(lp_prior, data, th, sd, flag, o, chunk_dir=folder)
     assert len(calls) == 3
 
 

@@ -388,6 +388,7 @@ def _run_capture(args, path: Path, opts, dist) -> dict:
         chunk=args.chunk,
         seed=args.seed,
         workers=args.workers,
+        priors=args.priors,
     )
     cap = load_capture(path)
     if args.downsample > 1:
@@ -402,7 +403,6 @@ def _run_capture(args, path: Path, opts, dist) -> dict:
         cap,
         job,
         options,
-        priors=args.priors,
         progress=_progress(args),
         out_dir=args.out,  # the fit's tiles and MCMC chunks as they finish (resume)
         distributed=dist,

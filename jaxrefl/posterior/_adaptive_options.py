@@ -24,11 +24,14 @@ from __future__ import annotations
 import dataclasses
 import enum
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import Any
 
 from jaxrefl._errors import JaxreflError
 from jaxrefl._map_defaults import MAP_AUDIT, MAP_CHUNK, MAP_GIBBS, MAP_SAMPLER
 from jaxrefl._map_defaults import RERUN_RHAT as _RERUN_RHAT
+from jaxrefl._names import PRIOR_SOURCES
 
 from ._options import GibbsOptions, HMCOptions
 
@@ -105,6 +108,11 @@ class AdaptiveOptions:
                  :func:`jaxrefl.posterior._workers.default_workers`);
                  the summaries do not depend on it (chunk i is seeded ``seed + i`` wherever
                  it runs)
+    priors:      a capture map's priors (:func:`jaxrefl.svbrdf.uncertainty_maps`): one of
+                 :data:`jaxrefl._names.PRIOR_SOURCES` (``population``, the default: the
+                 lobe's priors estimated from the pixels Laplace calls reliable;
+                 ``default``: :func:`jaxrefl.posterior.default_priors`), or a mapping of
+                 parameter names to :class:`jaxrefl.posterior.Prior`
     """
 
     mcmc: MCMCPixels = MCMCPixels.FLAGGED
@@ -117,8 +125,18 @@ class AdaptiveOptions:
     seed: int = 0
     keep_samples: bool = True
     workers: int | None = None
+    priors: str | Mapping[str, Any] = PRIOR_SOURCES[0]
 
     def __post_init__(self) -> None:
+        if isinstance(self.priors, str) and self.priors not in PRIOR_SOURCES:
+            raise JaxreflError(
+                f"priors must be one of {PRIOR_SOURCES} or a mapping, not {self.priors!r}"
+            )
+        if not isinstance(self.priors, str | Mapping):
+            raise JaxreflError(
+                f"priors must be one of {PRIOR_SOURCES} or a mapping of parameter names to "
+                f"priors, not {type(self.priors).__name__}"
+            )
         try:
             object.__setattr__(self, "mcmc", MCMCPixels(self.mcmc))
         except ValueError:

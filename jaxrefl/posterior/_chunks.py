@@ -88,14 +88,15 @@ class Chunks:
         firsts = list(range(0, idx.size, size))
         many = jax.process_count() > 1
         mine = set(process_share(list(range(len(firsts)))))
-        # A chunk file belongs to these pixels, starts of this pass, sampler settings and
-        # parameter box only (the draws' theta is in the box's unconstrained coordinates):
-        # its folder carries their fingerprint, so another run's chunks never match.
+        # A chunk file belongs to these pixels, starts of this pass, sampler settings,
+        # priors and parameter box only (the draws' theta is in the box's unconstrained
+        # coordinates): its folder carries their fingerprint, so another run's chunks never
+        # match.
         store = None
         if self.folder is not None:
             space = self.lp.space
             box = (self.lp.labels, tuple(space.lower.tolist()), tuple(space.upper.tolist()))
-            fp = fingerprint(tag, idx, (opts, gibbs), seed, size, box)
+            fp = fingerprint(tag, idx, (opts, gibbs, self.lp.priors), seed, size, box)
             store = open_pass(self.folder, tag, fp)
         bar = None
         if self.progress and jax.process_index() == 0:

@@ -397,7 +397,6 @@ def uncertainty_maps(
     job: FitJob | None = None,
     options: jp.AdaptiveOptions | None = None,
     *,
-    priors: str | Mapping[str, jp.Prior] = "population",
     progress: bool = False,
     out_dir: str | Path | None = None,
     distributed: fit.Distributed | None = None,
@@ -414,11 +413,12 @@ def uncertainty_maps(
               log densities of thousands of observations differ by less than float32's
               resolution between nearby draws. Its ``tile_pixels`` is capped at the pixel
               count (one tile, no padding, for a small capture or crop)
-    options:  :class:`jaxrefl.posterior.AdaptiveOptions` (None: its defaults)
-    priors:   ``"population"`` (default): the lobe's priors estimated from the pixels
-              Laplace calls reliable (:func:`population_priors`); ``"default"``:
-              :func:`jaxrefl.posterior.default_priors`; or priors by parameter name
-              (the defaults for the others)
+    options:  :class:`jaxrefl.posterior.AdaptiveOptions` (None: its defaults), the
+              map's priors included (its ``priors``: ``"population"``, the default, the
+              lobe's priors estimated from the pixels Laplace calls reliable,
+              :func:`population_priors`; ``"default"``:
+              :func:`jaxrefl.posterior.default_priors`; or priors by parameter name, the
+              defaults for the others)
     progress: tqdm bars over the fit's tiles and the MCMC chunks
     out_dir:  where the fit's tiles (``out_dir/fit``) and the MCMC chunks' draws
               (``out_dir/mcmc``) are written as they finish, and read back by a rerun
@@ -454,8 +454,6 @@ def uncertainty_maps(
     if job.dtype != np.float64:
         raise JaxreflError(f"uncertainty_maps needs a float64 FitJob, not {job.dtype}")
     options = jp.AdaptiveOptions() if options is None else options
-    if isinstance(priors, str) and priors not in PRIOR_SOURCES:
-        raise JaxreflError(f"priors must be one of {PRIOR_SOURCES} or a mapping, not {priors!r}")
     if distributed is not None:
         if out_dir is None:
             raise JaxreflError(
@@ -486,7 +484,7 @@ def uncertainty_maps(
         d = ", ".join(f"{v:+.2f}" for v in cf.light.offset_cm)
         say(f"light: {cf.light.mode}, flash offset ({d}) cm ({cf.light.frame})")
     t_pri = time.perf_counter()
-    lp, prior_summary = map_posterior(cf, priors)
+    lp, prior_summary = map_posterior(cf, options.priors)
     t_pri = time.perf_counter() - t_pri
     say(f"priors: {prior_summary.get('source')}, {t_pri:.1f} s")
     # The job's held-out photos stay out of the posterior as they stayed out of the fit
