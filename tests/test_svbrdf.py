@@ -515,6 +515,11 @@ def test_interrupted_run_resumes_without_recomputing(tmp_path):
     assert same.tiles_loaded == 4 and same.tiles_computed == 0 and same.job.compact is False
     with pytest.raises(ValueError, match="different job"):
         svbrdf.fit_capture(cap, replace(job, compact=True), tmp_path)
+    # So are the model choice's settings (FitJob.auto), which the job records whatever its
+    # model: pooled's width where it wins is the selection's.
+    assert manifest["job"]["auto"] == svbrdf.AutoOptions().to_json()
+    with pytest.raises(ValueError, match="different job"):
+        svbrdf.fit_capture(cap, replace(job, auto=svbrdf.AutoOptions(seed=1)), tmp_path)
     # A job with shot noise resumes its own tiles, and refuses the same job with another gain.
     shot_dir = tmp_path / "shot"
     shot_job = replace(job, config=job.config.replace(noise=shot))
