@@ -116,7 +116,7 @@ def test_laplace_std_matches_mcmc(offset_member):
 
 
 def test_light_draws_follow_the_laplace_and_apply(offset_member):
-    """Draws of (offset, gains) from the Laplace posterior: their mean and covariance in
+    """Draws of (offset, gains) from the reported covariance: their mean and covariance in
     (d, log g) match the estimate's, the training gains keep their geometric mean, a held-out
     photo's gain follows its prior, and ``apply`` places each draw's flash."""
     cap = offset_member.capture()
