@@ -60,7 +60,7 @@ def test_reported_std_follows_the_photos_spread_where_the_model_misses(rendered)
     ratio = np.asarray(rep) / np.asarray(lap)
     # never narrower than the Laplace; where the model holds, near it on average over noise
     # draws (one draw's jackknife variance from 9 photos is noisy, about 50% relative, and
-    # floored at the Laplace: on average 1.3 x it over 16 draws of this capture)
+    # floored at the Laplace, so its mean lies above the Laplace's by a fraction of that)
     assert np.all(ratio >= 1.0 - 1e-9), ratio
     assert np.all(ratio.mean(0) < 1.75), ratio
     d = good.as_dict()

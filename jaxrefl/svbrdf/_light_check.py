@@ -1,22 +1,20 @@
 """The light ``auto`` keeps, checked by the model a job names.
 
 ``auto`` (:func:`jaxrefl.svbrdf.estimate_light`) judges the light under one GGX width shared
-by every pixel (the ``pooled`` model's lobe): a score whose predictions of unseen photos stay
-bounded, so that it measures the light. A job that names its model is then fitted with that
-model under the light kept, and a light that helps the shared width can hurt another model:
-on bath_tile (64 x 64, photo 4 held out) the offset the shared width keeps raises per-pixel
-``ggx``'s held-out RMSE from 0.051 to 0.241, its pixels' own lobes, fitted to tails the moved
-flash puts where no training photo showed a highlight, extrapolating wildly into the held-out
-photo. So where the job names a model (not ``auto``, whose choice is scored under the light
-kept) and ``auto`` kept an estimate, that model scores the estimate against the stated
-light by what ``auto``'s model choice scores models with
-(:func:`jaxrefl.svbrdf.choose_model`): leave-one-photo-out over the job's training photos
-on a random pixel sample, each fold's photo predicted by the model fitted on the others
-with the job's settings. The estimate is kept only where the model's held-out RMSE under it
-is not above its RMSE under the stated light; otherwise the light goes back to ``fixed``,
-and ``why`` says so. The held-out photo of each fold is predicted at its prior gain (the
-estimate's gain of a photo comes from that photo: scoring it there would credit the gains
-with what no unseen photo gets), as in ``auto``'s own score.
+by every pixel (the ``pooled`` model's lobe): a score whose predictions of unseen photos
+stay bounded, so that it measures the light. A job that names its model is then fitted with
+that model under the light kept, and what helps the shared width need not help another
+model: a per-pixel lobe fitted to the tails of highlights extrapolates into a highlight no
+training photo showed, and where those blunders fall moves with the light. So where the job
+names a model (not ``auto``, whose choice is scored under the light kept) and ``auto`` kept
+an estimate, that model scores the estimate against the stated light by what ``auto``'s
+model choice scores models with (:func:`jaxrefl.svbrdf.choose_model`): leave-one-photo-out
+over the job's training photos on a random pixel sample, each fold's photo predicted by the
+model fitted on the others with the job's settings. The estimate is kept only where the
+model's held-out RMSE under it is not above its RMSE under the stated light; otherwise the
+light goes back to ``fixed``, and ``why`` says so. The held-out photo of each fold is
+predicted at its prior gain (the estimate's gain of a photo comes from that photo: scoring
+it there would credit the gains with what no unseen photo gets), as in ``auto``'s own score.
 
 The check scores the estimate ``auto`` kept, not the simpler one it kept it over: where the
 model rejects ``offset+gains``, the light is ``fixed``, not ``offset``.

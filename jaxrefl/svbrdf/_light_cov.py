@@ -6,21 +6,22 @@ profiled residuals' Jacobian, P the prior's precision) is the posterior's when t
 residuals are the noise model's: independent, unit variance. On real photos they are not:
 what the model misses (a flash beam that is not isotropic, a surface the BRDF does not
 describe, a photo's own misregistration) is correlated over a photo's pixels, and each photo
-pulls the light its own way by far more than its noise allows (bath_tile, 64 x 64: an
-offset Laplace std of 0.012 cm beside a jackknife standard error over photos of 0.4 to 0.5
-cm). The photo is the unit that misfit comes in, so the spread is measured over photos: the
-delete-one-photo jackknife (Quenouille 1956; Tukey 1958; Efron & Tibshirani 1993, *An
-Introduction to the Bootstrap*, ch. 11; photos as the deleted groups)
+pulls the light its own way by far more than its noise allows (on the real captures the
+offsets of the leave-one-photo-out folds spread tens of times wider than the Laplace std:
+``docs/benchmarks.md``, ``real_captures_light``). The photo is the unit that misfit comes
+in, so the spread is measured over photos: the delete-one-photo jackknife (Quenouille 1956;
+Tukey 1958; Efron & Tibshirani 1993, *An Introduction to the Bootstrap*, ch. 11; photos as
+the deleted groups)
 
     V = (G - 1) / G  sum_k (d_(k) - mean) (d_(k) - mean)^T
 
 over the G training photos, d_(k) the offset's x and y estimated without photo k. Each d_(k)
 is :data:`JACKKNIFE_STEPS` Gauss-Newton steps from the estimate on the same pixels and
 weights with photo k's weight 0, every pixel's width and coefficients profiled again without
-it (the steps reach the re-estimate to a few % of its move on bath_tile; one step, the
-infinitesimal jackknife with the pixels' refit, falls a third short there, and the
-clustered sandwich, which leaves the pixels' refit out, falls short by more: with seven
-parameters a pixel and eight photos, every photo is a point of high leverage). The cost:
+it (on a real capture one step, the infinitesimal jackknife with the pixels' refit, falls
+well short of the full re-estimates' spread, and the clustered sandwich, which leaves the
+pixels' refit out, falls shorter: with seven parameters a pixel and a handful of photos,
+every photo is a point of high leverage). The cost:
 :data:`JACKKNIFE_STEPS` evaluations of the profiled residuals per training photo.
 
 The reported covariance is the wider of L and V in every direction of the offset: with
