@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._auto import SELECTION_PIXELS, photos_needed
+from ._auto import photos_needed
 from ._data import stack_folds, subsample
 from ._job_types import FitJob
 from ._light import LightEstimate, fixed_light
@@ -63,13 +63,14 @@ def _loo_sse(capture, job: FitJob, train: list[int], n_pixels: int, seed: int, g
     return sse, cnt
 
 
-def check_light(capture, estimate: LightEstimate, job: FitJob, *, seed: int = 0) -> LightEstimate:
+def check_light(capture, estimate: LightEstimate, job: FitJob) -> LightEstimate:
     """``estimate`` (``auto``'s, of ``capture`` as its files state the light) where the model
     ``job`` names predicts the training photos held out in turn at least as well under it as
     under the stated light, else the stated light (module docstring). Returned unchanged
     where the job's model is ``auto``, the light was asked for by name, or ``auto`` kept
     ``fixed``; and where the training photos are too few to score the model, with ``why``
-    saying so."""
+    saying so. The pixels are sampled as the model choice samples them (``job.auto``: its
+    pixel count and seed)."""
     if job.model == "auto" or estimate.asked != "auto" or estimate.mode == "fixed":
         return estimate
     k = capture.n_photos
@@ -81,7 +82,8 @@ def check_light(capture, estimate: LightEstimate, job: FitJob, *, seed: int = 0)
             why=f"{estimate.why}; not checked with {job.model}: each leave-one-out fold "
             f"trains on {len(train) - 1} photos and it needs {need}",
         )
-    n_pixels = max(256, SELECTION_PIXELS // len(train))
+    n_pixels = max(256, job.auto.max_pixels // len(train))
+    seed = job.auto.seed
     ones = np.ones(k)
     prior = np.ones(k) if estimate.prior is None else np.exp(estimate.prior.log_mean)
     sse_f, cnt_f = _loo_sse(capture, job, train, n_pixels, seed, ones)
