@@ -102,7 +102,7 @@ def check_light(capture, estimate: LightEstimate, job: FitJob) -> LightEstimate:
     kept = fixed_light(
         capture,
         estimate.asked,
-        f"{estimate.why}; not kept: {account} (the shared width's gain does not carry over "
-        f"to {job.model})",
+        f"{estimate.why}; not kept: {account} (the estimate helps the shared width's "
+        f"predictions, not {job.model}'s)",
     )
     return replace(kept, cv_rmse=estimate.cv_rmse, prior=estimate.prior, model_cv_rmse=rmse)
