@@ -1,6 +1,7 @@
 """Fit a photographed planar capture: per-pixel reflectance maps with uncertainty.
 
     jaxrefl fit CAPTURE_DIR --out OUT_DIR [--model auto|ggx|ggx_rgb|pooled|lambert|...]
+                [--auto-candidates a,b,...] [--auto-pixels N] [--auto-seed N]
                 [--holdout i,j,...|all] [--photos i,j,...] [--tile-pixels N] [--downsample F]
                 [--restart] [--keep-tiles]
 
@@ -14,6 +15,11 @@ the capture; the report numbers photos by their place in the subset, ``capture.s
 lists the subset): the first step of sequential capture planning (``jaxrefl plan``).
 ``--model auto`` (the default) fits the model that best predicts
 held-out training photos (:func:`jaxrefl.svbrdf.choose_model`); the report says which and why.
+``--auto-candidates``, ``--auto-pixels`` and ``--auto-seed`` set that choice's
+:class:`~jaxrefl.svbrdf.AutoOptions` (the models scored, the selection's size and seed; the
+last two also size a named model's check of an estimated ``--light``), each flag not given
+keeping AutoOptions' default; report.json records them (``job.auto``, and ``auto`` where
+the model was chosen).
 
 Writes OUT_DIR/maps.exr (parameters, their Laplace std, correlations, status and
 reliability flags), OUT_DIR/report.json (timings with compile apart, pixel counts by status,
@@ -28,13 +34,27 @@ from __future__ import annotations
 import argparse
 import shutil
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from jaxrefl._errors import JaxreflError
 from jaxrefl._names import CAPTURE_MODELS, LIGHT_CHOICES, LIGHT_DEFAULT, canonical
 
 from ._distributed import add_distributed_arguments, distributed_from_args
 from ._main import check_out_dir, photo_indices, positive_float, positive_int
-from ._options import BACKENDS, DTYPES, LOSSES, NOISES, SHOT_GAIN, SHOT_READ, fit_config
+from ._options import (
+    BACKENDS,
+    DTYPES,
+    LOSSES,
+    NOISES,
+    SHOT_GAIN,
+    SHOT_READ,
+    add_auto_arguments,
+    auto_options,
+    fit_config,
+)
+
+if TYPE_CHECKING:
+    from jaxrefl import svbrdf
 
 HELP = "fit a capture: per-pixel maps, uncertainty, held-out error"
 
@@ -81,6 +101,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="capture model (jaxrefl models NAME describes one); auto: the candidate with the "
         "lowest leave-one-photo-out error over the training photos",
     )
+    add_auto_arguments(p)
     p.add_argument(
         "--holdout",
         type=_indices,
@@ -172,9 +193,26 @@ def resume_hint(args: argparse.Namespace) -> str:
     return f"the tiles done so far are in {args.out / 'tiles'}; run the same command to resume"
 
 
+def fit_job(args: argparse.Namespace) -> svbrdf.FitJob:
+    """The :class:`~jaxrefl.svbrdf.FitJob` the flags give (``--holdout all``: none held out,
+    :func:`jaxrefl.svbrdf.leave_one_out` holds out each photo in turn)."""
+    from jaxrefl.svbrdf import FitJob
+
+    return FitJob(
+        model=args.model,
+        holdout=() if args.holdout == "all" else _subset_holdout(args.photos, args.holdout),
+        tile_pixels=args.tile_pixels,
+        config=fit_config(args.backend, args.dtype, args.noise, args.loss),
+        alpha_min=args.alpha_min,
+        tilt_std=args.tilt_std,
+        light=args.light,
+        auto=auto_options(args.auto_candidates, args.auto_pixels, args.auto_seed),
+    )
+
+
 def run(args: argparse.Namespace) -> int:
     from jaxrefl.io import load_capture
-    from jaxrefl.svbrdf import FitJob, fit_capture, write_outputs
+    from jaxrefl.svbrdf import fit_capture, write_outputs
 
     dist = distributed_from_args(args)
     if dist is not None:
@@ -187,15 +225,7 @@ def run(args: argparse.Namespace) -> int:
         jax.config.update("jax_enable_x64", True)
     check_out_dir(args.out)
     loo_all = args.holdout == "all"
-    job = FitJob(
-        model=args.model,
-        holdout=() if loo_all else _subset_holdout(args.photos, args.holdout),
-        tile_pixels=args.tile_pixels,
-        config=fit_config(args.backend, args.dtype, args.noise, args.loss),
-        alpha_min=args.alpha_min,
-        tilt_std=args.tilt_std,
-        light=args.light,
-    )  # options are checked before any file is read
+    job = fit_job(args)  # options are checked before any file is read
     capture = load_capture(args.capture, resolution=args.resolution, max_photos=args.max_photos)
     if args.photos is not None:
         bad = [i for i in args.photos if i >= capture.n_photos]

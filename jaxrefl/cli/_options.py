@@ -7,18 +7,25 @@ model (``gaussian``: :class:`~jaxrefl.fit.GaussianNoise`, sigma unknown unless g
 ``shot``: :class:`~jaxrefl.fit.ShotNoise`, read and gain 0.002 each unless given, linear
 radiance units); ``--loss`` a robust loss (``l2``, ``huber``, ``cauchy``; none
 given: the library's default); ``--dtype`` the computation dtype (``float32``,
-``float64``).
+``float64``). ``--auto-candidates``, ``--auto-pixels`` and ``--auto-seed`` (``jaxrefl fit``
+and ``jaxrefl sample CAPTURE``) set the model choice's :class:`~jaxrefl.svbrdf.AutoOptions`;
+a flag not given keeps AutoOptions' own default, which is read from the class when the
+command runs rather than restated here (building the parser imports no JAX).
 """
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from jaxrefl._errors import JaxreflError
+from jaxrefl._names import CAPTURE_MODELS, canonical
+
+from ._main import non_negative_int, positive_int
 
 if TYPE_CHECKING:
-    from jaxrefl import fit
+    from jaxrefl import fit, svbrdf
 
 __all__ = [
     "BACKENDS",
@@ -28,6 +35,8 @@ __all__ = [
     "OPTIONAL_BACKENDS",
     "SHOT_GAIN",
     "SHOT_READ",
+    "add_auto_arguments",
+    "auto_options",
     "fit_config",
     "loss_from_flag",
     "noise_from_flags",
@@ -111,3 +120,62 @@ def fit_config(
         loss=loss_from_flag(loss),
         dtype=np.dtype(dtype),
     )
+
+
+def _model_names(text: str) -> tuple[str, ...]:
+    """``--auto-candidates``' names, canonical (checked against the capture models by
+    :func:`auto_options`, whose error lists the valid names)."""
+    names = tuple(canonical(t.strip()) for t in text.split(","))
+    if not all(names) or len(set(names)) != len(names):
+        raise argparse.ArgumentTypeError(
+            f"takes distinct capture model names separated by commas (e.g. lambert,ggx), "
+            f"not {text!r}"
+        )
+    return names
+
+
+def add_auto_arguments(p: argparse.ArgumentParser) -> None:
+    """The model choice's flags (module docstring); None: AutoOptions' own default."""
+    p.add_argument(
+        "--auto-candidates",
+        type=_model_names,
+        default=None,
+        metavar="A,B,...",
+        help="--model auto: the models scored, simplest first (ties go to the first); "
+        "default: jaxrefl.svbrdf.AUTO_CANDIDATES",
+    )
+    p.add_argument(
+        "--auto-pixels",
+        type=positive_int,
+        default=None,
+        metavar="N",
+        help="selection rows (pixels x leave-one-out folds) of --model auto's choice and of "
+        "a named model's check of an estimated light; default: AutoOptions' max_pixels",
+    )
+    p.add_argument(
+        "--auto-seed",
+        type=non_negative_int,
+        default=None,
+        metavar="N",
+        help="seed of those selection pixels; default: AutoOptions' seed",
+    )
+
+
+def auto_options(
+    candidates: tuple[str, ...] | None = None,
+    max_pixels: int | None = None,
+    seed: int | None = None,
+) -> svbrdf.AutoOptions:
+    """The :class:`~jaxrefl.svbrdf.AutoOptions` of the flags given (None: its default); a
+    candidate that is not a capture model is a :class:`JaxreflError` naming the flag and
+    the valid names."""
+    from jaxrefl import svbrdf
+
+    unknown = [m for m in candidates or () if m not in CAPTURE_MODELS]
+    if unknown:
+        raise JaxreflError(
+            f"--auto-candidates: unknown model {', '.join(map(repr, unknown))}; choose from "
+            f"{', '.join(CAPTURE_MODELS)} (jaxrefl models NAME describes one)"
+        )
+    given: dict[str, Any] = {"candidates": candidates, "max_pixels": max_pixels, "seed": seed}
+    return svbrdf.AutoOptions(**{k: v for k, v in given.items() if v is not None})

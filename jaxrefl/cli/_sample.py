@@ -1,7 +1,8 @@
 """Posterior sampling: uncertainty maps of a capture, or the posterior of a measured BRDF.
 
     jaxrefl sample CAPTURE_DIR --out OUT_DIR [--pixels R0:R1,C0:C1] [--downsample F]
-                   [--model auto] [--mcmc flagged|all|none] [--audit 0.02]
+                   [--model auto] [--auto-candidates a,b,...] [--auto-pixels N]
+                   [--auto-seed N] [--mcmc flagged|all|none] [--audit 0.02]
                    [--warmup N] [--samples N] [--chains N] [--gibbs-sweeps N]
                    [--rerun-rhat R] [--priors population|default] [--seed S]
                    [--time-limit SECONDS] [--keep-work] [--quiet]
@@ -11,7 +12,9 @@
 A capture (any layout :func:`jaxrefl.io.load_capture` reads; ``--downsample`` first, then
 the ``--pixels`` crop: rows R0:R1, columns C0:C1) goes through
 :func:`jaxrefl.svbrdf.uncertainty_maps`: the capture job's float64 fit (``--model auto``,
-the default, chooses the model by held-out photos as ``jaxrefl fit`` does), its Laplace std,
+the default, chooses the model by held-out photos as ``jaxrefl fit`` does, under the
+:class:`~jaxrefl.svbrdf.AutoOptions` of ``--auto-candidates``, ``--auto-pixels`` and
+``--auto-seed``), its Laplace std,
 then :func:`jaxrefl.posterior.adaptive_uncertainty` with the
 :class:`~jaxrefl.posterior.AdaptiveOptions` the flags give; every default is the library's
 (:mod:`jaxrefl._map_defaults`: ``AdaptiveOptions()`` and this command make the same map)
@@ -89,7 +92,7 @@ from ._main import (
     positive_float,
     positive_int,
 )
-from ._options import fit_config
+from ._options import add_auto_arguments, auto_options, fit_config
 
 NOT_CONVERGED = 3  # exit status: outputs written, but the draws missed a convergence target
 EMCEE_MAX_STEPS = 30_000  # jaxrefl.posterior.EmceeOptions().max_steps (not imported: no JAX)
@@ -137,6 +140,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="capture model (jaxrefl models NAME describes one); auto (default): the "
         "candidate that best predicts held-out training photos, as jaxrefl fit",
     )
+    add_auto_arguments(p)
     p.add_argument(
         "--light",
         default=LIGHT_DEFAULT,
@@ -355,6 +359,19 @@ def _gibbs(args):
     return dataclasses.replace(UNCERTAINTY_MAP_GIBBS, sweeps=args.gibbs_sweeps)
 
 
+def _job(args):
+    """A capture's fit (:class:`~jaxrefl.svbrdf.FitJob`): float64, with the flags' model,
+    model choice and light."""
+    from jaxrefl import svbrdf
+
+    return svbrdf.FitJob(
+        model=args.model,
+        config=fit_config(dtype="float64"),
+        light=args.light,
+        auto=auto_options(args.auto_candidates, args.auto_pixels, args.auto_seed),
+    )
+
+
 class _Stages:
     """Stage lines on stderr, each with the seconds since the command started."""
 
@@ -374,7 +391,7 @@ def _run_capture(args, path: Path, opts, dist) -> dict:
     from jaxrefl.io import load_capture
 
     stages = _Stages(args.quiet)
-    job = svbrdf.FitJob(model=args.model, config=fit_config(dtype="float64"), light=args.light)
+    job = _job(args)
     options = jp.AdaptiveOptions(
         mcmc=args.mcmc,
         audit=args.audit,
