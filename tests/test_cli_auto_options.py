@@ -36,7 +36,7 @@ def test_the_flags_reach_the_jobs_auto(job_of):
     assert seed_only == svbrdf.AutoOptions(seed=11)
     default = svbrdf.AutoOptions()
     assert job_of(_parse(*base)).auto == default
-    assert default.candidates == svbrdf.AUTO_CANDIDATES
+    assert default.candidates == svbrdf.AUTO_CANDIDATES  # the name --help gives as default
 
 
 @pytest.mark.parametrize("command", ["fit", "sample"])

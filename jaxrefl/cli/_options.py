@@ -150,14 +150,15 @@ def add_auto_arguments(p: argparse.ArgumentParser) -> None:
         default=None,
         metavar="N",
         help="selection rows (pixels x leave-one-out folds) of --model auto's choice and of "
-        "a named model's check of an estimated light; default: AutoOptions' max_pixels",
+        "a named model's check of an estimated light; default: "
+        "jaxrefl.svbrdf.AutoOptions().max_pixels",
     )
     p.add_argument(
         "--auto-seed",
         type=non_negative_int,
         default=None,
         metavar="N",
-        help="seed of those selection pixels; default: AutoOptions' seed",
+        help="seed of those selection pixels; default: jaxrefl.svbrdf.AutoOptions().seed",
     )
 
 
