@@ -78,6 +78,7 @@ from ._residual import Cauchy as Cauchy
 from ._residual import GaussianNoise as GaussianNoise
 from ._residual import GaussianPrior as GaussianPrior
 from ._residual import Huber as Huber
+from ._residual import LevelNoise as LevelNoise
 from ._residual import Loss as Loss
 from ._residual import NoiseModel as NoiseModel
 from ._residual import PixelData as PixelData
@@ -131,6 +132,7 @@ __all__ = [
     "LMState",
     "LaplaceFlag",
     "LaplaceResult",
+    "LevelNoise",
     "Linearisation",
     "Log",
     "Loss",

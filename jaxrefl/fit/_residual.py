@@ -48,6 +48,7 @@ __all__ = [
     "GaussianNoise",
     "GaussianPrior",
     "Huber",
+    "LevelNoise",
     "Loss",
     "NoiseModel",
     "PixelData",
@@ -197,6 +198,17 @@ class NoiseModel(Option):
     def std(self, obs: Float[Array, "K C"]) -> Float[Array, "K C"]:
         raise NotImplementedError
 
+    @property
+    def scale_unknown(self) -> bool:
+        """Whether ``std`` is known only up to a common factor s per problem (pixel), which
+        the Laplace step estimates from the residuals and a posterior samples (Jeffreys)."""
+        return False
+
+    def with_scale(self, sigma: float | Array) -> NoiseModel:
+        """The known noise model whose std is ``sigma`` times this one's (for a scale that
+        is estimated once and then held fixed, e.g. a prior in units of the noise)."""
+        raise JaxreflError(f"{type(self).__name__} has a known scale: nothing to set")
+
 
 def _lift(v: Array, like: Array) -> Array:
     return jnp.broadcast_to(v.reshape((1,) * (like.ndim - v.ndim) + v.shape), like.shape)
@@ -224,6 +236,15 @@ class GaussianNoise(NoiseModel):
         if self.sigma is None:
             return jnp.ones_like(obs)
         return _lift(jnp.asarray(self.sigma, dtype=obs.dtype), obs)
+
+    @property
+    def scale_unknown(self) -> bool:
+        return self.sigma is None
+
+    def with_scale(self, sigma):
+        if self.sigma is not None:
+            return super().with_scale(sigma)
+        return GaussianNoise(sigma=sigma)
 
 
 class ShotNoise(NoiseModel):
@@ -254,6 +275,55 @@ class ShotNoise(NoiseModel):
         var = read * read + gain * jnp.maximum(obs, 0.0)
         # Floor at the dtype's smallest normal: only a traced read = 0 reaches it.
         return jnp.sqrt(jnp.maximum(var, jnp.finfo(obs.dtype).tiny))
+
+
+class LevelNoise(NoiseModel):
+    """A noise-level function of unknown scale: std = s sqrt(1 + gain y + (rel y)^2),
+    y = max(obs, 0), with s unknown per problem (pixel) unless ``scale`` is given.
+
+    The brightness dependence of a camera's noise (Liu et al., "Automatic estimation and
+    removal of noise from a single image", IEEE TPAMI 30(2), 2008, call it the noise level
+    function): photon noise adds variance in proportion to the signal (``gain``), and what
+    scales with the signal itself (flat-field, tone-curve and JPEG errors, a misfit that
+    grows with the highlight) adds std in proportion to it (``rel``). The 1 is the floor
+    (read noise), in units of which gain (1 / obs) and rel (1 / obs) are given; s carries
+    the absolute level, so a capture-wide shape serves pixels of any noise level. As for
+    :class:`ShotNoise`, the std is computed from the observations and fixed during a fit.
+    :func:`jaxrefl.svbrdf.estimate_noise_level` estimates the shape from a capture's
+    residuals. gain = rel = 0 is :class:`GaussianNoise`.
+
+    gain:  variance per unit of y, in floor variances, finite and >= 0; default 0
+    rel:   std per unit of y, in floor stds, finite and >= 0; default 0
+    scale: s when known (a number > 0), None (default): unknown, estimated per problem
+    """
+
+    kind: ClassVar[str] = "level"
+    gain: float | Array = 0.0
+    rel: float | Array = 0.0
+    scale: float | Array | None = None
+
+    def __check_init__(self):
+        check_number("LevelNoise", "gain", self.gain)
+        check_number("LevelNoise", "rel", self.rel)
+        check_number("LevelNoise", "scale", self.scale, positive=True)
+
+    def std(self, obs):
+        y = jnp.maximum(obs, 0.0)  # the sensor's dark level: no negative signal
+        gain = _lift(jnp.asarray(self.gain, dtype=obs.dtype), obs)
+        rel = _lift(jnp.asarray(self.rel, dtype=obs.dtype), obs)
+        shape = jnp.sqrt(1.0 + gain * y + (rel * y) ** 2)
+        if self.scale is None:
+            return shape
+        return shape * _lift(jnp.asarray(self.scale, dtype=obs.dtype), obs)
+
+    @property
+    def scale_unknown(self) -> bool:
+        return self.scale is None
+
+    def with_scale(self, sigma):
+        if self.scale is not None:
+            return super().with_scale(sigma)
+        return LevelNoise(gain=self.gain, rel=self.rel, scale=sigma)
 
 
 # ---------------------------------------------------------------------------- robust losses

@@ -33,7 +33,7 @@ f_r(wi, wo) max(cos theta_i, 0) scale with wi = l and wo carried into each norma
 
 Unknown Gaussian noise scale (``noise_scale=``): sd = s * noise.std, s > 0 sampled as log s
 with prior ``noise_scale`` (default :class:`~jaxrefl.posterior.Jeffreys` when the noise
-model is ``GaussianNoise(sigma=None)``).
+model's scale is unknown: ``GaussianNoise(sigma=None)``, ``LevelNoise(scale=None)``).
 
 Cost: log Phi (``log_ndtr``, an erfc with an asymptotic branch) is most of a gradient's
 cost where it is evaluated on every observation. The censored terms go through one log Phi
@@ -59,7 +59,6 @@ from jaxrefl.brdf import BRDF
 from jaxrefl.fit import (
     Bijection,
     Exp,
-    GaussianNoise,
     Identity,
     Loss,
     NoiseModel,
@@ -293,8 +292,9 @@ def log_posterior(
     priors:      by parameter name; the others get :func:`default_priors`
     light:       a :class:`SphereDirection` to sample the light direction, else None
     noise_scale: prior of an unknown noise scale s, None for a known noise model;
-                 ``"auto"``: :class:`Jeffreys` if ``noise`` is ``GaussianNoise(sigma=None)``
-                 (the fit's default), else known
+                 ``"auto"``: :class:`Jeffreys` if ``noise``'s scale is unknown
+                 (``GaussianNoise(sigma=None)``, the fit's default, or a
+                 :class:`~jaxrefl.fit.LevelNoise` without a scale), else known
     """
     res = make_residual(model, space, noise, loss)
     if not res.space.elementwise:
@@ -305,8 +305,7 @@ def log_posterior(
     if isinstance(noise_scale, str):
         if noise_scale != "auto":
             raise JaxreflError(f"noise_scale must be a Prior, None or 'auto', not {noise_scale!r}")
-        unknown = isinstance(res.noise, GaussianNoise) and res.noise.sigma is None
-        noise_scale = Jeffreys() if unknown else None
+        noise_scale = Jeffreys() if res.noise.scale_unknown else None
     return LogPosterior(res, tuple(pri[b.name] for b in res.space.blocks), light, noise_scale)
 
 

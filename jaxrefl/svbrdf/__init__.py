@@ -67,6 +67,8 @@ from ._light import (
 from ._light import light_draws as light_draws
 from ._models import CAPTURE_MODELS as CAPTURE_MODELS
 from ._models import capture_model as capture_model
+from ._noise_level import NoiseLevel as NoiseLevel
+from ._noise_level import estimate_noise_level as estimate_noise_level
 from ._outputs import predict_photos as predict_photos
 from ._outputs import write_outputs as write_outputs
 from ._plan import Candidates as Candidates
@@ -113,6 +115,7 @@ __all__ = [
     "LightEstimate",
     "ModelCheck",
     "ModelChoice",
+    "NoiseLevel",
     "Plan",
     "PlanOptions",
     "Predictive",
@@ -120,6 +123,7 @@ __all__ = [
     "choose_model",
     "estimate_discrepancy",
     "estimate_light",
+    "estimate_noise_level",
     "fit_capture",
     "hemisphere_candidates",
     "is_colocated",

@@ -8,9 +8,10 @@ padded), so the working set is one tile whatever the image size; every tile has 
 shape and reuses one compiled program.
 
 The parts: the job's types (:mod:`._job_types`), the light (:mod:`._light`; checked by a
-named model, :mod:`._light_check`) and the model (:mod:`._auto`) chosen first, one tile
-fitted (:mod:`._tile_fitter`), the tiles kept on disk for resume and shared between
-processes (:mod:`._tile_store`), and the tiles turned into maps and a report (:mod:`._maps`).
+named model, :mod:`._light_check`) and the model (:mod:`._auto`) chosen first, then the
+noise's shape (:mod:`._noise_level`), one tile fitted (:mod:`._tile_fitter`), the tiles
+kept on disk for resume and shared between processes (:mod:`._tile_store`), and the tiles
+turned into maps and a report (:mod:`._maps`).
 
 Interruption and resume: with an ``out_dir``, each finished tile is written there; a rerun
 with the same job and capture computes only the missing tiles, and a different job or capture
@@ -58,6 +59,7 @@ from ._job_types import CaptureFit, FitJob
 from ._light import estimate_light
 from ._light_check import check_light
 from ._maps import capture_maps, capture_report, distributed_timings, widen_shared
+from ._noise_level import estimate_noise_level, with_noise
 from ._tile_fitter import TileFitter
 from ._tile_store import TileStore, fit_tiles, manifest, tile_ranges
 
@@ -123,6 +125,11 @@ def fit_capture(
         choice = choose_model(capture, job)
         job = replace(job, model=choice.model)
     choose_s = time.perf_counter() - t_choose
+    # The noise's shape with the model known (one tile of the model's, flat noise).
+    t_noise = time.perf_counter()
+    level = estimate_noise_level(capture, job)
+    job = with_noise(job, level)
+    noise_s = time.perf_counter() - t_noise
     fitter = TileFitter(capture, job, pooled=None if choice is None else choice.pooled)
     tiles = tile_ranges(h, w, job.tile_pixels)
     store = None
@@ -154,6 +161,8 @@ def fit_capture(
     report["timings"]["stages_s"] = dict(fitter.stage_s)
     report["timings"]["choose_s"] = choose_s
     report["timings"]["light_s"] = light_s
+    report["timings"]["noise_level_s"] = noise_s
+    report["noise_level"] = level.as_dict()
     report["light"] = light.as_dict()
     if per_process is not None:
         distributed_timings(report, per_process, h * w * len(missing) / len(tiles))

@@ -86,6 +86,11 @@ class FitJob:
                 default): the size rule, stages where the capture has
                 :data:`COMPACT_MIN_PIXELS` pixels or more (:meth:`compacts`);
                 :func:`~jaxrefl.svbrdf.fit_capture` records the value it ran with
+    noise_level: ``auto`` (default): where the noise model is the default flat one and the
+                model is a per-pixel one, a capture-wide noise-level function (std growing
+                with the signal; :func:`jaxrefl.svbrdf.estimate_noise_level`) replaces it if
+                the residuals support it (the report's ``noise_level`` says what and why);
+                ``flat``: keep the flat one
     auto:       how ``auto`` chooses the model (:class:`~jaxrefl.svbrdf.AutoOptions`: the
                 candidates, the selection's pixel count and seed); recorded with the job
                 whatever the model, since ``pooled``'s shared width where it wins is the
@@ -101,8 +106,13 @@ class FitJob:
     light: str = LIGHT_DEFAULT
     compact: bool | None = None
     auto: AutoOptions = field(default_factory=AutoOptions)
+    noise_level: str = "auto"
 
     def __post_init__(self) -> None:
+        if self.noise_level not in ("auto", "flat"):
+            raise JaxreflError(
+                f"FitJob.noise_level must be 'auto' or 'flat', not {self.noise_level!r}"
+            )
         if self.light not in LIGHT_CHOICES:
             raise JaxreflError(
                 f"FitJob.light must be one of {', '.join(LIGHT_CHOICES)}, not {self.light!r}"
@@ -161,6 +171,7 @@ class FitJob:
             "light": self.light,
             "compact": self.compact,
             "auto": self.auto.to_json(),
+            "noise_level": self.noise_level,
         }
 
 

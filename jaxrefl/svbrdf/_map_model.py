@@ -18,10 +18,13 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
+from jaxrefl import fit
+
 from ._check import NEAR
 from ._job import CaptureFit, fit_capture
+from ._tile_fitter import traced_noise
 
-__all__ = ["WIDEN_SHARE", "WIDER", "map_model", "model_choice"]
+__all__ = ["WIDEN_SHARE", "WIDER", "map_model", "map_noise", "model_choice", "noise_text"]
 
 #: Models whose fit may pile against a cap that another candidate lifts -> that candidate.
 WIDER: dict[str, str] = {"ggx": "ggx_rgb"}
@@ -81,3 +84,24 @@ def map_model(
     choice["model"] = cf.job.model
     choice["capped_share_after"] = model_choice(cf, wider)["capped_share"]
     return cf, choice
+
+
+def map_noise(cf: CaptureFit) -> fit.NoiseModel:
+    """The map's noise model: the fit's noise-level function where it kept one
+    (:func:`jaxrefl.svbrdf.estimate_noise_level`), else Gaussian; of unknown scale per
+    pixel either way (Jeffreys prior)."""
+    noise = cf.job.config.noise
+    if isinstance(noise, fit.LevelNoise) and noise.scale_unknown:
+        return traced_noise(noise, np.dtype(cf.job.dtype))
+    return fit.GaussianNoise(None)
+
+
+def noise_text(noise: fit.NoiseModel) -> str:
+    """The report's ``noise``: the map's noise model in words."""
+    if isinstance(noise, fit.LevelNoise):
+        return (
+            "Gaussian, std s sqrt(1 + gain y + (rel y)^2) with the capture's noise-level "
+            f"function (gain {float(noise.gain):.4g}, rel {float(noise.rel):.4g}; the fit's "
+            "noise_level), unknown scale s per pixel (Jeffreys prior)"
+        )
+    return "Gaussian, unknown scale per pixel (Jeffreys prior)"

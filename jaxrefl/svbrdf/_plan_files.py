@@ -51,7 +51,7 @@ _CRITERION = {
     "information": "expected information gain about the fit's parameters, "
     "0.5 ln det(I + Sigma F) in nats",
 }
-_NOISES = {"gaussian": fit.GaussianNoise, "shot": fit.ShotNoise}
+_NOISES = {"gaussian": fit.GaussianNoise, "shot": fit.ShotNoise, "level": fit.LevelNoise}
 _LOSSES = {"l2": fit.L2, "huber": fit.Huber, "cauchy": fit.Cauchy}
 
 

@@ -140,15 +140,15 @@ def _fit_noise(capture_fit: CaptureFit, noise_std: np.ndarray):
     """(noise model of the fit's residual, whether the Laplace step estimated its scale)."""
     job, noise = capture_fit.job, capture_fit.job.config.noise
     pooled = capture_fit.extra.get("pooled")
-    unknown = isinstance(noise, fit.GaussianNoise) and noise.sigma is None
+    unknown = noise.scale_unknown
     if unknown and pooled is not None and pooled.alpha is not None:
         # An array, not a float: equinox's jit would compile again for every value.
-        return fit.GaussianNoise(sigma=jnp.asarray(float(pooled.sigma))), False
+        return noise.with_scale(jnp.asarray(float(pooled.sigma))), False
     if unknown and job.model in TWO_STAGE:
         # The tilted fit's scale: one value for the capture (empirical Bayes), in the map.
         good = noise_std[np.isfinite(noise_std) & (noise_std > 0)]
         sigma = float(np.median(good)) if good.size else 1.0
-        return fit.GaussianNoise(sigma=jnp.asarray(sigma)), False
+        return noise.with_scale(jnp.asarray(sigma)), False
     return noise, True
 
 

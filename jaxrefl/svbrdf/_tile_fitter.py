@@ -36,7 +36,7 @@ from ._pooled import PoolChoice, choose_pooled
 from ._score_test import score_test
 from ._shared import width_terms as shared_width_terms
 
-__all__ = ["STAGES", "TILT_STARTS", "TileFitter", "extend_start"]
+__all__ = ["STAGES", "TILT_STARTS", "TileFitter", "extend_start", "traced_noise"]
 
 # The stages of a tile, in order (the report's ``timings.stages_s``).
 STAGES = ("read", "fit", "laplace", "errors", "write")
@@ -94,18 +94,18 @@ class TileFitter:
             alpha_min=self.alpha_min,
             alpha=None if self.pooled is None else self.pooled.alpha,
         )
-        self.noise: fit.NoiseModel = job.config.noise
+        self.noise: fit.NoiseModel = traced_noise(job.config.noise, job.dtype)
         self.prior = None
         self.known_noise = None  # noise variance the Laplace step takes as known
         if self.pooled is not None and self.pooled.alpha is not None:
             # The F0 prior is in noise units: the noise scale is the selection's estimate
             # unless the job gives one (a prior's scale is tied to the noise scale).
-            if isinstance(self.noise, fit.GaussianNoise) and self.noise.sigma is None:
+            if self.noise.scale_unknown:
                 # An array, not a float: equinox's jit would treat a float as static and
                 # compile again for every capture or leave-one-out fold.
                 assert self.pooled.sigma is not None  # choose_pooled sets it with alpha
                 sigma = jnp.asarray(self.pooled.sigma, job.dtype)
-                self.noise = fit.GaussianNoise(sigma=sigma)
+                self.noise = self.noise.with_scale(sigma)
                 self.known_noise = float(self.pooled.sigma) ** 2
             chans = [
                 lab.split(".", 1)[1] for lab in self.space.labels if lab.startswith("specular.")
@@ -164,8 +164,7 @@ class TileFitter:
         two-stage model's first-stage median under Gaussian noise of unknown scale)."""
         if self.known_noise is not None:
             return False
-        two_stage_sigma = isinstance(self.noise, fit.GaussianNoise) and self.noise.sigma is None
-        return not (self.first is not None and two_stage_sigma)
+        return not (self.first is not None and self.noise.scale_unknown)
 
     def data(self, start: int, stop: int):
         return pixel_block(self.capture, start, stop, self.job.tile_pixels, dtype=self.job.dtype)
@@ -200,7 +199,7 @@ class TileFitter:
         the median over the pixels of the flat fit's estimated noise scale (empirical Bayes:
         the slopes' prior is in noise units); a known noise model is kept as it is."""
         noise = self.noise
-        if not (isinstance(noise, fit.GaussianNoise) and noise.sigma is None):
+        if not noise.scale_unknown:
             return noise, None, None
         assert self.first is not None  # called for two-stage models only
         model1, space1 = self.first
@@ -211,7 +210,7 @@ class TileFitter:
         sigma = float(np.sqrt(np.median(s2))) if s2.size else 1.0
         # An array, not a float: equinox's jit treats a float as static, and a new value in
         # every tile or fold would compile the tilted fit again.
-        noise = fit.GaussianNoise(sigma=jnp.asarray(sigma, fit_data.obs.dtype))
+        noise = noise.with_scale(jnp.asarray(sigma, fit_data.obs.dtype))
         return noise, sigma, s2_all
 
     def _tilt_prior(self) -> fit.GaussianPrior:
@@ -326,6 +325,16 @@ def extend_start(r1, space, dtype, tilt) -> np.ndarray:
 
 # The fields of a fit result that go with each pixel's candidate (beside its cost).
 _PER_PIXEL = ("params", "theta", "status", "iterations", "n_used")
+
+
+def traced_noise(noise: fit.NoiseModel, dtype) -> fit.NoiseModel:
+    """``noise`` with a capture's estimated shape (:class:`~jaxrefl.fit.LevelNoise`) as
+    arrays: equinox's jit treats a float as static and would compile the tile program again
+    for every capture's value."""
+    if isinstance(noise, fit.LevelNoise) and noise.scale is None:
+        gain, rel = jnp.asarray(noise.gain, dtype), jnp.asarray(noise.rel, dtype)
+        return fit.LevelNoise(gain=gain, rel=rel)
+    return noise
 
 
 def _keep_lower(a, b):

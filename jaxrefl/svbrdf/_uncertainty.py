@@ -55,7 +55,7 @@ from ._job import CaptureFit, FitJob, fit_capture, map_name
 from ._light_map import light_spread, widen_for_light
 
 # WIDEN_SHARE, WIDER: the names this module's docstrings refer to
-from ._map_model import WIDEN_SHARE, WIDER, map_model  # noqa: F401
+from ._map_model import WIDEN_SHARE, WIDER, map_model, map_noise, noise_text  # noqa: F401
 from ._models import capture_model
 from ._population import population_priors
 from ._uncertainty_plots import write_uncertainty_plots
@@ -73,7 +73,6 @@ __all__ = [
     "write_uncertainty",
 ]
 
-NOISE = "Gaussian, unknown scale per pixel (Jeffreys prior)"
 _NOISE_START = 1e-2  # the chains' starting noise scale where the fit gave none
 _PPC_DRAWS = 50  # posterior predictive draws per MCMC pixel in posterior.nc
 LOG_LIKELIHOOD_MAX = 20_000_000  # pointwise log-likelihood values in posterior.nc (float32: 80 MB)
@@ -185,7 +184,7 @@ class CaptureUncertainty:
             "model": self.model,
             "height": self.height,
             "width": self.width,
-            "noise": NOISE,
+            "noise": noise_text(lp.residual.noise),
             "priors": {b.name: repr(p) for b, p in zip(lp.space.blocks, lp.priors, strict=True)},
             "prior_source": dict(self.prior_summary),
             # the posterior's box in natural units (posterior_space: alpha's floor may lie
@@ -376,7 +375,7 @@ def map_posterior(
 ) -> tuple[jp.LogPosterior, dict[str, Any]]:
     """(log-posterior, where its priors came from) of a capture fit's pixels, as
     :func:`uncertainty_maps` samples it: the model and space of :func:`posterior_space`,
-    Gaussian noise of unknown scale per pixel, and ``priors`` as there (``"population"``,
+    noise of unknown scale per pixel (:func:`map_noise`), and ``priors`` as there (``"population"``,
     ``"default"`` or a mapping by parameter name). Its starting points and Laplace std are
     :func:`fit_theta` and :func:`laplace_theta_std` in ``lp.space``."""
     if isinstance(priors, str) and priors not in PRIOR_SOURCES:
@@ -389,7 +388,7 @@ def map_posterior(
         )
     else:
         chosen, prior_summary = dict(priors), {"source": "given"}
-    return jp.log_posterior(model, space, fit.GaussianNoise(None), priors=chosen), prior_summary
+    return jp.log_posterior(model, space, map_noise(cf), priors=chosen), prior_summary
 
 
 def uncertainty_maps(
