@@ -27,6 +27,31 @@ photos cannot tell apart from them (as the stated power and the gains' common fa
 the maps are conditional on it, as on those. The draws in ``posterior.nc`` stay conditional
 on the estimated light; ``uncertainty.exr`` holds the widened summaries, and the result's
 ``light_std`` the light's share, per pixel and parameter.
+
+Which light term a map carries (:func:`map_term`; ``report.json`` ``light.map_term``):
+
+* ``estimate``: the fit's light is an estimate (``offset``, ``offset+gains``): draws from
+  its covariance around it, the spread taken about the draws' mean, as above.
+* ``fixed: lens-position spread``: ``auto`` kept the stated light (``fixed``) after scoring
+  the candidates. Keeping ``fixed`` says only that the held-out photos did not support
+  moving the flash, not that it sits at the lens (a phone's flash is 0.5-1.5 cm from it),
+  so the map still carries the light's uncertainty about the lens position. The photos'
+  own account of the offset is the ``offset`` estimate (:func:`jaxrefl.svbrdf.estimate_light`
+  with ``offset``, its reported covariance C: the same subsample, seed and held-out photos
+  as ``auto``'s score), computed again for the map. Its draws come from the mixture of the
+  two models ``auto`` could not tell apart, with equal weights: the flash at the lens
+  (d = 0) and the flash at the estimate mu (d ~ N(mu, C)). The spread is the second moment
+  of the moves about the map's centre, the fit under d = 0 (the draws at d = 0 move
+  nothing): 1/2 E[move^2] over N(mu, C). A zero-mean N(0, C) would be the other choice; it
+  is not the honest one: C says how well the photos pin the offset where it is estimated,
+  and where mu lies far from 0 in units of C (on a generated capture, an offset of
+  1.5 cm estimated at 1.55 +- 0.09 cm) N(0, C) gives the estimate itself no weight and
+  widens nothing. Where the flash is at the lens, mu is within C of 0 and both choices add
+  next to nothing. The gains stay the stated ones (``fixed`` has no gains), the offset's
+  z its prior's, as above.
+* ``none``: the light was given, not estimated: ``FitJob.light="fixed"`` (the user stated
+  the light: the map is conditional on it), a capture with directional lights, or too few
+  training photos for ``auto`` to score the light.
 """
 
 from __future__ import annotations
@@ -40,10 +65,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._data import pixel_block
-from ._light import light_draws
+from ._light import estimate_light, light_draws
 from ._light_problem import ESTIMATED_OFFSET
 
-__all__ = ["LIGHT_DRAWS", "light_spread", "widen_for_light"]
+__all__ = ["LIGHT_DRAWS", "MAP_TERMS", "light_spread", "map_term", "widen_for_light"]
 
 #: Draws of the light over which its spread is taken: the std of a std from n draws has a
 #: relative error of about 1 / sqrt(2 n), 13% at 32, small beside a std's own uncertainty.
@@ -52,6 +77,8 @@ LIGHT_DRAWS = 32
 # direction of theta is unseen (a lobe no photo saw); such a direction gets no light spread
 # from it, as it has no optimum to move.
 _RIDGE = 1e-9
+#: The light terms a map can carry (module docstring), as ``report.json`` names them.
+MAP_TERMS = ("estimate", "fixed: lens-position spread", "none")
 
 
 @eqx.filter_jit
@@ -83,29 +110,72 @@ def _moves(residual, theta, data0, data, jac, w, chol):
     return jax.vmap(pixel)(theta, data0, data, jac, w, chol)
 
 
+def map_term(light) -> str:
+    """The light term (:data:`MAP_TERMS`, module docstring) that a map of a fit under
+    ``light`` carries: its :class:`jaxrefl.svbrdf.LightEstimate`, None for the light as
+    the capture states it."""
+    if light is None:
+        return MAP_TERMS[2]
+    if light.mode != "fixed":
+        return MAP_TERMS[0] if light.cov is not None else MAP_TERMS[2]
+    # auto kept the stated light after scoring the candidates (cv_rmse holds their scores)
+    if light.asked == "auto" and light.cv_rmse:
+        return MAP_TERMS[1]
+    return MAP_TERMS[2]
+
+
+def _held(cov: np.ndarray) -> np.ndarray:
+    """``cov`` with the offset's components past ``ESTIMATED_OFFSET`` zeroed: they change
+    every photo's irradiance nearly alike, a common scale of the maps (as the stated power
+    and the gains' common factor are), on which the maps are conditional."""
+    cov = np.array(cov, np.float64)
+    cov[ESTIMATED_OFFSET:3, :] = 0.0
+    cov[:, ESTIMATED_OFFSET:3] = 0.0
+    return cov
+
+
+def _lens_estimate(cf, capture):
+    """The ``offset`` estimate of ``capture`` for a fit whose ``auto`` kept ``fixed``, with
+    the stated gains and a covariance over the estimated offset alone (module docstring);
+    None where it has no covariance."""
+    job = cf.job
+    est = estimate_light(capture, "offset", job.holdout, alpha_min=job.alpha_min)
+    if est.cov is None:
+        return None
+    cov = np.zeros_like(est.cov)
+    cov[:3, :3] = est.cov[:3, :3]
+    return replace(est, cov=_held(cov), photo_gain=np.ones(capture.n_photos))
+
+
 def light_spread(
     cf, lp, data, capture, theta: np.ndarray, n_draws: int = LIGHT_DRAWS, seed: int = 0
 ) -> np.ndarray | None:
     """(N, P) the light's variance of each pixel's fitted parameters in natural units
     (module docstring), for the map's model parameters in the order of its space; None where
-    the fit's light is the stated one (``fixed``: nothing to propagate).
+    the map carries no light term (:func:`map_term` ``none``).
 
-    cf:      the capture fit (:class:`jaxrefl.svbrdf.CaptureFit`; its ``light`` and holdout)
+    ``estimate``: the variance of the moves over draws of the fit's light. ``fixed:
+    lens-position spread``: their second moment about the fit under the stated light over
+    the mixture of d = 0 and the ``offset`` estimate (``n_draws // 2`` draws at the lens,
+    which move nothing, the rest from the estimate).
+
+    cf:      the capture fit (:class:`jaxrefl.svbrdf.CaptureFit`; its ``light``, job, holdout)
     lp:      the map's log-posterior (its residual: model, space and noise model)
-    data:    (N pixels) the map's data, under the estimated light
+    data:    (N pixels) the map's data, under the fit's light
     capture: the capture as its files state the light
     theta:   (N, P) the fit's optimum in ``lp``'s space; pixels without a finite one get NaN
     """
-    est = cf.light
-    if est is None or est.cov is None or n_draws < 2:
+    term = map_term(cf.light)
+    if term == MAP_TERMS[2] or n_draws < 2:
         return None
-    # Only what the photos estimated moves: the offset's components held at their prior
-    # change every photo's irradiance nearly alike, a common scale of the maps (as the
-    # stated power and the gains' common factor are), on which the maps are conditional.
-    cov = np.array(est.cov, np.float64)
-    cov[ESTIMATED_OFFSET:3, :] = 0.0
-    cov[:, ESTIMATED_OFFSET:3] = 0.0
-    est = replace(est, cov=cov)
+    if term == MAP_TERMS[0]:
+        est = replace(cf.light, cov=_held(cf.light.cov))
+        draws = light_draws(est, n_draws, seed)
+    else:
+        est = _lens_estimate(cf, capture)
+        if est is None:
+            return None
+        draws = light_draws(est, n_draws - n_draws // 2, seed)
     n = theta.shape[0]
     ok = np.all(np.isfinite(theta), -1)
     t = jnp.asarray(np.where(ok[:, None], theta, 0.0))
@@ -114,14 +184,17 @@ def light_spread(
     jac, w, chol = _gauss_newton(lp.residual, t, data)
     total = np.zeros(theta.shape)
     square = np.zeros(theta.shape)
-    for off, gain in light_draws(est, n_draws, seed):
+    for off, gain in draws:
         lit = est.apply(capture, off, gain)
         moved = pixel_block(lit, 0, n, photos=train, dtype=np.float64)
         move = np.asarray(_moves(lp.residual, t, data, moved, jac, w, chol))
         total += move
         square += move**2
-    mean = total / n_draws
-    var_theta = np.maximum(square / n_draws - mean**2, 0.0) * n_draws / (n_draws - 1)
+    if term == MAP_TERMS[0]:
+        mean = total / n_draws
+        var_theta = np.maximum(square / n_draws - mean**2, 0.0) * n_draws / (n_draws - 1)
+    else:
+        var_theta = square / n_draws  # about the map's centre; the lens draws add 0
     slope = np.asarray(lp.space.dnatural(t))
     var = var_theta * slope**2
     var[~ok] = np.nan

@@ -52,7 +52,7 @@ from jaxrefl.fit import PixelData
 
 from ._data import pixel_block
 from ._job import CaptureFit, FitJob, fit_capture, map_name
-from ._light_map import light_spread, widen_for_light
+from ._light_map import MAP_TERMS, light_spread, map_term, widen_for_light
 
 # WIDEN_SHARE, WIDER: the names this module's docstrings refer to
 from ._map_model import WIDEN_SHARE, WIDER, map_model, map_noise, noise_text  # noqa: F401
@@ -99,7 +99,7 @@ class CaptureUncertainty:
     time_limit_s: the time limit the map was made under (None: none)
     light_std: (N, P) the estimated light's share of each pixel's std over the model's
                parameters (:mod:`jaxrefl.svbrdf._light_map`: ``map``'s std, q05 and q95
-               include it); None where the light is the stated one
+               include it); None where the map carries no light term (._light_map)
     width_spread: ``pooled``: each pixel's own width around the shared one
                (:class:`jaxrefl.svbrdf._width_map.WidthSpread`: ``map`` includes it and
                has ``alpha`` as its last column); None for the other models
@@ -202,7 +202,11 @@ class CaptureUncertainty:
             },
             "model_choice": dict(self.model_choice),
             # the flash the posterior was sampled under (FitJob.light; the fit's estimate)
-            "light": self.fit.report.get("light"),
+            # and the light term its intervals carry (._light_map: map_term; none: no light_std)
+            "light": {
+                **(self.fit.report.get("light") or {}),
+                "map_term": MAP_TERMS[2] if self.light_std is None else map_term(self.fit.light),
+            },
             "light_std": self.light_std_summary(),
             # pooled: the per-pixel widths around the shared one (._width_map)
             "width_spread": None if self.width_spread is None else self.width_spread.summary(),
@@ -533,14 +537,16 @@ def uncertainty_maps(
             f"{time.perf_counter() - t_width:.1f} s"
         )
     t_width = time.perf_counter() - t_width
-    # The light's own uncertainty widens every pixel's intervals (._light_map).
+    # The light's own uncertainty widens every pixel's intervals (._light_map), also where
+    # auto kept the stated light (its lens-position spread); not where the user stated it.
     t_light = time.perf_counter()
     var = light_spread(cf, lp, data, capture, theta0, seed=options.seed)
     light_std = None
     if var is not None:
         umap, light_std = widen_for_light(umap, var, lp.space.lower, lp.space.upper)
         spent = time.perf_counter() - t_light
-        say(f"light: its uncertainty carried into the intervals, {spent:.1f} s")
+        term = map_term(cf.light)
+        say(f"light: its uncertainty ({term}) carried into the intervals, {spent:.1f} s")
     t_light = time.perf_counter() - t_light
     return CaptureUncertainty(
         fit=cf,
