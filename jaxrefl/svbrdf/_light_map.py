@@ -44,11 +44,11 @@ Which light term a map carries (:func:`map_term`; ``report.json`` ``light.map_te
   of the moves about the map's centre, the fit under d = 0 (the draws at d = 0 move
   nothing): 1/2 E[move^2] over N(mu, C). A zero-mean N(0, C) would be the other choice; it
   is not the honest one: C says how well the photos pin the offset where it is estimated,
-  and where mu lies far from 0 in units of C (on a generated capture, an offset of
-  1.5 cm estimated at 1.55 +- 0.09 cm) N(0, C) gives the estimate itself no weight and
-  widens nothing. Where the flash is at the lens, mu is within C of 0 and both choices add
-  next to nothing. The gains stay the stated ones (``fixed`` has no gains), the offset's
-  z its prior's, as above.
+  and where mu lies many of C's stds from 0 (a flash 1-1.5 cm off, pinned to a millimetre)
+  N(0, C) gives the estimate itself no weight and widens by C alone, far less than the
+  move to the estimate that the photos allow. Where mu is within C of 0 (a flash at the
+  lens) the two choices differ little. The gains stay the stated ones (``fixed`` has no
+  gains), the offset's z its prior's, as above.
 * ``none``: the light was given, not estimated: ``FitJob.light="fixed"`` (the user stated
   the light: the map is conditional on it), a capture with directional lights, or too few
   training photos for ``auto`` to score the light.
