@@ -26,6 +26,7 @@ __all__ = [
     "LIGHT_CHOICES",
     "LIGHT_DEFAULT",
     "MEASURED_MODELS",
+    "NOISE_LEVELS",
     "SPECTRAL_CHOICES",
     "canonical",
     "describe",
@@ -38,6 +39,11 @@ LIGHT_CHOICES: tuple[str, ...] = ("fixed", "offset", "offset+gains", "auto")
 #: ``svbrdf.FitJob``: ``auto`` moves it from where the capture states it only where held-out
 #: photos support the move (docs/light.md).
 LIGHT_DEFAULT = "auto"
+
+#: A capture fit's noise (``--noise-level``, ``svbrdf.FitJob.noise_level``), the default
+#: first: ``auto`` the capture's noise-level function where its residuals support it,
+#: ``flat`` one noise level per pixel.
+NOISE_LEVELS: tuple[str, ...] = ("auto", "flat")
 
 #: How a measured fit takes spectral data (``jaxrefl fit-brdf --spectral``,
 #: ``measured.MeasuredOptions.spectral``): as RGB, or one problem a band; the default first.

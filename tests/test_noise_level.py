@@ -166,3 +166,18 @@ def test_jobs_that_keep_their_noise_model_and_a_bad_setting():
     assert "pooled" in svbrdf.estimate_noise_level(cap, pooled).why
     with pytest.raises(JaxreflError, match="noise_level"):
         svbrdf.FitJob(noise_level="shaped")
+
+
+def test_the_command_line_sets_the_noise_level_and_fit_prints_it():
+    from jaxrefl.cli import _fit as fit_cmd
+    from jaxrefl.cli import _sample as sample_cmd
+    from jaxrefl.cli._main import build_parser
+
+    for command, job_of in (("fit", fit_cmd.fit_job), ("sample", sample_cmd._job)):
+        base = [command, "capture", "--out", "out"]
+        assert job_of(build_parser().parse_args(base)).noise_level == svbrdf.FitJob().noise_level
+        flat = job_of(build_parser().parse_args([*base, "--noise-level", "flat"]))
+        assert flat.noise_level == "flat"
+    kept = {"kept": True, "gain": 7.9, "rel": 4.0, "why": "the residuals grow"}
+    assert "sqrt(1 + 7.9 y + (4 y)^2)" in fit_cmd.noise_level_line(kept)
+    assert fit_cmd.noise_level_line({"kept": False, "why": "flat: x"}) == "noise: flat: x"

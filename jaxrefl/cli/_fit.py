@@ -3,7 +3,7 @@
     jaxrefl fit CAPTURE_DIR --out OUT_DIR [--model auto|ggx|ggx_rgb|pooled|lambert|...]
                 [--auto-candidates a,b,...] [--auto-pixels N] [--auto-seed N]
                 [--holdout i,j,...|all] [--photos i,j,...] [--tile-pixels N] [--downsample F]
-                [--restart] [--keep-tiles]
+                [--noise-level auto|flat] [--restart] [--keep-tiles]
 
 CAPTURE_DIR is in one of the layouts :func:`jaxrefl.io.load_capture` reads (the
 svbrdf-diff-renderer ``parameters.json`` or ``optim.json`` layouts, MaterialGAN's text
@@ -19,7 +19,9 @@ held-out training photos (:func:`jaxrefl.svbrdf.choose_model`); the report says 
 :class:`~jaxrefl.svbrdf.AutoOptions` (the models scored, the selection's size and seed; the
 last two also size a named model's check of an estimated ``--light``), each flag not given
 keeping AutoOptions' default; report.json records them (``job.auto``, and ``auto`` where
-the model was chosen).
+the model was chosen). ``--noise-level auto`` (the default) replaces the flat noise model of
+a per-pixel model by the capture's noise-level function where its residuals support it
+(:func:`jaxrefl.svbrdf.estimate_noise_level`; report.json ``noise_level`` says what and why).
 
 Writes OUT_DIR/maps.exr (parameters, their Laplace std, correlations, status and
 reliability flags), OUT_DIR/report.json (timings with compile apart, pixel counts by status,
@@ -49,6 +51,7 @@ from ._options import (
     SHOT_GAIN,
     SHOT_READ,
     add_auto_arguments,
+    add_noise_level_argument,
     auto_options,
     fit_config,
 )
@@ -176,6 +179,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "(its offset from the lens estimated), offset+gains (and a gain per photo), auto: "
         "what held-out observations support",
     )
+    add_noise_level_argument(p)
     p.add_argument("--restart", action="store_true", help="ignore tiles of an earlier run")
     p.add_argument(
         "--keep-tiles",
@@ -207,6 +211,7 @@ def fit_job(args: argparse.Namespace) -> svbrdf.FitJob:
         tilt_std=args.tilt_std,
         light=args.light,
         auto=auto_options(args.auto_candidates, args.auto_pixels, args.auto_seed),
+        noise_level=args.noise_level,
     )
 
 
@@ -273,6 +278,16 @@ def remove_tiles(out: Path) -> None:
     shutil.rmtree(out / "tiles", ignore_errors=True)
 
 
+def noise_level_line(level: dict) -> str:
+    """The noise model the fit used, and why (the report's ``noise_level``)."""
+    if level["kept"]:
+        return (
+            f"noise: level function sqrt(1 + {level['gain']:.3g} y + ({level['rel']:.3g} y)^2) "
+            f"x each pixel's scale ({level['why']})"
+        )
+    return f"noise: {level['why']}"
+
+
 def light_line(light: dict) -> str:
     """What was estimated of the flash, and why (the report's ``light``)."""
     if light["mode"] == "fixed":
@@ -335,6 +350,8 @@ def print_summary(report: dict) -> None:
             )
     if report.get("light"):
         print(light_line(report["light"]))
+    if report.get("noise_level"):
+        print(noise_level_line(report["noise_level"]))
     if report.get("auto"):
         print(f"auto: chose {report['auto']['model']}: {report['auto']['why']}")
     for a in report.get("auto_per_fold", []):

@@ -20,7 +20,7 @@ import dataclasses
 from typing import TYPE_CHECKING, Any
 
 from jaxrefl._errors import JaxreflError
-from jaxrefl._names import CAPTURE_MODELS, canonical
+from jaxrefl._names import CAPTURE_MODELS, NOISE_LEVELS, canonical
 
 from ._main import non_negative_int, positive_int
 
@@ -180,3 +180,15 @@ def auto_options(
         )
     given: dict[str, Any] = {"candidates": candidates, "max_pixels": max_pixels, "seed": seed}
     return svbrdf.AutoOptions(**{k: v for k, v in given.items() if v is not None})
+
+
+def add_noise_level_argument(p: argparse.ArgumentParser) -> None:
+    """``--noise-level auto|flat`` (``FitJob.noise_level``)."""
+    p.add_argument(
+        "--noise-level",
+        default=NOISE_LEVELS[0],
+        choices=NOISE_LEVELS,
+        help="auto (default): a per-pixel model's noise grows with the signal as the "
+        "capture's residuals say, where they support it (report.json noise_level); flat: "
+        "one noise level per pixel",
+    )

@@ -92,7 +92,7 @@ from ._main import (
     positive_float,
     positive_int,
 )
-from ._options import add_auto_arguments, auto_options, fit_config
+from ._options import add_auto_arguments, add_noise_level_argument, auto_options, fit_config
 
 NOT_CONVERGED = 3  # exit status: outputs written, but the draws missed a convergence target
 EMCEE_MAX_STEPS = 30_000  # jaxrefl.posterior.EmceeOptions().max_steps (not imported: no JAX)
@@ -148,6 +148,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help=f"a capture's flash, as jaxrefl fit --light (default {LIGHT_DEFAULT}): the "
         "posterior is sampled under the light the fit estimated",
     )
+    add_noise_level_argument(p)
     p.add_argument(
         "--mcmc",
         default="flagged",
@@ -369,6 +370,7 @@ def _job(args):
         config=fit_config(dtype="float64"),
         light=args.light,
         auto=auto_options(args.auto_candidates, args.auto_pixels, args.auto_seed),
+        noise_level=args.noise_level,
     )
 
 

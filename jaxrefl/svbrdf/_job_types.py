@@ -15,7 +15,7 @@ import numpy as np
 
 from jaxrefl import brdf, fit
 from jaxrefl._errors import JaxreflError
-from jaxrefl._names import LIGHT_CHOICES, LIGHT_DEFAULT
+from jaxrefl._names import LIGHT_CHOICES, LIGHT_DEFAULT, NOISE_LEVELS
 
 from ._auto_options import AutoOptions
 from ._models import ALPHA_RANGE, capture_model
@@ -106,12 +106,13 @@ class FitJob:
     light: str = LIGHT_DEFAULT
     compact: bool | None = None
     auto: AutoOptions = field(default_factory=AutoOptions)
-    noise_level: str = "auto"
+    noise_level: str = NOISE_LEVELS[0]
 
     def __post_init__(self) -> None:
-        if self.noise_level not in ("auto", "flat"):
+        if self.noise_level not in NOISE_LEVELS:
             raise JaxreflError(
-                f"FitJob.noise_level must be 'auto' or 'flat', not {self.noise_level!r}"
+                f"FitJob.noise_level must be one of {', '.join(NOISE_LEVELS)}, "
+                f"not {self.noise_level!r}"
             )
         if self.light not in LIGHT_CHOICES:
             raise JaxreflError(

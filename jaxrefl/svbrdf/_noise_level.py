@@ -52,11 +52,8 @@ from ._data import subsample
 from ._job_types import FitJob
 from ._tile_fitter import TileFitter
 
-__all__ = ["GRID", "MAX_LEVERAGE", "NOISE_LEVELS", "NoiseLevel", "estimate_noise_level"]
+__all__ = ["GRID", "MAX_LEVERAGE", "NoiseLevel", "estimate_noise_level", "with_noise"]
 
-#: ``FitJob.noise_level``: ``auto`` estimates the shape and keeps it where it is supported,
-#: ``flat`` keeps the flat noise model.
-NOISE_LEVELS: tuple[str, ...] = ("auto", "flat")
 #: Observations of larger leverage are left out of the estimate: at h = 0.9 a residual is
 #: a tenth of the noise's variance and its correction 1 / (1 - h) amplifies its error 10x.
 MAX_LEVERAGE = 0.9

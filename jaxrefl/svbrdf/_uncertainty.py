@@ -483,6 +483,7 @@ def uncertainty_maps(
     cf, choice = map_model(capture, cf, job.model, out_dir, progress, distributed, say)
     t_fit = time.perf_counter() - t0
     say(f"fit: model {cf.job.model} ({choice['why']}), {t_fit:.1f} s")
+    say(f"noise: {cf.report['noise_level']['why']}")
     if cf.light is not None and cf.light.mode != "fixed":
         d = ", ".join(f"{v:+.2f}" for v in cf.light.offset_cm)
         say(f"light: {cf.light.mode}, flash offset ({d}) cm ({cf.light.frame})")
