@@ -58,6 +58,7 @@ from ._light_map import MAP_TERMS, light_spread, map_term, widen_for_light
 from ._map_model import WIDEN_SHARE, WIDER, map_model, map_noise, noise_text  # noqa: F401
 from ._models import capture_model
 from ._population import population_priors
+from ._prior_groups import material_posteriors, sample_groups
 from ._uncertainty_plots import write_uncertainty_plots
 from ._width_map import WidthSpread, pixel_widths, relax_shared_width
 
@@ -489,8 +490,13 @@ def uncertainty_maps(
         say(f"light: {cf.light.mode}, flash offset ({d}) cm ({cf.light.frame})")
     t_pri = time.perf_counter()
     lp, prior_summary = map_posterior(cf, options.priors)
+    # a capture of two materials: each pixel under its own material's population (._prior_groups)
+    lps, masks, split = material_posteriors(cf, lp, options.priors)
+    if split:
+        prior_summary = {**prior_summary, "split": split}
+    lp = lps[int(np.argmax([m.sum() for m in masks]))]
     t_pri = time.perf_counter() - t_pri
-    say(f"priors: {prior_summary.get('source')}, {t_pri:.1f} s")
+    say(f"priors: {prior_summary.get('source')}, {split.get('why', '')} {t_pri:.1f} s")
     # The job's held-out photos stay out of the posterior as they stayed out of the fit
     # (weight 0: still in the data, for posterior predictive draws of them).
     train = np.ones(capture.n_photos, bool)
@@ -503,8 +509,9 @@ def uncertainty_maps(
     noise0 = cf.maps["noise_std"].reshape(-1)
     noise0 = np.where(np.isfinite(noise0) & (noise0 > 0), noise0, _NOISE_START)
     t1 = time.perf_counter()
-    umap = jp.adaptive_uncertainty(
-        lp,
+    umap = sample_groups(
+        lps,
+        masks,
         data,
         theta0,
         theta_std,
