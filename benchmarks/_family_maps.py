@@ -127,7 +127,13 @@ def run_family(
             row += ["-", "-", "-", "-"]
         rows.append(row)
         reasons = res.map.reasons
-        print(f"{name}: {' | '.join(str(v) for v in row)}; MCMC reasons {reasons}", flush=True)
+        split = res.prior_summary.get("split", {}).get("why", "-")
+        noise = res.fit.report["noise_level"]["why"]
+        print(
+            f"{name}: {' | '.join(str(v) for v in row)}; MCMC reasons {reasons}; "
+            f"priors: {split}; noise: {noise}",
+            flush=True,
+        )
     head = [
         "capture",
         "size",
