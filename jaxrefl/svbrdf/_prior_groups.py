@@ -198,21 +198,24 @@ def population_groups(
 
 
 def material_posteriors(
-    cf: CaptureFit, lp: jp.LogPosterior, priors: Any
-) -> tuple[list[jp.LogPosterior], list[np.ndarray], dict[str, Any]]:
-    """(posteriors, their pixels, the split's summary) of a map whose priors are
-    ``priors`` and whose whole population's posterior is ``lp``: one per material where
-    ``priors`` is ``"population"`` and :func:`population_groups` splits it, else ``[lp]``
-    on every pixel."""
+    cf: CaptureFit, lp: jp.LogPosterior, prior_summary: dict[str, Any]
+) -> tuple[jp.LogPosterior, list[jp.LogPosterior], list[np.ndarray], dict[str, Any]]:
+    """(the largest material's posterior, the posteriors, their pixels, the priors'
+    summary with the split's as ``split``) of a map whose whole population's posterior and
+    priors' summary are ``lp`` and ``prior_summary`` (:func:`map_posterior`): one posterior
+    per material where the priors are the population's and :func:`population_groups`
+    splits it, else ``lp`` on every pixel."""
     every = [np.ones(np.asarray(cf.theta).shape[0], bool)]
-    if not (isinstance(priors, str) and priors == "population"):
-        return [lp], every, {}
+    if prior_summary.get("source") != "population":
+        return lp, [lp], every, prior_summary
     groups, split = population_groups(cf, lp.space)
+    summary = {**prior_summary, "split": split}
     if groups is None:
-        return [lp], every, split
+        return lp, [lp], every, summary
     res = lp.residual
     lps = [jp.log_posterior(res.model, lp.space, res.noise, priors=g) for g, _ in groups]
-    return lps, [m for _, m in groups], split
+    masks = [m for _, m in groups]
+    return lps[int(np.argmax([m.sum() for m in masks]))], lps, masks, summary
 
 
 def _merge_timings(parts: list[dict[str, Any]]) -> dict[str, Any]:

@@ -15,11 +15,12 @@ where Laplace is not to be trusted.
    :class:`~jaxrefl.posterior.AdaptiveOptions`: Laplace summaries where the flags call the
    Gaussian reliable (Student t marginals with :func:`laplace_dof` degrees of freedom where
    the fit estimated the pixel's noise scale, as the sampled posterior does), MCMC on the
-   flagged pixels and an audit sample. The posterior is the fitted model's with Gaussian
-   noise of unknown scale per pixel (Jeffreys prior); the lobe's priors are by default
-   estimated from the population of fitted pixels (:func:`population_priors`:
-   empirical Bayes, so that a pixel whose highlight no photo saw is not pushed onto a
-   bright, rough lobe by the volume of a uniform prior), the others are
+   flagged pixels and an audit sample. The posterior is the fitted model's with the fit's
+   noise model, of unknown scale per pixel (Jeffreys prior; :func:`map_noise`); the lobe's
+   priors are by default estimated from the population of fitted pixels, per material
+   where the surface holds two (:func:`population_priors`, :mod:`._prior_groups`:
+   empirical Bayes, so that an unseen highlight is not made a bright, rough lobe by the
+   volume of a uniform prior), the others are
    :func:`jaxrefl.posterior.default_priors`; the chains start from theta* and the
    residual noise std (1e-2 where that is not a positive number).
 
@@ -489,14 +490,11 @@ def uncertainty_maps(
         d = ", ".join(f"{v:+.2f}" for v in cf.light.offset_cm)
         say(f"light: {cf.light.mode}, flash offset ({d}) cm ({cf.light.frame})")
     t_pri = time.perf_counter()
-    lp, prior_summary = map_posterior(cf, options.priors)
     # a capture of two materials: each pixel under its own material's population (._prior_groups)
-    lps, masks, split = material_posteriors(cf, lp, options.priors)
-    if split:
-        prior_summary = {**prior_summary, "split": split}
-    lp = lps[int(np.argmax([m.sum() for m in masks]))]
+    lp, lps, masks, prior_summary = material_posteriors(cf, *map_posterior(cf, options.priors))
     t_pri = time.perf_counter() - t_pri
-    say(f"priors: {prior_summary.get('source')}, {split.get('why', '')} {t_pri:.1f} s")
+    split = prior_summary.get("split", {}).get("why", "")
+    say(f"priors: {prior_summary.get('source')}, {split} {t_pri:.1f} s")
     # The job's held-out photos stay out of the posterior as they stayed out of the fit
     # (weight 0: still in the data, for posterior predictive draws of them).
     train = np.ones(capture.n_photos, bool)
