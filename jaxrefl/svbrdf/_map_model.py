@@ -79,7 +79,11 @@ def map_model(
     }
     say(f"fit: {choice['widened']['why']}; fitting {wider}")
     wdir = None if out_dir is None else Path(out_dir) / f"fit_{wider}"
-    wjob = replace(cf.job, model=wider, config=cf.job.config.replace(loss=None))
+    # The loss and a noise-level function were chosen for the narrower model: the wider
+    # one chooses its own (the level is estimated from the flat noise it replaced).
+    kept = (cf.report.get("noise_level") or {}).get("kept", False)
+    noise = fit.GaussianNoise(None) if kept else cf.job.config.noise
+    wjob = replace(cf.job, model=wider, config=cf.job.config.replace(loss=None, noise=noise))
     cf = fit_capture(capture, wjob, wdir, progress=progress, distributed=distributed)
     choice["model"] = cf.job.model
     choice["capped_share_after"] = model_choice(cf, wider)["capped_share"]
