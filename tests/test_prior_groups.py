@@ -14,7 +14,14 @@ from jaxrefl import posterior as jp
 from jaxrefl.demo import demo_scene, photograph_maps
 from jaxrefl.posterior._methods import MCMC_METHODS
 from jaxrefl.svbrdf import _prior_groups
-from jaxrefl.svbrdf._prior_groups import SEPARATION, _core, merge_maps, two_materials
+from jaxrefl.svbrdf._prior_groups import (
+    CORE_SHARE,
+    SEPARATION,
+    _core,
+    material_cores,
+    merge_maps,
+    two_materials,
+)
 
 COPPER = np.array([0.95, 0.64, 0.54])
 
@@ -73,6 +80,27 @@ def test_a_materials_core_leaves_out_the_ridge_scatter():
     assert far.sum() > 50 and not np.any(core & far)
     near = diel & np.all(np.abs(f0 - 0.04) < 0.015, axis=1)
     assert np.mean(core[near]) > 0.97
+
+
+def test_a_material_whose_fits_do_not_agree_keeps_one_population(monkeypatch):
+    """Each material's core is its tight cluster; where a material's core holds fewer than
+    CORE_SHARE of its fits (they do not agree on its F0) the population is not split."""
+    rng = np.random.default_rng(4)
+    f0, truth = _two(rng, scatter=0.0)
+    ok = np.ones(len(f0), bool)
+    means = np.array([[0.04] * 3, COPPER])
+    cores, why = material_cores(f0, truth, ok, means)
+    assert cores is not None and why == ""
+    assert np.mean(cores[0][truth == 0]) > 0.95 and not np.any(cores[1][truth == 0])
+
+    def small_core(x, mask):  # a core of 40% of the material's pixels
+        keep = mask & (np.cumsum(mask) % 5 < 2)
+        return keep
+
+    monkeypatch.setattr(_prior_groups, "_core", small_core)
+    cores, why = material_cores(f0, truth, ok, means)
+    assert cores is None and "not identified" in why
+    assert f"fewer than {CORE_SHARE:.0%}" in why and "[0.04, 0.04, 0.04]" in why
 
 
 def _map(n, d, offset, mcmc_local):
@@ -135,7 +163,7 @@ SIZE = 16
 
 @pytest.fixture(scope="module")
 def inlay():
-    """A co-located capture of copper (left half) beside a rough grey dielectric, 1% noise:
+    """A co-located capture of copper (left half) beside a grey dielectric, 1% noise:
     (capture, truth, metal (N,) bool)."""
     scene = demo_scene(size=SIZE)
     rng = np.random.default_rng(5)
@@ -143,9 +171,9 @@ def inlay():
     metal[:, : SIZE // 2] = True
     f0 = np.where(metal[..., None], COPPER, 0.04)
     truth = {
-        "albedo": np.where(metal[..., None], 0.03, rng.uniform(0.2, 0.6, (SIZE, SIZE, 3))),
+        "albedo": np.where(metal[..., None], 0.03, rng.uniform(0.2, 0.5, (SIZE, SIZE, 3))),
         "specular": f0 * rng.uniform(0.97, 1.03, (SIZE, SIZE, 1)),
-        "alpha": np.where(metal, 0.15, rng.uniform(0.3, 0.6, (SIZE, SIZE))),
+        "alpha": np.where(metal, 0.15, rng.uniform(0.2, 0.5, (SIZE, SIZE))),
     }
     clean = photograph_maps(scene, truth)
     y = np.asarray(clean.images, np.float64)
@@ -155,8 +183,9 @@ def inlay():
 
 def test_a_two_material_map_samples_each_material_under_its_own_population(inlay, monkeypatch):
     """The map splits the population into the copper and the dielectric, and the
-    dielectric's sampled pixels cover their F0 better than under the one population over
-    both (whose mean F0 sits between them)."""
+    dielectric's sampled pixels cover their F0 and alpha at the nominal rate where under
+    the one population over both (whose mean F0 sits between them) they do not (about
+    97 / 94% against 56 / 48% here)."""
     cap, truth, metal = inlay
     job = svbrdf.FitJob(model="ggx_rgb", light="fixed", config=fit.FitConfig(dtype=np.float64))
     opts = jp.AdaptiveOptions(mcmc="all")
@@ -168,15 +197,19 @@ def test_a_two_material_map_samples_each_material_under_its_own_population(inlay
     assert sum(g["map_pixels"] for g in split["groups"]) == SIZE * SIZE
 
     def cover(r):
-        u = r.map
-        j = list(u.labels).index("specular.R")
-        t = truth["specular"][..., 0].reshape(-1)
-        hit = (u.q05[:, j] <= t) & (t <= u.q95[:, j])
-        return float(np.mean(hit[~metal]))
+        u, out = r.map, []
+        for lab, t in (("specular.R", truth["specular"][..., 0]), ("alpha", truth["alpha"])):
+            j = list(u.labels).index(lab)
+            t = t.reshape(-1)
+            hit = (u.q05[:, j] <= t) & (t <= u.q95[:, j])
+            out.append(float(np.mean(hit[~metal])))
+        return np.array(out)
 
     monkeypatch.setattr(
         _prior_groups, "population_groups", lambda cf, space: (None, {"why": "one (test)"})
     )
     one = svbrdf.uncertainty_maps(cap, job, opts)
     assert "split" in one.prior_summary and one.prior_summary["split"]["why"] == "one (test)"
-    assert cover(res) >= 0.85 and cover(res) > cover(one) + 0.05, (cover(res), cover(one))
+    split_cover, one_cover = cover(res), cover(one)
+    assert np.all(split_cover >= 0.85), (split_cover, one_cover)
+    assert np.all(one_cover < split_cover - 0.2), (split_cover, one_cover)

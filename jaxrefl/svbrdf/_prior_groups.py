@@ -22,9 +22,16 @@ splits the population only where the data say it is two materials:
 
 Each pixel goes to the component of higher responsibility at its fitted F0 (a pixel
 without an estimate to the larger one), and each component's priors are
-:func:`population_priors` of its pixels: F0's Gaussian in units of the noise, alpha's
-log-normal. The map's MCMC runs once per component on its pixels (:func:`sample_groups`),
-and the parts are joined into one :class:`jaxrefl.posterior.UncertaintyMap`. The report's
+:func:`population_priors` of its core: the pixels whose F0 lies within :data:`CORE` robust
+standard deviations of the material's median. The scatter of fits along an unidentified
+lobe's ridge (F0 anywhere from 0 to 1 at a wide lobe) belongs to no material, and a
+prior that spans it pulls the unseen lobes of the material onto that ridge (the volume
+effect :func:`population_priors` describes, one material at a time). Where fewer than
+:data:`CORE_SHARE` of a material's fits lie in its core, its F0 is not identified and the
+population stays one. (A material whose fits pile just above F0 = 0 passes that test
+with a core that is the pile: its prior is then centred below a small true F0.) The map's
+MCMC runs once per component on its pixels (:func:`sample_groups`), and the parts are
+joined into one :class:`jaxrefl.posterior.UncertaintyMap`. The report's
 ``prior_source`` lists the components (``groups``: their priors and pixel counts) and says
 why the population was or was not split (``split``).
 """
@@ -49,6 +56,7 @@ from ._population import F0_FLOOR_STD, MIN_PIXELS, population_priors
 __all__ = [
     "MIN_SHARE",
     "SEPARATION",
+    "material_cores",
     "material_posteriors",
     "merge_maps",
     "population_groups",
@@ -65,6 +73,10 @@ SEPARATION = 4.0
 MIN_SHARE = 0.02
 #: A material's population: the pixels within CORE robust stds of its median F0 (:func:`_core`).
 CORE = 3.0
+#: Share of a material's pixels its core must hold: where fewer of its fits agree on its F0,
+#: the F0 is not identified and its core (the fits piled at a bound) would be a prior far
+#: narrower than what the photos know.
+CORE_SHARE = 0.5
 _EM_ITERS = 200
 _EM_TOL = 1e-8  # relative change of the mean log-likelihood at which EM stops
 
@@ -165,6 +177,26 @@ def _core(f0: np.ndarray, mask: np.ndarray) -> np.ndarray:
         return mask & np.all(np.abs(f0 - med) <= CORE * mad, axis=1)
 
 
+def material_cores(
+    f0: np.ndarray, label: np.ndarray, ok: np.ndarray, means: np.ndarray
+) -> tuple[list[np.ndarray] | None, str]:
+    """(each material's core (N,) bool, or None where a material's F0 is not identified;
+    why not) of pixels with F0 ``f0`` (N, k), material ``label`` (N,) and an estimate
+    ``ok`` (N,); ``means``: the materials' F0, for the message."""
+    cores = []
+    for c in range(2):
+        mine = (label == c) & ok
+        core = _core(f0, mine)
+        if core.sum() < CORE_SHARE * mine.sum():
+            return None, (
+                f"one population: the fits of the material at {np.round(means[c], 3).tolist()} "
+                f"do not agree on its F0 ({int(core.sum())} of {int(mine.sum())} pixels in its "
+                f"core, fewer than {CORE_SHARE:.0%}): it is not identified"
+            )
+        cores.append(core)
+    return cores, ""
+
+
 def population_groups(
     cf: CaptureFit, space: fit.ParamSpace
 ) -> tuple[list[tuple[dict[str, jp.Prior], np.ndarray]] | None, dict[str, Any]]:
@@ -180,6 +212,7 @@ def population_groups(
         return None, {"why": f"{int(ok.sum())} fitted pixels: too few to split"}
     x = np.asarray(space.natural_vector(jnp.asarray(theta[ok])), np.float64)
     label, info = two_materials(x[:, space.index("specular")])
+    means = np.asarray(info.get("means", [[np.nan], [np.nan]]))
     if label is None:
         return None, info
     every = np.full(theta.shape[0], int(np.argmax(np.bincount(label, minlength=2))))
@@ -187,10 +220,13 @@ def population_groups(
     spec = x[:, space.index("specular")]
     f0 = np.full((theta.shape[0], spec.shape[1]), np.nan)
     f0[ok] = spec
+    cores, why = material_cores(f0, every, ok, means)
+    if cores is None:
+        return None, {**info, "why": why}
     groups, summaries = [], []
     for c in range(2):
         mask = every == c
-        priors, summary = population_priors(cf, space, pixels=mask & ok & _core(f0, mask & ok))
+        priors, summary = population_priors(cf, space, pixels=cores[c])
         groups.append((priors, mask))
         shown = {k: repr(v) for k, v in priors.items()}
         summaries.append({**summary, "map_pixels": int(mask.sum()), "priors": shown})
