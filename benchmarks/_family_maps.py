@@ -127,13 +127,8 @@ def run_family(
             row += ["-", "-", "-", "-"]
         rows.append(row)
         reasons = res.map.reasons
-        split = res.prior_summary.get("split", {}).get("why", "-")
         noise = res.fit.report["noise_level"]["why"]
-        print(
-            f"{name}: {' | '.join(str(v) for v in row)}; MCMC reasons {reasons}; "
-            f"priors: {split}; noise: {noise}",
-            flush=True,
-        )
+        print(f"{name}: {' | '.join(str(v) for v in row)}; MCMC reasons {reasons}; noise: {noise}")
     head = [
         "capture",
         "size",

@@ -33,10 +33,8 @@ population estimate (a conservative prior) instead of biasing it:
 The albedo keeps its uniform prior: the diffuse term is seen in every photo. Models without
 a free per-pixel ``alpha`` (``lambert``, ``pooled``) keep the defaults. With fewer than
 :data:`MIN_PIXELS` fitted pixels there is no population to estimate: the defaults again.
-A capture of two very different materials (a metal inlay on a dielectric) is not one
-Gaussian population: a prior that spans both pulls each material's unseen lobes towards
-the other's. :mod:`jaxrefl.svbrdf._prior_groups` splits such a population in two and
-samples each pixel under its own material's prior.
+The population is one Gaussian: a capture of two very different materials, both flagged
+where unseen, gets a prior that spans both (its covariance), not a mixture.
 """
 
 from __future__ import annotations
@@ -70,13 +68,12 @@ ALPHA_FLOOR_LOG_STD = 0.25
 
 
 def population_priors(
-    cf: CaptureFit, space: fit.ParamSpace | None = None, pixels: np.ndarray | None = None
+    cf: CaptureFit, space: fit.ParamSpace | None = None
 ) -> tuple[dict[str, jp.Prior], dict[str, Any]]:
     """(priors by parameter name, summary) of the capture fit ``cf`` (module docstring).
     The priors are empty (the defaults apply) where the model has no free ``alpha`` or
     fewer than :data:`MIN_PIXELS` pixels were fitted; the summary says which and from how
-    many pixels (JSON-ready). ``pixels``: (N,) bool, the population's pixels (default
-    all; one material's: :mod:`jaxrefl.svbrdf._prior_groups`)."""
+    many pixels (JSON-ready)."""
     space = cf.model()[1] if space is None else space
     names = [b.name for b in space.blocks]
     if "alpha" not in names or "specular" not in names:
@@ -84,8 +81,6 @@ def population_priors(
     theta = np.asarray(cf.theta, np.float64)
     noise = np.asarray(cf.maps["noise_std"], np.float64).reshape(-1)
     ok = np.all(np.isfinite(theta), -1) & np.isfinite(noise) & (noise > 0)
-    if pixels is not None:
-        ok &= np.asarray(pixels, bool).reshape(-1)
     n = int(np.sum(ok))
     if n < MIN_PIXELS:
         why = f"{n} fitted pixels (fewer than {MIN_PIXELS})"

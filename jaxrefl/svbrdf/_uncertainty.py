@@ -16,11 +16,10 @@ where Laplace is not to be trusted.
    Gaussian reliable (Student t marginals with :func:`laplace_dof` degrees of freedom where
    the fit estimated the pixel's noise scale, as the sampled posterior does), MCMC on the
    flagged pixels and an audit sample. The posterior is the fitted model's with the fit's
-   noise model, of unknown scale per pixel (Jeffreys prior; :func:`map_noise`); the lobe's
-   priors are by default estimated from the population of fitted pixels, per material
-   where the surface holds two (:func:`population_priors`, :mod:`._prior_groups`:
-   empirical Bayes, so that an unseen highlight is not made a bright, rough lobe by the
-   volume of a uniform prior), the others are
+   noise model (:func:`map_noise`), of unknown scale per pixel (Jeffreys prior); the lobe's
+   priors are by default estimated from the population of fitted pixels (:func:`population_priors`:
+   empirical Bayes, so that a pixel whose highlight no photo saw is not pushed onto a
+   bright, rough lobe by the volume of a uniform prior), the others are
    :func:`jaxrefl.posterior.default_priors`; the chains start from theta* and the
    residual noise std (1e-2 where that is not a positive number).
 
@@ -59,7 +58,6 @@ from ._light_map import MAP_TERMS, light_spread, map_term, widen_for_light
 from ._map_model import WIDEN_SHARE, WIDER, map_model, map_noise, noise_text  # noqa: F401
 from ._models import capture_model
 from ._population import population_priors
-from ._prior_groups import material_posteriors, sample_groups
 from ._uncertainty_plots import write_uncertainty_plots
 from ._width_map import WidthSpread, pixel_widths, relax_shared_width
 
@@ -490,11 +488,9 @@ def uncertainty_maps(
         d = ", ".join(f"{v:+.2f}" for v in cf.light.offset_cm)
         say(f"light: {cf.light.mode}, flash offset ({d}) cm ({cf.light.frame})")
     t_pri = time.perf_counter()
-    # a capture of two materials: each pixel under its own material's population (._prior_groups)
-    lp, lps, masks, prior_summary = material_posteriors(cf, *map_posterior(cf, options.priors))
+    lp, prior_summary = map_posterior(cf, options.priors)
     t_pri = time.perf_counter() - t_pri
-    split = prior_summary.get("split", {}).get("why", "")
-    say(f"priors: {prior_summary.get('source')}, {split} {t_pri:.1f} s")
+    say(f"priors: {prior_summary.get('source')}, {t_pri:.1f} s")
     # The job's held-out photos stay out of the posterior as they stayed out of the fit
     # (weight 0: still in the data, for posterior predictive draws of them).
     train = np.ones(capture.n_photos, bool)
@@ -507,9 +503,8 @@ def uncertainty_maps(
     noise0 = cf.maps["noise_std"].reshape(-1)
     noise0 = np.where(np.isfinite(noise0) & (noise0 > 0), noise0, _NOISE_START)
     t1 = time.perf_counter()
-    umap = sample_groups(
-        lps,
-        masks,
+    umap = jp.adaptive_uncertainty(
+        lp,
         data,
         theta0,
         theta_std,
