@@ -140,6 +140,32 @@ def strict_json():
     return strict_json_loads
 
 
+# A worker process keeps every program it compiled (JAX's in-memory caches) for the whole
+# run: past this resident size, a test module's end frees them (later modules compile what
+# they need again, or read it from the persistent cache), so that a long run's worker does
+# not run out of memory inside XLA's compiler.
+_RSS_LIMIT_BYTES = 5 * 2**30
+
+
+def _rss_bytes() -> int:
+    """The process's resident size (Linux: /proc/self/statm; 0 elsewhere)."""
+    try:
+        pages = int(Path("/proc/self/statm").read_text().split()[1])
+    except (OSError, ValueError, IndexError):
+        return 0
+    return pages * os.sysconf("SC_PAGE_SIZE")
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _bounded_compile_memory():
+    yield
+    if _rss_bytes() > _RSS_LIMIT_BYTES:
+        import gc
+
+        jax.clear_caches()
+        gc.collect()
+
+
 @pytest.fixture(autouse=True)
 def _reports_are_strict_json(request):
     yield
