@@ -102,7 +102,7 @@ def check_light(capture, estimate: LightEstimate, job: FitJob) -> LightEstimate:
     kept = fixed_light(
         capture,
         estimate.asked,
-        f"{estimate.why}; not kept: {account} (the estimate helps the shared width's "
-        f"predictions, not {job.model}'s)",
+        f"{estimate.why}; the stated light instead: {account} (the estimate helps the "
+        f"shared width's predictions, not {job.model}'s)",
     )
     return replace(kept, cv_rmse=estimate.cv_rmse, prior=estimate.prior, model_cv_rmse=rmse)
