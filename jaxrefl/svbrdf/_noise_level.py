@@ -68,7 +68,7 @@ _RIDGE = 1e-9
 
 @dataclass(frozen=True)
 class NoiseLevel:
-    """The estimate: ``noise`` (the job's noise model from now on: the
+    """The estimate: ``noise`` (the noise model the fit runs with: the
     :class:`~jaxrefl.fit.LevelNoise` where kept, else the job's own), ``gain``/``rel`` as
     estimated (kept or not), the log-likelihood gain over the flat model and the BIC
     penalty it had to beat, the observations and pixels used, and ``why``."""
@@ -169,7 +169,7 @@ def fit_noise_level(z2: np.ndarray, y: np.ndarray, use: np.ndarray) -> tuple[flo
 def estimate_noise_level(capture, job: FitJob) -> NoiseLevel:
     """The capture's noise-level function for ``job`` (module docstring): fitted with the
     job's model to ``job.auto``'s pixel count and seed, kept where the BIC supports it.
-    Returns a :class:`NoiseLevel`; its ``noise`` is the job's from now on."""
+    Returns a :class:`NoiseLevel`; its ``noise`` is the one the fit runs with."""
     if job.noise_level == "flat":
         return _skip(job, "the job asks for the flat noise model (noise_level='flat')")
     noise = job.config.noise
