@@ -72,7 +72,7 @@ def _reference(model, m) -> float:
     space = fit.ParamSpace(model, channels=len(m.channels))
     thetas = random_thetas(space, N_REF, REF_SEED, sobol=False)
     cfg = fit.FitConfig(solver=fit.LMOptions(max_iters=REF_ITERS), dtype=np.float32)
-    r, _, _ = jm.fit_multistart(model, m.wi, m.wo, m.values, config=cfg, thetas=thetas)
+    r, _, _ = jm.fit_multistart(model, m, options=ALL_SAMPLES, config=cfg, thetas=thetas)
     return _cost(r, m)
 
 

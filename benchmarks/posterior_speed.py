@@ -359,7 +359,7 @@ def part_emcee_sbc(args):
     draws = []
     for i in range(n):
         d = jax.tree.map(lambda a, i=i: a[i], data)
-        e = jp.sample_emcee(lp, theta[i], (d,), jp.EmceeOptions(12, 400), seed=i)
+        e = jp.sample_emcee(lp, theta[i], (d,), jp.EmceeOptions(12, 400, seed=i))
         draws.append(jp.thin(e.theta, 19)[0])
     wall = time.perf_counter() - t0
     res = jp.sbc_summary(theta, np.stack(draws), labels=lp.labels, bins=10)

@@ -91,8 +91,7 @@ def test_certificate_flags_a_bimodal_problem(sharp_ggx):
 
     def run(n_sharp):
         thetas = np.stack([t_sharp] * n_sharp + [t_broad] * (15 - n_sharp))
-        return jm.fit_multistart(model, m.wi, m.wo, m.values, config=F64, starts=STARTS,
-                                 thetas=thetas)  # fmt: skip
+        return jm.fit_multistart(model, m, config=F64, starts=STARTS, thetas=thetas)
 
     # Two basins: the sharp lobe (the truth, cost ~0) and a wide one (the single start's).
     r, cert, costs = run(1)
@@ -172,8 +171,9 @@ def test_nested_starts_find_the_second_lafortune_lobe():
     )
     one = jm.fit_model(l1, m, starts=STARTS, **kw)
     with x64():
-        r, cert, costs = jm.fit_multistart(l2, wi, wo, f, config=F64, starts=STARTS,
-                                           nested=one.result)  # fmt: skip
+        r, cert, costs = jm.fit_multistart(
+            l2, m, options=kw["options"], config=F64, starts=STARTS, nested=one.result
+        )
     # 15 starts without nesting (automatic, data-driven, quasi-random), then 25 with a new
     # lobe and 2 splitting the old one. Measured: the first 15 stop at the one-lobe cost
     # (2e-4 above the best relative to the data), the nested ones at ~1e-20.
@@ -209,9 +209,8 @@ def test_continued_and_perturbed_starts_reach_the_best_of_64(shared_data):
     space = fit.ParamSpace(model, channels=len(m.channels))
     cfg = fit.FitConfig(solver=fit.LMOptions(max_iters=200), dtype=np.float32)
     ref, _, _ = jm.fit_multistart(
-        model, m.wi, m.wo, m.values, config=cfg,
-        thetas=random_thetas(space, 64, 1, sobol=False),
-    )  # fmt: skip
+        model, m, config=cfg, thetas=random_thetas(space, 64, 1, sobol=False)
+    )
     d = (jm.predict(ref, m.wi, m.wo) - np.asarray(m.values)) * m.wi[:, 2:3]
     best = float(0.5 * np.sum(d * d))
     assert plain.cost > 1.01 * best
@@ -226,3 +225,34 @@ def test_multistart_refuses_bad_continuation_settings():
     for bad in (dict(rounds=-1), dict(polish=0), dict(generations=-2), dict(rounds=1.5)):
         with pytest.raises(ValueError, match="MultiStart needs"):
             jm.MultiStart(**bad)
+
+
+def test_multistart_reads_the_samples_residual_and_channels_from_the_options():
+    """fit_multistart takes the :class:`MeasuredOptions` fit_model takes, with the same
+    meaning: the angle limit, the cosine residual, spectral bands as separate problems."""
+    m, _ = _synthetic("lambert")
+    noisy = MeasuredBRDF(
+        m.wi, m.wo, m.values + 0.01 * np.random.default_rng(0).normal(size=m.values.shape),
+        m.channels, name="noisy lambert",
+    )  # fmt: skip
+    lam, few = jm.build_model("lambert"), jm.MultiStart(n_random=2)
+
+    def run(data=noisy, **o):
+        opts = jm.MeasuredOptions(**o)
+        return jm.fit_multistart(lam, data, options=opts, config=F64, starts=few)[0]
+
+    full, near = run(max_theta_deg=None), run(max_theta_deg=30.0)
+    assert 0 < int(np.sum(near.n_used)) < int(np.sum(full.n_used))
+    plain = run(max_theta_deg=None, cosine=False)
+    assert float(plain.cost) > 1.05 * float(full.cost)  # cos(theta_i) < 1 shrinks residuals
+    via_fit = jm.fit_model(
+        lam, noisy, options=jm.MeasuredOptions(max_theta_deg=None, cosine=False),
+        config=F64, starts=few, timing=False,
+    )  # fmt: skip
+    np.testing.assert_allclose(float(via_fit.result.cost), float(plain.cost), rtol=1e-10)
+    bands = MeasuredBRDF(
+        m.wi, m.wo, m.values, ("450nm", "550nm", "650nm"),
+        wavelengths_nm=np.array([450.0, 550.0, 650.0]),
+    )  # fmt: skip
+    sep = run(data=bands, spectral="bands")
+    assert sep.theta.shape[0] == 3 and full.theta.ndim == 1

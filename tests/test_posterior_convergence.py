@@ -63,17 +63,25 @@ def _gauss(theta):
 
 
 def test_sample_emcee_runs_until_converged_or_the_cap():
-    o = jp.EmceeOptions(n_walkers=8, max_steps=20_000, check_every=250)
-    s = jp.sample_emcee(_gauss, np.zeros(1), (), o, seed=3)
+    o = jp.EmceeOptions(n_walkers=8, max_steps=20_000, check_every=250, seed=3)
+    s = jp.sample_emcee(_gauss, np.zeros(1), (), o)
     c = s.extra["convergence"]
     assert c["converged"] and s.extra["tau_reliable"]
     n = s.extra["n_steps"]
     assert n % 250 == 0 and 50 * max(s.extra["tau"]) <= n < 20_000
     assert c["max_rhat"] <= 1.01 and c["min_ess_bulk"] >= 400
     np.testing.assert_allclose(np.std(s.theta[0]), 0.1, rtol=0.15)
-    capped = jp.sample_emcee(_gauss, np.zeros(1), (), jp.EmceeOptions(8, max_steps=120), seed=3)
+    capped = jp.sample_emcee(_gauss, np.zeros(1), (), jp.EmceeOptions(8, max_steps=120, seed=3))
     c = capped.extra["convergence"]
     assert capped.extra["n_steps"] == 120 and not c["converged"] and c["reasons"]
+    # The seed is an option: the same options, the same draws; another seed, others.
+    again = jp.sample_emcee(_gauss, np.zeros(1), (), jp.EmceeOptions(8, max_steps=120, seed=3))
+    other = jp.sample_emcee(_gauss, np.zeros(1), (), jp.EmceeOptions(8, max_steps=120, seed=4))
+    np.testing.assert_array_equal(again.theta, capped.theta)
+    assert not np.array_equal(other.theta, capped.theta)
+    for bad in (-1, 1.5):
+        with pytest.raises(ValueError, match="seed must be an integer >= 0"):
+            jp.EmceeOptions(seed=bad)
     with pytest.raises(ValueError, match="max_steps"):
         jp.EmceeOptions(max_steps=0)
     with pytest.raises(ValueError, match="max_rhat"):

@@ -108,7 +108,7 @@ def test_sbc_emcee(ggx1):
     draws = []
     for i in range(n):
         d = jax.tree.map(lambda a, i=i: a[i], data)
-        s = jp.sample_emcee(lp, theta[i], (d,), jp.EmceeOptions(12, 400), seed=i)
+        s = jp.sample_emcee(lp, theta[i], (d,), jp.EmceeOptions(12, 400, seed=i))
         draws.append(thin(s.theta, 19)[0])
     res = jp.sbc_summary(theta[:n], np.stack(draws), labels=lp.labels, bins=5)
     assert np.all(res.tests["chi2_p"] > 1e-3), res.to_dict()

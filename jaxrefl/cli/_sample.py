@@ -7,7 +7,7 @@
                    [--rerun-rhat R] [--priors population|default] [--seed S]
                    [--time-limit SECONDS] [--keep-work] [--quiet]
     jaxrefl sample BRDF_FILE --out OUT_DIR [--brdf-model ggx]
-                   [--sampler emcee|hmc] [--max-steps N] [--walkers N]
+                   [--sampler emcee|hmc] [--max-steps N] [--walkers N] [--seed S]
 
 A capture (any layout :func:`jaxrefl.io.load_capture` reads; ``--downsample`` first, then
 the ``--pixels`` crop: rows R0:R1, columns C0:C1) goes through
@@ -49,8 +49,9 @@ exit status is 3, and the same command run again samples them.
 A measured BRDF file (Cornell .astm, MERL .binary, CURET; spectra converted to RGB) goes
 through :func:`jaxrefl.measured.sample_posterior`: the least-squares fit of
 ``--brdf-model`` (f_r cos theta_i residuals, 80 degree limit), then emcee
-(:class:`~jaxrefl.posterior.EmceeOptions` from ``--max-steps``, ``--walkers``; the default) or
-HMC (``--warmup``/``--samples``/``--chains``), the noise scale unknown. emcee runs until
+(:class:`~jaxrefl.posterior.EmceeOptions` from ``--max-steps``, ``--walkers``, ``--seed``;
+the default) or HMC (``--warmup``/``--samples``/``--chains``; its chains' seed is fixed), the
+noise scale unknown. emcee runs until
 its chain is at least 50 integrated autocorrelation times long with split R-hat <= 1.01
 and bulk ESS >= 400 for every parameter (:func:`jaxrefl.posterior.sample_emcee`), or
 ``--max-steps``. Writes OUT_DIR/posterior.nc and OUT_DIR/corner.png
@@ -475,13 +476,17 @@ def _run_brdf(args, path: Path, opts) -> dict:
     matplotlib.use("Agg")
     from jaxrefl import measured
     from jaxrefl import posterior as jp
+    from jaxrefl.measured._posterior import HMC_SEED
 
     sampler = opts  # --sampler hmc: HMC, as asked
     if args.sampler == "emcee":
-        sampler = jp.EmceeOptions(n_walkers=args.walkers, max_steps=args.max_steps)
-    res = measured.sample_posterior(
-        path, args.brdf_model, sampler, seed=args.seed, progress=_progress(args)
-    )
+        sampler = jp.EmceeOptions(n_walkers=args.walkers, max_steps=args.max_steps, seed=args.seed)
+    elif args.seed != HMC_SEED:
+        raise JaxreflError(
+            f"--seed seeds emcee on a BRDF file; --sampler hmc runs its chains seeded "
+            f"{HMC_SEED} (leave --seed out, or use --sampler emcee)"
+        )
+    res = measured.sample_posterior(path, args.brdf_model, sampler, progress=_progress(args))
     files = [p.name for p in measured.write_posterior(res, args.out)]
     rep = res.report()
     print(f"{path.name} ({args.brdf_model}, {args.sampler}):")

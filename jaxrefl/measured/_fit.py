@@ -279,14 +279,11 @@ def fit_model(
                 return fit_samples(model, data, channels=channels, cosine=cosine, config=cfg)
             r, certs[dt], _ = fit_multistart(
                 model,
-                data.wi,
-                data.wo,
-                f,
-                channels=channels,
-                cosine=cosine,
+                data,
+                # ``data`` is within the angle limit already (and its channels as fitted here).
+                options=replace(options, max_theta_deg=None),
                 config=cfg,
                 starts=starts,
-                channel_names=tuple(data.channels),
                 nested=seed_fit,
             )
             return r

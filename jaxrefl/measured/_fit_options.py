@@ -1,6 +1,7 @@
 """Which samples and channels of a measured BRDF a fit uses, what it minimises and whether
 float32 may be redone in float64: the :class:`MeasuredOptions` of
-:func:`~jaxrefl.measured.fit_model`, :func:`~jaxrefl.measured.fit_brdf` (:mod:`._fit`) and
+:func:`~jaxrefl.measured.fit_model`, :func:`~jaxrefl.measured.fit_brdf` (:mod:`._fit`),
+:func:`~jaxrefl.measured.fit_multistart` (:mod:`._starts`) and
 :func:`~jaxrefl.measured.sample_posterior`.
 
 They sit beside the solver's :class:`~jaxrefl.fit.FitConfig` and the starts'

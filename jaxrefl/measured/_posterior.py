@@ -49,6 +49,7 @@ NOISE = "Gaussian on f_r cos(theta_i), unknown scale (Jeffreys prior)"
 _MULTISTART = MultiStart()
 _OPTIONS = MeasuredOptions()
 FILE_DRAWS = 2000  # draws in posterior.nc: with the log-likelihood, ~35 MB for 4,300 values
+HMC_SEED = 0  # the HMC chains' seed: HMCOptions, shared with the maps, carries none
 _EMCEE_KEYS = ("tau", "burn", "thin", "tau_reliable", "n_steps", "max_steps", "n_walkers")
 
 
@@ -183,7 +184,6 @@ def sample_posterior(
     sampler: jp.EmceeOptions | jp.HMCOptions | None = None,
     *,
     options: MeasuredOptions = _OPTIONS,
-    seed: int = 0,
     progress: bool = False,
     starts: MultiStart | None = _MULTISTART,
 ) -> BRDFPosterior:
@@ -192,13 +192,15 @@ def sample_posterior(
     ``options.illuminant``) first.
 
     measured:      a :class:`jaxrefl.io.MeasuredBRDF`, or a file :func:`load_measured` reads
-    sampler:       :class:`jaxrefl.posterior.EmceeOptions` (None: its defaults) or
-                   :class:`jaxrefl.posterior.HMCOptions`
+    sampler:       :class:`jaxrefl.posterior.EmceeOptions` (None: its defaults; its
+                   ``seed`` seeds the walkers) or :class:`jaxrefl.posterior.HMCOptions` (the
+                   chains seeded :data:`HMC_SEED`: HMC's settings carry no seed, a map's
+                   chunks are seeded by :class:`~jaxrefl.posterior.AdaptiveOptions`)
     options:       the samples used and the residual (:class:`MeasuredOptions`: the angle
                    limit, the cosine factor, the illuminant of spectral data; the fit runs in
                    float64, so no retry; ``spectral="bands"`` is refused: one posterior is
                    of one jointly fitted problem)
-    seed, progress: the sampler's seed and progress bar (emcee only)
+    progress:      a progress bar over emcee's steps
     starts:        the least-squares fit's starts (:class:`MultiStart`; None: one start)
     """
     m = measured if isinstance(measured, MeasuredBRDF) else load_measured(measured)
@@ -238,11 +240,10 @@ def sample_posterior(
             natural=lp.natural,
             labels=lp.labels,
             progress=progress,
-            seed=seed,
         )
     elif isinstance(sampler, jp.HMCOptions):
         batch = jax.tree.map(lambda a: a[None], data)
-        s = jp.sample_pixels(lp, batch, th0[None], options=sampler, seed=seed)
+        s = jp.sample_pixels(lp, batch, th0[None], options=sampler, seed=HMC_SEED)
     else:
         raise TypeError(f"sampler must be EmceeOptions or HMCOptions, not {type(sampler).__name__}")
     return BRDFPosterior(

@@ -44,8 +44,6 @@ float64. Problems: one for channels fitted jointly, C when every channel is its 
 
 from __future__ import annotations
 
-from typing import Literal
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -66,17 +64,19 @@ from jaxrefl.fit import (
     pixel_data,
 )
 from jaxrefl.fit import sample_arrays as _sample_arrays
+from jaxrefl.io import MeasuredBRDF
 
 from ._certificate import Certificate, certify
+from ._data import Channels, fit_channels, restrict
+from ._fit_options import MeasuredOptions
 from ._nested import nested_thetas
 from ._seeds import start_thetas
 from ._start_options import MultiStart
 
 __all__ = ["fit_multistart"]
 
-Channels = Literal["joint", "separate"]
-
 _DEFAULT_STARTS = MultiStart()
+_OPTIONS = MeasuredOptions()
 _FLOAT32_CONFIG = FitConfig(dtype=np.float32)
 
 
@@ -219,41 +219,44 @@ def _continue(
 
 def fit_multistart(
     model: BRDF,
-    wi: np.ndarray,
-    wo: np.ndarray,
-    values: np.ndarray,
+    measured: MeasuredBRDF,
     *,
-    channels: Channels = "joint",
-    cosine: bool = True,
+    options: MeasuredOptions = _OPTIONS,
     config: FitConfig = _FLOAT32_CONFIG,
     starts: MultiStart = _DEFAULT_STARTS,
     thetas: np.ndarray | None = None,
-    channel_names: tuple[str, ...] | None = None,
     nested: FitResult | None = None,
 ) -> tuple[FitResult, Certificate, np.ndarray]:
-    """Fit ``model`` to f_r samples from many starts at once and keep the best per problem.
+    """Fit ``model`` to the f_r samples of ``measured`` from many starts at once and keep
+    the best per problem.
 
-    wi, wo (K, 3), values (K, C) f_r in 1/sr (samples below the horizon get weight 0);
-    ``channels``, ``cosine`` and ``config`` as for :func:`jaxrefl.fit.fit_samples` (config's
-    dtype None: float32). The starts: the automatic one, then :func:`start_thetas`, then,
-    with ``nested`` (the fit of :func:`nested_model` to the same samples, channels and
-    cosine; used when ``starts.nested``), :func:`nested_thetas`; ``thetas`` (S, P) replaces
-    them all (the thresholds of ``starts`` still certify).
+    options: the samples and channels fitted and the residual, as for
+             :func:`~jaxrefl.measured.fit_model` (:class:`MeasuredOptions`: the angle limit,
+             the cosine factor, spectral data as RGB or one problem a band); one run in
+             ``config``'s dtype, so its ``retry_float64`` is :func:`fit_model`'s to apply
+    config:  as for :func:`jaxrefl.fit.fit_samples` (dtype None: float32)
+    The starts: the automatic one, then :func:`start_thetas`, then, with ``nested`` (the fit
+    of :func:`nested_model` to the same samples under the same options; used when
+    ``starts.nested``), :func:`nested_thetas`; ``thetas`` (S, P) replaces them all (the
+    thresholds of ``starts`` still certify).
     Returns the best result shaped as :func:`jaxrefl.fit.fit_samples` returns it (no
     leading axis when joint, C when separate), its :class:`Certificate`, and the (N, S)
     costs of every start.
     """
     dtype = np.dtype(np.float32 if config.dtype is None else config.dtype)
-    wi = np.asarray(wi, np.float64)
-    wo = np.asarray(wo, np.float64)
-    f = np.asarray(values, np.float64)
-    if f.ndim == 1:
-        f = f[:, None]
+    measured, channels = fit_channels(measured, options)
+    measured = restrict(measured, options.max_theta_deg)
+    if len(measured) == 0:
+        raise JaxreflError(
+            f"{measured.source}: no usable samples within {options.max_theta_deg} degrees"
+        )
+    cosine = options.cosine
+    wi = np.asarray(measured.wi, np.float64)
+    wo = np.asarray(measured.wo, np.float64)
+    f = np.asarray(measured.values, np.float64)
     data = _problem(wi, wo, f, channels, cosine, dtype)
     n = data.obs.shape[0]
-    names = channel_names if channels == "joint" else None
-    if names is not None and len(names) != data.obs.shape[-1]:
-        names = None
+    names = tuple(measured.channels) if channels == "joint" else None
     space = ParamSpace(model, channels=data.obs.shape[-1], channel_names=names)
     if thetas is None:
         per = [

@@ -57,6 +57,7 @@ class EmceeOptions:
     min_ess:     the smallest bulk ESS accepted (>= 0)
     scale:       the start ball's radius in units of the theta-space std (> 0)
     burn_factor: the burn-in, in units of the largest tau (>= 0; at most half the run)
+    seed:        seeds the start ball and emcee's moves (>= 0): the same seed, the same draws
     """
 
     n_walkers: int | None = None
@@ -67,6 +68,7 @@ class EmceeOptions:
     min_ess: float = MIN_ESS
     scale: float = 0.5
     burn_factor: float = 2.0
+    seed: int = 0
 
     def __post_init__(self) -> None:
         if self.n_walkers is not None and self.n_walkers < 2:
@@ -85,6 +87,8 @@ class EmceeOptions:
             raise JaxreflError(f"scale must be positive, got {self.scale}")
         if not self.burn_factor >= 0:
             raise JaxreflError(f"burn_factor must be >= 0, got {self.burn_factor}")
+        if not (isinstance(self.seed, int | np.integer) and self.seed >= 0):
+            raise JaxreflError(f"seed must be an integer >= 0, got {self.seed!r}")
 
 
 @dataclass(frozen=True)
@@ -191,7 +195,6 @@ def sample_emcee(
     labels: tuple[str, ...] = (),
     theta_std: Float[ArrayLike, " D"] | None = None,
     progress: bool = False,
-    seed: int = 0,
 ) -> Samples:
     """Run emcee on ``logdensity(theta (D,), *args) -> scalar`` (a JAX function or an
     equinox Module such as :class:`LogPosterior`; compiled once per structure and shapes,
@@ -199,7 +202,7 @@ def sample_emcee(
     converged or ``max_steps`` (module docstring).
 
     theta0:  (D,) start (e.g. :meth:`LogPosterior.init_theta` of the LM optimum)
-    options: :class:`EmceeOptions` (None: its defaults)
+    options: :class:`EmceeOptions` (None: its defaults), the seed included
     natural: maps theta draws (..., D) to natural values (e.g. ``LogPosterior.natural``);
              R-hat and ESS are judged on the natural values
     theta_std: (D,) the start ball's shape (e.g. the Laplace std; None: 1e-2 everywhere)
@@ -225,7 +228,7 @@ def sample_emcee(
     def to_natural(theta: np.ndarray) -> np.ndarray:
         return theta if natural is None else np.asarray(natural(jnp.asarray(theta)), np.float64)
 
-    rng = np.random.default_rng(seed)
+    rng = np.random.default_rng(o.seed)
     sd = np.full(d, 1e-2) if theta_std is None else np.asarray(theta_std, dtype=np.float64)
     sd = np.where(np.isfinite(sd) & (sd > 0), np.minimum(sd, 1.0), 1e-2)
     p0 = x0 + o.scale * sd * rng.normal(size=(n_walkers, d))
@@ -233,7 +236,7 @@ def sample_emcee(
     log_prob(p0)  # compile
     compile_s = time.perf_counter() - t0
     sampler = emcee.EnsembleSampler(n_walkers, d, log_prob, vectorize=True)
-    sampler.random_state = np.random.RandomState(seed).get_state()  # reproducible moves
+    sampler.random_state = np.random.RandomState(o.seed).get_state()  # reproducible moves
     bar = None
     if progress:
         from tqdm.auto import tqdm
