@@ -255,13 +255,14 @@ def fit_model(
     cos_i = data.wi[:, 2]
 
     dtype = _check_dtype(config)
+    # ``data`` is within the angle limit already (and its channels as fitted here).
+    inside = replace(options, max_theta_deg=None)
     inner = nested_model(model) if starts is not None and starts.nested else None
     if inner is not None and nested is None:
         nested = fit_model(
             inner,
             data,
-            # ``data`` is within the angle limit already (and its channels as fitted here).
-            options=replace(options, max_theta_deg=None),
+            options=inside,
             config=config,
             timing=False,
             starts=starts,
@@ -280,8 +281,7 @@ def fit_model(
             r, certs[dt], _ = fit_multistart(
                 model,
                 data,
-                # ``data`` is within the angle limit already (and its channels as fitted here).
-                options=replace(options, max_theta_deg=None),
+                options=inside,
                 config=cfg,
                 starts=starts,
                 nested=seed_fit,
