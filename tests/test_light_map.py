@@ -15,7 +15,7 @@ import pytest
 
 from jaxrefl import fit, svbrdf
 from jaxrefl import posterior as jp
-from jaxrefl.svbrdf import _light_map
+from jaxrefl.svbrdf import _light, _light_map
 from jaxrefl.svbrdf._light import fixed_light
 from jaxrefl.svbrdf._uncertainty import fit_theta
 
@@ -105,3 +105,41 @@ def test_term_size_follows_the_covariance(stated_map, monkeypatch):
         ok = np.isfinite(one) & (one > 1e-12)
         assert ok.sum() > one.size // 2
         np.testing.assert_allclose(four[ok] / one[ok], 2.0, rtol=0.05)
+
+
+def test_lens_spread_reuses_autos_problem(stated_map, monkeypatch):
+    """Where ``auto`` scored the light (its problem kept on the light it returns), the map's
+    lens-position spread draws from the ``offset`` estimate of that problem: no second
+    estimate, the same term as the one computed afresh, the estimate computed once."""
+    res, cap, _offset = stated_map
+    job = res.fit.job
+    scored = svbrdf.estimate_light(cap, "auto", job.holdout, alpha_min=job.alpha_min)
+    source = scored.offset_source
+    assert source is not None and source.serves(cap, job.holdout, job.alpha_min)
+    assert not source.serves(cap, (0,), job.alpha_min)
+    kept = dataclasses.replace(
+        fixed_light(cap, "auto", "the stated light instead"),
+        cv_rmse=scored.cv_rmse,
+        offset_source=source,
+    )
+    cf = dataclasses.replace(res.fit, light=kept)
+    afresh = _spread(_kept_fixed(res, cap), res, cap, n_draws=8)
+    finals = []
+    real_final = _light._final
+    monkeypatch.setattr(
+        _light, "_final", lambda *a, **k: finals.append(a[1]) or real_final(*a, **k)
+    )
+
+    def refuse(*_a, **_k):
+        raise AssertionError("the map estimated the light again")
+
+    monkeypatch.setattr(_light_map, "estimate_light", refuse)
+    first = _spread(cf, res, cap, n_draws=8)
+    again = _spread(cf, res, cap, n_draws=8)
+    assert len(finals) <= 1  # computed on first use (or by auto, where it kept offset), then kept
+    np.testing.assert_allclose(first, afresh, rtol=1e-10, atol=1e-15, equal_nan=True)
+    np.testing.assert_array_equal(first, again)
+    # a fit with other held-out photos does not take it
+    other = dataclasses.replace(cf, job=dataclasses.replace(job, holdout=(0,)))
+    with pytest.raises(AssertionError, match="estimated the light again"):
+        _light_map._lens_estimate(other, cap)

@@ -109,6 +109,8 @@ class LightEstimate:
                  and under ``fixed`` (:mod:`jaxrefl.svbrdf._light_check`); empty where not
                  checked
     why:         one sentence, the form of ``auto``'s
+    offset_source: where ``auto`` scored the candidates, its problem, for the ``offset``
+                 estimate of the same pixels, seed and held-out photos (:class:`OffsetSource`)
     """
 
     mode: str
@@ -131,6 +133,7 @@ class LightEstimate:
     pixels: int = 0
     iterations: int = 0
     rot: np.ndarray | None = None
+    offset_source: OffsetSource | None = field(default=None, compare=False, repr=False)
 
     def apply(self, capture, offset_cm=None, photo_gain=None):
         """``capture`` (as its files state the light) with this light: flash at p + R d,
@@ -195,6 +198,51 @@ class LightEstimate:
             "pixels": self.pixels,
             "iterations": self.iterations,
         }
+
+
+@dataclass(eq=False)
+class OffsetSource:
+    """``auto``'s light problem (its pixel subsample, seed and held-out photos), kept with the
+    light it chose, for the ``offset`` estimate of the capture: an uncertainty map whose fit
+    kept the stated light after scoring an offset draws its lens-position spread from that
+    estimate (:mod:`jaxrefl.svbrdf._light_map`). ``auto`` scores the offset on pixel halves
+    and does not need the estimate on both, so it is computed on first use (about as long
+    as ``auto``'s score), then kept; where ``auto`` kept ``offset``, it is that estimate.
+    Either way it is what :func:`estimate_light` with ``light="offset"`` and ``on``'s
+    arguments returns for the capture, with no second problem built and no second solve.
+
+    on: what it is computed on: the capture's shape, the held-out photos, ``n_pixels``,
+    ``seed`` and ``alpha_min`` of :func:`estimate_light`.
+    """
+
+    problem: LightProblem
+    on: dict[str, Any]
+    kept: LightEstimate | None = None
+
+    def estimate(self) -> LightEstimate:
+        if self.kept is None:
+            with jax.enable_x64(True):
+                self.kept = _final(self.problem, "offset", "offset", {}, _AS_ASKED.format("offset"))
+        return self.kept
+
+    def serves(self, capture, holdout, alpha_min) -> bool:
+        """Whether the estimate is the one :func:`estimate_light` would give ``capture``
+        with these held-out photos and ``alpha_min`` at its default pixels and seed."""
+        return self.on == _basis(capture, holdout, SELECTION_PIXELS, 0, alpha_min)
+
+
+_AS_ASKED = "as asked (light {}); not scored against fixed"
+
+
+def _basis(capture, holdout, n_pixels, seed, alpha_min) -> dict[str, Any]:
+    k = capture.n_photos
+    return {
+        "shape": tuple(capture.shape),
+        "holdout": tuple(sorted({int(i) for i in holdout if 0 <= i < k})),
+        "n_pixels": int(n_pixels),
+        "seed": seed,
+        "alpha_min": None if alpha_min is None else float(alpha_min),
+    }
 
 
 def fixed_light(capture, asked: str, why: str) -> LightEstimate:
@@ -349,13 +397,16 @@ def estimate_light(
             )
             if chosen != "fixed":
                 why += f" ({cv[chosen] / cv['fixed']:.2f} x fixed's)"
+            source = OffsetSource(problem, _basis(capture, holdout, n_pixels, seed, alpha_min))
             if chosen == "fixed":
                 est = fixed_light(capture, light, why)
-                return replace(est, cv_rmse=cv, prior=problem.prior)
-        else:
-            chosen, cv = light, {}
-            why = f"as asked (light {light}); not scored against fixed"
-        return _final(problem, chosen, light, cv, why)
+                return replace(est, cv_rmse=cv, prior=problem.prior, offset_source=source)
+            est = _final(problem, chosen, light, cv, why)
+            if chosen == "offset":
+                why_offset = _AS_ASKED.format("offset")
+                source.kept = replace(est, asked="offset", cv_rmse={}, why=why_offset)
+            return replace(est, offset_source=source)
+        return _final(problem, light, light, {}, _AS_ASKED.format(light))
 
 
 def light_draws(estimate: LightEstimate, n: int, seed=0) -> list[tuple[np.ndarray, np.ndarray]]:

@@ -105,4 +105,11 @@ def check_light(capture, estimate: LightEstimate, job: FitJob) -> LightEstimate:
         f"{estimate.why}; the stated light instead: {account} (the estimate helps the "
         f"shared width's predictions, not {job.model}'s)",
     )
-    return replace(kept, cv_rmse=estimate.cv_rmse, prior=estimate.prior, model_cv_rmse=rmse)
+    # auto's problem goes with it: the map's lens-position spread draws from its offset.
+    return replace(
+        kept,
+        cv_rmse=estimate.cv_rmse,
+        prior=estimate.prior,
+        model_cv_rmse=rmse,
+        offset_source=estimate.offset_source,
+    )

@@ -38,17 +38,17 @@ Which light term a map carries (:func:`map_term`; ``report.json`` ``light.map_te
   so the map still carries the light's uncertainty about the lens position. The photos'
   own account of the offset is the ``offset`` estimate (:func:`jaxrefl.svbrdf.estimate_light`
   with ``offset``, its reported covariance C: the same subsample, seed and held-out photos
-  as ``auto``'s score), computed again for the map. Its draws come from the mixture of the
-  two models ``auto`` could not tell apart, with equal weights: the flash at the lens
-  (d = 0) and the flash at the estimate mu (d ~ N(mu, C)). The spread is the second moment
-  of the moves about the map's centre, the fit under d = 0 (the draws at d = 0 move
-  nothing): 1/2 E[move^2] over N(mu, C). A zero-mean N(0, C) would be the other choice; it
-  is not the honest one: C says how well the photos pin the offset where it is estimated,
-  and where mu lies many of C's stds from 0 (a flash 1-1.5 cm off, pinned to a millimetre)
-  N(0, C) gives the estimate itself no weight and widens by C alone, far less than the
-  move to the estimate that the photos allow. Where mu is within C of 0 (a flash at the
-  lens) the two choices differ little. The gains stay the stated ones (``fixed`` has no
-  gains), the offset's z its prior's, as above.
+  as ``auto``'s score), from the problem ``auto`` scored and kept on the fit's light. Its
+  draws come from the mixture of the two models ``auto`` could not tell apart, with equal
+  weights: the flash at the lens (d = 0) and the flash at the estimate mu (d ~ N(mu, C)).
+  The spread is the second moment of the moves about the map's centre, the fit under d = 0
+  (the draws at d = 0 move nothing): 1/2 E[move^2] over N(mu, C). A zero-mean N(0, C)
+  would be the other choice; it is not the honest one: C says how well the photos pin the
+  offset where it is estimated, and where mu lies many of C's stds from 0 (a flash 1-1.5 cm
+  off, pinned to a millimetre) N(0, C) gives the estimate itself no weight and widens by C
+  alone, far less than the move to the estimate that the photos allow. Where mu is within
+  C of 0 (a flash at the lens) the two choices differ little. The gains stay the stated
+  ones (``fixed`` has no gains), the offset's z its prior's, as above.
 * ``none``: the light was given, not estimated: ``FitJob.light="fixed"`` (the user stated
   the light: the map is conditional on it), a capture with directional lights, or too few
   training photos for ``auto`` to score the light.
@@ -137,9 +137,16 @@ def _held(cov: np.ndarray) -> np.ndarray:
 def _lens_estimate(cf, capture):
     """The ``offset`` estimate of ``capture`` for a fit whose ``auto`` kept ``fixed``, with
     the stated gains and a covariance over the estimated offset alone (module docstring);
-    None where it has no covariance."""
+    None where it has no covariance. The estimate is the one ``auto``'s problem gives
+    (:class:`jaxrefl.svbrdf._light.OffsetSource`, kept on the fit's light) where that was
+    computed on this capture with the job's held-out photos and lobe bound; otherwise
+    :func:`jaxrefl.svbrdf.estimate_light` computes it afresh."""
     job = cf.job
-    est = estimate_light(capture, "offset", job.holdout, alpha_min=job.alpha_min)
+    source = cf.light.offset_source
+    if source is not None and source.serves(capture, job.holdout, job.alpha_min):
+        est = source.estimate()
+    else:
+        est = estimate_light(capture, "offset", job.holdout, alpha_min=job.alpha_min)
     if est.cov is None:
         return None
     cov = np.zeros_like(est.cov)
