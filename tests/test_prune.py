@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from jaxrefl.fit import FitConfig, LMOptions, Status, pixel_data
-from jaxrefl.measured import Components, prune
+from jaxrefl.measured import Components, PruneOptions, prune
 from jaxrefl.measured._compact import compact
 
 TRIALS = 20  # per true model
@@ -80,8 +80,8 @@ def _scene(seed: int = 0):
 def pruned():
     data, mask, truth = _scene()
     # P <= 5: the LAPACK Cholesky compiles faster than the unrolled one and costs nothing here.
-    bic = prune(data, RICH, criterion="bic", mask=mask, config=FitConfig(solver=LM))
-    ev = prune(data, RICH, criterion="evidence", mask=mask, cache=bic.fits)
+    bic = prune(data, RICH, PruneOptions(criterion="bic"), mask=mask, config=FitConfig(solver=LM))
+    ev = prune(data, RICH, PruneOptions(criterion="evidence"), mask=mask, cache=bic.fits)
     return data, mask, truth, bic, ev
 
 
@@ -139,7 +139,8 @@ def test_per_cluster_pruning(pruned):
     """k-means on the fitted colours separates matte from glossy pixels; each cluster is
     pruned as a whole."""
     data, mask, truth, bic, _ = pruned
-    rep = prune(data, RICH, mask=mask, groups="kmeans", n_clusters=2, cache=bic.fits)
+    kmeans2 = PruneOptions(groups="kmeans", n_clusters=2)
+    rep = prune(data, RICH, kmeans2, mask=mask, cache=bic.fits)
     assert set(rep.fits) == set(bic.fits)  # nothing refitted
     assert len(rep.groups) == 2
     chosen = rep.chosen_per_pixel()
@@ -148,3 +149,28 @@ def test_per_cluster_pruning(pruned):
     assert np.mean(chosen[fitted] == truth[fitted]) >= 0.9
     d = rep.to_dict()
     assert d["pixels"]["kept"] == 2 * TRIALS and len(d["groups"]) == 2
+    assert d["options"] == kmeans2.to_json() and d["criterion"] == "bic"
+    # The clusters given as labels make the same groups and choices (nothing refitted).
+    given = prune(data, RICH, PruneOptions(groups="labels"), mask=mask, labels=rep.labels,
+                  cache=bic.fits)  # fmt: skip
+    assert [g.chosen.label for g in given.groups] == [g.chosen.label for g in rep.groups]
+    np.testing.assert_array_equal(given.chosen_per_pixel(), chosen)
+
+
+def test_prune_options_are_checked_and_labels_go_with_their_grouping():
+    data, mask, _ = _scene(1)
+    for bad, match in (
+        (dict(criterion="aic"), "criterion one of 'bic', 'evidence'"),
+        (dict(groups="cluster"), "groups one of"),
+        (dict(noise="guess"), "noise one of"),
+        (dict(n_clusters=0), "integer n_clusters >= 1"),
+        (dict(seed=-1), "integer seed >= 0"),
+        (dict(prior_width=0.0), "prior_width > 0"),
+        (dict(noise_floor=-1.0), "noise_floor >= 0"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            PruneOptions(**bad)
+    with pytest.raises(ValueError, match='groups="labels"'):
+        prune(data, RICH, mask=mask, labels=np.zeros(data.obs.shape[0], int))
+    with pytest.raises(ValueError, match='groups="labels"'):
+        prune(data, RICH, PruneOptions(groups="labels"), mask=mask)

@@ -54,12 +54,13 @@ from ._plots import plot_fit_lobes as plot_fit_lobes
 from ._posterior import BRDFPosterior as BRDFPosterior
 from ._posterior import sample_posterior as sample_posterior
 from ._posterior import write_posterior as write_posterior
-from ._prune import CRITERIA as CRITERIA
 from ._prune import GroupPruning as GroupPruning
 from ._prune import PruneReport as PruneReport
 from ._prune import PruneStep as PruneStep
 from ._prune import measured_pixel_data as measured_pixel_data
 from ._prune import prune as prune
+from ._prune_options import CRITERIA as CRITERIA
+from ._prune_options import PruneOptions as PruneOptions
 from ._retry import RetryResult as RetryResult
 from ._retry import fit_pixels_retry as fit_pixels_retry
 from ._start_options import MultiStart as MultiStart
@@ -81,6 +82,7 @@ __all__ = [
     "MeasuredOptions",
     "ModelFit",
     "MultiStart",
+    "PruneOptions",
     "PruneReport",
     "PruneStep",
     "Ranking",

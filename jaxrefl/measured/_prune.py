@@ -25,11 +25,12 @@ P free parameters):
   factor e^3 = 20 of 0.2). The log-determinant comes from a Cholesky factor of H.
 
 A *group* of pixels shares the decision: its criterion is the sum of its pixels' criteria
-(independent pixels, each with its own parameters). ``groups`` is ``"pixel"`` (every pixel
-alone), ``"all"`` (one material: the whole batch), an (N,) array of labels, or
-``"kmeans"``: :func:`kmeans` on each pixel's colour and gloss read from its observations
-(log median of obs / scale, log ratio of the largest value to the median, per channel)
-into ``n_clusters`` clusters (an SVBRDF's materials).
+(independent pixels, each with its own parameters). ``PruneOptions.groups`` is ``"pixel"``
+(every pixel alone), ``"all"`` (one material: the whole batch), ``"labels"`` (an (N,) array
+of labels given to :func:`prune`), or ``"kmeans"``: :func:`kmeans` on each pixel's colour
+and gloss read from its observations (log median of obs / scale, log ratio of the largest
+value to the median, per channel) into ``n_clusters`` clusters (an SVBRDF's materials).
+Every setting is a field of :class:`~jaxrefl.measured.PruneOptions` (:mod:`._prune_options`).
 
 Before anything is fitted, pixels the scene does not need are removed
 (:func:`~jaxrefl.measured._compact.compact`, with ``min_obs`` = the rich model's parameter
@@ -44,7 +45,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -63,9 +64,9 @@ from jaxrefl.fit import (
 
 from ._compact import Compacted, compact
 from ._components import Components, fit_components, param_space, start_from
+from ._prune_options import PruneOptions
 
 __all__ = [
-    "CRITERIA",
     "GroupPruning",
     "PruneReport",
     "PruneStep",
@@ -75,7 +76,7 @@ __all__ = [
     "prune",
 ]
 
-CRITERIA = ("bic", "evidence")
+_OPTIONS = PruneOptions()
 
 
 @eqx.filter_jit
@@ -261,16 +262,22 @@ class GroupPruning:
 class PruneReport:
     """Pruning of every group, the cached fits, and the pixels left out.
 
+    options:  the settings it ran with (:class:`PruneOptions`)
     labels:   (N_kept,) group of each kept pixel (order of ``compacted.index``)
     fits:     assembly label -> (spec, FitResult on the kept pixels, criteria dict)
     """
 
-    criterion: str
+    options: PruneOptions
     rich: Components
     groups: list[GroupPruning]
     labels: np.ndarray
     compacted: Compacted
     fits: dict[str, tuple[Components, FitResult, dict[str, np.ndarray]]] = field(repr=False)
+
+    @property
+    def criterion(self) -> str:
+        """``options.criterion``."""
+        return self.options.criterion
 
     def chosen_per_pixel(self) -> np.ndarray:
         """(N_in,) label of the chosen assembly per input pixel ("" where left out)."""
@@ -295,6 +302,7 @@ class PruneReport:
     def to_dict(self) -> dict[str, Any]:
         return {
             "criterion": self.criterion,
+            "options": self.options.to_json(),
             "rich": self.rich.label,
             "pixels": self.compacted.counts,
             "groups": [g.to_dict() for g in self.groups],
@@ -319,16 +327,10 @@ def _group_value(crit: dict[str, np.ndarray], criterion: str, members: np.ndarra
 def prune(
     data: PixelData,
     rich: Components,
+    options: PruneOptions = _OPTIONS,
     *,
-    criterion: Literal["bic", "evidence"] = "bic",
-    groups: Literal["pixel", "all", "kmeans"] | np.ndarray = "pixel",
-    n_clusters: int = 4,
     mask: np.ndarray | None = None,
-    saturation: float | None = None,
-    noise_floor: float = 0.0,
-    noise: Literal["estimate", "known"] = "estimate",
-    prior_width: float = 3.0,
-    seed: int = 0,
+    labels: np.ndarray | None = None,
     config: FitConfig = FitConfig(),
     cache: Mapping[str, tuple[Components, FitResult, dict[str, np.ndarray]]] | None = None,
 ) -> PruneReport:
@@ -336,18 +338,29 @@ def prune(
 
     data:        :class:`~jaxrefl.fit.PixelData` (N, K, C); a measured material is one pixel
                  (:func:`measured_pixel_data`)
+    options:     the criterion, the groups and the pixels kept (:class:`PruneOptions`;
+                 ``saturation`` and ``noise_floor`` are those of
+                 :func:`~jaxrefl.measured._compact.compact`)
+    mask:        (N,) bool, False = not part of the scene
+    labels:      (N,) group of every pixel, with ``options.groups == "labels"`` only
     config:      solver, noise, loss and dtype of every fit (:class:`jaxrefl.fit.FitConfig`,
                  as :func:`fit_components` takes it)
     cache:       :attr:`PruneReport.fits` of an earlier call on the same data, rich model,
-                 fit configuration and noise settings (e.g. to compare criteria or
-                 groupings without refitting)
-    The compaction options are those of :func:`~jaxrefl.measured._compact.compact`.
+                 fit configuration, ``noise`` and ``prior_width`` (e.g. to compare criteria
+                 or groupings without refitting)
     """
-    if criterion not in CRITERIA:
-        raise JaxreflError(f"criterion must be one of {CRITERIA}, not {criterion!r}")
+    o = options
+    if (labels is None) != (o.groups != "labels"):
+        raise JaxreflError(
+            'prune takes labels with PruneOptions(groups="labels") and only then, got '
+            f"groups={o.groups!r} and {'no ' if labels is None else ''}labels"
+        )
+    criterion = o.criterion
     c = data.obs.shape[-1]
     p_rich = param_space(rich.build(), c).size
-    comp = compact(data, mask, min_obs=p_rich + 1, saturation=saturation, noise_floor=noise_floor)
+    comp = compact(
+        data, mask, min_obs=p_rich + 1, saturation=o.saturation, noise_floor=o.noise_floor
+    )
     d = comp.data
     n = d.obs.shape[0]
     if n == 0:
@@ -358,9 +371,9 @@ def prune(
     else:
         rich_fit = fit_components(rich, d, config=config)
         # The rich fit's residual variance is every candidate's s^2 (module docstring).
-        base = criteria(rich_fit, d, noise_var=1.0 if noise == "known" else None)
+        base = criteria(rich_fit, d, noise_var=1.0 if o.noise == "known" else None)
         var = base["noise_var"]
-        crit = criteria(rich_fit, d, noise_var=var, prior_width=prior_width)
+        crit = criteria(rich_fit, d, noise_var=var, prior_width=o.prior_width)
         fits[rich.label] = (rich, rich_fit, crit)
     init_params = {k: np.asarray(v) for k, v in rich_fit.params.items()}
 
@@ -368,24 +381,21 @@ def prune(
         if spec.label not in fits:
             init = start_from(init_params, spec, n, c)
             r = fit_components(spec, d, init=init, config=config)
-            fits[spec.label] = (spec, r, criteria(r, d, noise_var=var, prior_width=prior_width))
+            fits[spec.label] = (spec, r, criteria(r, d, noise_var=var, prior_width=o.prior_width))
         return fits[spec.label][2]
 
-    if isinstance(groups, str):
-        if groups == "pixel":
-            labels = np.arange(n)
-        elif groups == "all":
-            labels = np.zeros(n, int)
-        elif groups == "kmeans":
-            labels = kmeans(_cluster_features(d), n_clusters, seed=seed)
-        else:
-            raise JaxreflError(f"groups must be 'pixel', 'all', 'kmeans' or labels, not {groups!r}")
+    if o.groups == "pixel":
+        labels = np.arange(n)
+    elif o.groups == "all":
+        labels = np.zeros(n, int)
+    elif o.groups == "kmeans":
+        labels = kmeans(_cluster_features(d), o.n_clusters, seed=o.seed)
     else:
-        labels = np.asarray(groups).reshape(-1)
+        labels = np.asarray(labels).reshape(-1)
         if labels.shape[0] == comp.n_in:
             labels = labels[comp.index]
         elif labels.shape[0] != n:
-            raise JaxreflError(f"groups has {labels.shape[0]} labels for {comp.n_in} pixels")
+            raise JaxreflError(f"labels has {labels.shape[0]} entries for {comp.n_in} pixels")
     out = []
     for g in np.unique(labels):
         members = np.flatnonzero(labels == g)
@@ -407,7 +417,7 @@ def prune(
             dropped.append(PruneStep(pick, value, cands[pick], current.label, nxt.label))
             current, value = nxt, cands[pick]
         out.append(GroupPruning(int(g), int(members.size), current, dropped, kept))
-    return PruneReport(criterion, rich, out, labels, comp, fits)
+    return PruneReport(o, rich, out, labels, comp, fits)
 
 
 def measured_pixel_data(measured: Any, cosine: bool = True, dtype=None) -> PixelData:
