@@ -87,7 +87,13 @@ def _photo_gain(pred, photo: int, shape: tuple[int, int]) -> tuple[float, float,
 
 
 def real_capture(name: str, size: int, model: str) -> None:
-    from jaxrefl.svbrdf import FitJob, estimate_discrepancy, fit_capture, predictive
+    from jaxrefl.svbrdf import (
+        DiscrepancyOptions,
+        FitJob,
+        estimate_discrepancy,
+        fit_capture,
+        predictive,
+    )
 
     cap = flash_capture(name, size)
     k = cap.n_photos
@@ -102,7 +108,8 @@ def real_capture(name: str, size: int, model: str) -> None:
         t2 = time.perf_counter()
         pred = predictive(cap, cf, disc)
         alt = not disc.replaces_noise
-        vfn = predictive(cap, cf, estimate_discrepancy(cap, cf, replace_noise=alt))
+        other = DiscrepancyOptions(replace_noise=alt)
+        vfn = predictive(cap, cf, estimate_discrepancy(cap, cf, other))
         t3 = time.perf_counter()
         compile_s += cf.report["timings"]["compile_s"]
         fit_s += t1 - t0 - cf.report["timings"]["compile_s"]
@@ -208,7 +215,7 @@ def real_capture(name: str, size: int, model: str) -> None:
         "parameter + noise only; all three over the pixels not flagged; 'other noise': the other "
         "noise term (for `pooled`, whose default replaces its one noise scale by a variance "
         "function of the radiance measured on held-out training photos, the fit's own scale "
-        "plus the discrepancy: `estimate_discrepancy(..., replace_noise=False)`); 'obs / pred': "
+        "plus the discrepancy: `DiscrepancyOptions(replace_noise=False)`); 'obs / pred': "
         "the held-out photo's median ratio of observed to predicted radiance; 'its spread': the "
         f"interquartile range of that ratio's medians over {BLOCK} x {BLOCK}-pixel blocks. A "
         "ratio far from 1 with a small spread is a photo-wide offset (flash power, exposure) "

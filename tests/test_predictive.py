@@ -12,6 +12,7 @@ import pytest
 from jaxrefl.demo import demo_scene, photograph_maps
 from jaxrefl.svbrdf import (
     Discrepancy,
+    DiscrepancyOptions,
     FitJob,
     ModelCheck,
     capture_model,
@@ -142,7 +143,7 @@ def test_one_capture_noise_scale_is_replaced_by_a_variance_function(fitted):
 
     dof = laplace_dof(cf)
     assert np.all(np.isinf(dof[~np.isnan(dof)])) and np.mean(~np.isnan(dof)) > 0.9
-    kept = estimate_discrepancy(cap, cf, replace_noise=False)
+    kept = estimate_discrepancy(cap, cf, DiscrepancyOptions(replace_noise=False))
     assert not kept.replaces_noise
     known = float(cf.extra["pooled"].sigma) ** 2
     np.testing.assert_allclose(predictive(cap, cf, kept).noise_var, known, rtol=1e-5)
@@ -225,3 +226,21 @@ def test_laplace_intervals_are_student_t_where_the_noise_was_estimated(fitted):
     assert np.all((lo[use] <= a) & (a <= hi[use]))
     with pytest.raises(ValueError, match="level"):
         laplace_interval(cf, 1.0)
+
+
+def test_discrepancy_options_are_checked():
+    for bad, match in (
+        (dict(max_pixels=0), "integer max_pixels >= 1"),
+        (dict(bins=0), "integer bins >= 1"),
+        (dict(seed=-2), "integer seed >= 0"),
+        (dict(replace_noise="yes"), "replace_noise True, False or None"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            DiscrepancyOptions(**bad)
+    assert DiscrepancyOptions().to_json() == {
+        "type": "discrepancy",
+        "max_pixels": 4096,
+        "bins": 8,
+        "seed": 0,
+        "replace_noise": None,
+    }

@@ -49,6 +49,7 @@ from ._check import ModelCheck as ModelCheck
 from ._data import is_colocated as is_colocated
 from ._data import pixel_block as pixel_block
 from ._data import resolvable_alpha as resolvable_alpha
+from ._discrepancy_options import DiscrepancyOptions as DiscrepancyOptions
 from ._export import write_gltf as write_gltf
 from ._export import write_mitsuba as write_mitsuba
 from ._export import write_textures as write_textures
@@ -110,6 +111,7 @@ __all__ = [
     "CaptureFit",
     "CaptureUncertainty",
     "Discrepancy",
+    "DiscrepancyOptions",
     "FitJob",
     "LeaveOneOut",
     "LightEstimate",

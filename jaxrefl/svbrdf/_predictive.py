@@ -30,7 +30,7 @@ with three variances, all in the capture's linear radiance units squared:
   median, 0.455 (a median, not a mean: a few wild highlights must not set the width of every
   interval). Between bin centres tau^2 is interpolated linearly, constant beyond. A held-out
   photo of the job is never looked at.
-* With ``estimate_discrepancy(..., replace_noise=True)`` the same median-matched estimate is
+* With ``DiscrepancyOptions(replace_noise=True)`` the same median-matched estimate is
   made against the parameter variance alone, and v(mu) *replaces* the fit's noise term: a
   heteroscedastic noise model measured on held-out training photos. It is the default for a
   fit whose noise is one known scale for the whole capture (``pooled``'s: too wide for dark
@@ -76,6 +76,7 @@ from jaxrefl.io import corr_name, map_name
 
 from ._check import PPC_ALPHA, ModelCheck, bound_bits, check_counts, ppc_failed
 from ._data import pixel_block, stack_folds, subsample
+from ._discrepancy_options import DiscrepancyOptions
 from ._job_types import CaptureFit
 from ._tile_fitter import TileFitter
 
@@ -92,6 +93,7 @@ LEVELS: tuple[float, ...] = (0.5, 0.9)
 # The median of a chi-square of one degree of freedom: the median of e^2 / v for a Gaussian e
 # of variance v (stats.chi2.ppf(0.5, 1)).
 _CHI2_1_MEDIAN = float(stats.chi2.ppf(0.5, 1))
+_DISCREPANCY = DiscrepancyOptions()
 
 
 @dataclass(frozen=True)
@@ -103,7 +105,7 @@ class Discrepancy:
     rows:     held-out training observations the estimate used
     folds:    the training photos held out in turn
     replaces_noise: tau^2 is the whole variance beyond the parameter term: the fit's noise
-              term is replaced by it (:func:`estimate_discrepancy` ``replace_noise``)
+              term is replaced by it (``DiscrepancyOptions.replace_noise``)
     error_var: (B,) with ``replaces_noise``, the held-out errors' own variance per bin, by
               which the parameter term is rescaled (module docstring); else None
     """
@@ -396,13 +398,10 @@ def _solve_tau2(e2: np.ndarray, v: np.ndarray) -> float:
 def estimate_discrepancy(
     capture,
     cf: CaptureFit,
-    *,
-    max_pixels: int = 4096,
-    bins: int = 8,
-    seed: int = 0,
-    replace_noise: bool | None = None,
+    options: DiscrepancyOptions = _DISCREPANCY,
 ) -> Discrepancy:
-    """tau^2(mu) from the training photos of ``cf`` alone (module docstring).
+    """tau^2(mu) from the training photos of ``cf`` alone (module docstring), under
+    ``options`` (:class:`DiscrepancyOptions`: rows, bins, seed, the noise model).
 
     ``max_pixels`` rows in all (pixels x training photos; at least 256 pixels a photo), drawn
     at random with ``seed``; ``bins`` quantile bins of predicted radiance. Each held-out
@@ -418,8 +417,8 @@ def estimate_discrepancy(
     dark pixels and too narrow for bright ones. None (the default): True exactly when the
     fit's noise is one known variance for the capture (``pooled``), False where each pixel
     has its own estimate (the per-pixel models)."""
-    if bins < 1:
-        raise JaxreflError(f"bins must be >= 1, got {bins}")
+    max_pixels, bins, seed = options.max_pixels, options.bins, options.seed
+    replace_noise = options.replace_noise
     k = capture.n_photos
     train = [i for i in range(k) if i not in cf.job.holdout]
     if len(train) < 2:
