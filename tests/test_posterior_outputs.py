@@ -270,6 +270,12 @@ def test_cli_sample_brdf_file(shared_data, tmp_path, capsys):
     assert rep["files"] == ["posterior.nc", "corner.png"]
     for key in ("model", "sampler", "samples_used", "fit", "noise", "posterior", "diagnostics"):
         assert rep[key] == lib[key], key
+    # What ran: the sampler's settings (seed included), the fit's options and starts.
+    ran = rep["settings"]
+    assert ran == lib["settings"] and ran["options"] == jm.MeasuredOptions().to_json()
+    assert ran["sampler"]["type"] == "emcee" and ran["sampler"]["seed"] == 0
+    assert ran["sampler"]["n_walkers"] == 10 and ran["sampler"]["max_steps"] == 400
+    assert ran["starts"] == jm.MultiStart().to_json()
     assert res.n_used == int(np.sum(np.asarray(res.data.weight) > 0)) > 0
     with pytest.raises(TypeError, match="EmceeOptions or HMCOptions"):
         jm.sample_posterior(src, "lambert", jp.AdaptiveOptions())

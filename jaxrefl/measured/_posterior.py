@@ -22,7 +22,7 @@ data, weights, censoring flags and pointwise log-likelihood) and ``corner.png``;
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -65,6 +65,8 @@ class BRDFPosterior:
     n_used:    observations (sample x channel) with weight > 0
     sampler:   the sampler's settings; its type says which sampler ran
     timings:   ``fit_s``, seconds in :func:`fit_model`
+    settings:  what ran, JSON-ready: the sampler's settings (its seed included), the
+               :class:`MeasuredOptions` and the :class:`MultiStart` of the fit
     """
 
     model: str
@@ -75,6 +77,7 @@ class BRDFPosterior:
     n_used: int
     sampler: jp.EmceeOptions | jp.HMCOptions
     timings: dict[str, float] = field(default_factory=dict)
+    settings: dict[str, Any] = field(default_factory=dict)
 
     @property
     def convergence(self) -> jp.Convergence:
@@ -149,7 +152,7 @@ class BRDFPosterior:
         """JSON-ready summary: model, ``converged`` and the :attr:`convergence` verdict (its
         reasons, tau, chain length, R-hat, ESS), sampler, the fit, noise model, :meth:`summary`,
         diagnostics (worst R-hat and ESS, divergences, acceptance; emcee's tau, burn-in and
-        thinning) and timings."""
+        thinning), timings and the :attr:`settings` that ran."""
         s, dg, mf = self.samples, self.diagnostics(), self.fit
         emcee = {k: s.extra[k] for k in _EMCEE_KEYS} if self.sampler_name == "emcee" else {}
         return {
@@ -175,6 +178,7 @@ class BRDFPosterior:
                 **emcee,
             },
             "timings": {**self.timings, "compile_s": s.compile_s, "sample_s": s.run_s},
+            "settings": self.settings,
         }
 
 
@@ -255,7 +259,18 @@ def sample_posterior(
         n_used=int(n_used),
         sampler=sampler,
         timings={"fit_s": t_fit},
+        settings={
+            "sampler": {"type": s.method, **_sampler_json(sampler)},
+            "options": options.to_json(),
+            "starts": None if starts is None else starts.to_json(),
+        },
     )
+
+
+def _sampler_json(sampler: jp.EmceeOptions | jp.HMCOptions) -> dict[str, Any]:
+    """The sampler's fields, and for HMC the chains' seed its settings do not carry."""
+    out = asdict(sampler)
+    return out if isinstance(sampler, jp.EmceeOptions) else {**out, "seed": HMC_SEED}
 
 
 def write_posterior(result: BRDFPosterior, out_dir: str | Path) -> list[Path]:
