@@ -21,7 +21,7 @@ from __future__ import annotations
 
 from typing import Any
 
-__all__ = ["MAP_AUDIT", "MAP_CHUNK", "MAP_GIBBS", "MAP_SAMPLER", "RERUN_RHAT"]
+__all__ = ["MAP_AUDIT", "MAP_CHUNK", "MAP_GIBBS", "MAP_KEEP_PIXELS", "MAP_SAMPLER", "RERUN_RHAT"]
 
 #: Keyword arguments of :class:`jaxrefl.posterior.HMCOptions` for an uncertainty map.
 MAP_SAMPLER: dict[str, Any] = {
@@ -37,6 +37,10 @@ MAP_GIBBS: dict[str, Any] = {"sweeps": 2, "width_scans": 1}
 MAP_AUDIT = 0.02
 #: MCMC pixels per compiled sampler call.
 MAP_CHUNK = 2048
+#: The most MCMC pixels whose draws a map keeps (in memory and in ``posterior.nc``); above
+#: it a seeded random subset keeps them, so a map's memory and files stop growing with the
+#: capture's size (the summaries of every MCMC pixel are kept whatever the cap).
+MAP_KEEP_PIXELS = 16384
 #: The max split R-hat above which a map pixel's chains disagree and run the second pass:
 #: the map's convergence threshold (a 2 x 100-draw chain cannot be held to Vehtari et al.
 #: 2021's 1.01; BDA3's 1.1 lets a few percent of pixels through).

@@ -461,6 +461,17 @@ def test_second_pass_reruns_the_pixels_whose_chains_disagree(lambert, monkeypatc
     np.testing.assert_array_equal(ch, [1, 2, 1, 1, 2, 1])
     lean = jp.adaptive_uncertainty(lp, data, th, sd, flag, replace(o, keep_samples=False))
     np.testing.assert_array_equal(lean.std, u.std)  # the same without keeping the draws
+    # Draws kept for 3 of the 6 MCMC pixels: the same summaries, and each kept pixel's
+    # draws (second pass included) are the full run's.
+    capped = jp.adaptive_uncertainty(lp, data, th, sd, flag, replace(o, max_kept_pixels=3))
+    np.testing.assert_array_equal(capped.std, u.std)
+    kept = capped.kept_pixels
+    assert kept.size == 3 and capped.samples.n_pixels == 3 and set(apart) & set(kept)
+    order = [int(np.flatnonzero(u.mcmc_pixels == i)[0]) for i in kept]
+    assert order == sorted(order)  # in the MCMC pixels' order
+    np.testing.assert_array_equal(capped.samples.theta, u.samples.theta[order])
+    assert capped.report()["mcmc"]["pixels_with_draws"] == 3
+    assert u.report()["mcmc"]["pixels_with_draws"] == 6 and u.kept_pixels is None
     calls.clear()
     off = jp.adaptive_uncertainty(lp, data, th, sd, flag, replace(o, rerun_rhat=None))
     assert len(calls) == 2 and not off.rerun.any() and np.all(off.rhat[apart] > 1.5)

@@ -67,6 +67,7 @@ from ._workers import default_workers
 __all__ = ["adaptive_uncertainty"]
 
 _RERUN_SEED = 100_003  # offsets the second pass's seeds from the first's chunk seeds
+_KEEP_STREAM = 1  # the kept pixels' draw has its own stream (the audit's choice is unchanged)
 
 
 def adaptive_uncertainty(
@@ -130,7 +131,7 @@ def adaptive_uncertainty(
     # without the censored branch (LogPosterior.for_data); at most one chunk is mixed.
     censored_px = np.any(np.asarray(data.censored)[idx] != 0, axis=(-2, -1))
     idx = idx[np.argsort(censored_px, kind="stable")]
-    samples = None
+    samples, kept = None, None
     if idx.size:
         extra = lp.size - theta_hat.shape[1]
         s0_all = None if noise_scale is None else np.asarray(noise_scale)
@@ -143,7 +144,8 @@ def adaptive_uncertainty(
         folder = None if chunk_dir is None else Path(chunk_dir)
         workers = default_workers() if o.workers is None else o.workers
         chunks = Chunks(lp, data, normals, o.chunk, workers, folder, progress, deadline, log)
-        run = _Run(o, chunks, timings)
+        kept = _kept(idx, o)
+        run = _Run(o, chunks, timings, kept)
         samples, restart = run.first_pass(idx, first_starts, out, rng)
         run.second_pass(idx, restart, out, samples)
         if run.skipped:
@@ -168,6 +170,7 @@ def adaptive_uncertainty(
         rhat_first=out.rhat_first,
         timings=timings,
         reasons=reasons,
+        kept_pixels=None if samples is None else kept,
     )
 
 
@@ -178,7 +181,13 @@ class _Run:
     o: AdaptiveOptions
     chunks: Chunks
     timings: dict[str, Any]
+    kept: np.ndarray | None = None  # the pixels whose draws are kept (None: all of them)
     skipped: list[np.ndarray] = field(default_factory=list)  # first-pass pixels not sampled
+
+    def _rows(self, real: np.ndarray) -> np.ndarray:
+        """Positions in the chunk ``real`` of the pixels whose draws are kept."""
+        assert self.kept is not None  # called only where draws are capped
+        return np.flatnonzero(np.isin(real, self.kept))
 
     def first_pass(self, idx, starts, out: _Summaries, rng):
         """Sample the pixels ``idx``; returns their draws (None unless ``keep_samples``)
@@ -202,7 +211,7 @@ class _Run:
                 for j in np.flatnonzero(stuck):
                     restart[int(real[j])] = _restarts(cut, int(j), second.num_chains, rng)
             if o.keep_samples:
-                parts.append(cut)
+                parts.append(cut if self.kept is None else cut.take(self._rows(real)))
         tm["mcmc_s"] = float(np.sum(run_s))
         tm["mcmc_wall_s"] = time.perf_counter() - t0
         tm["mcmc_pixels"] = int(idx.size) - sum(r.size for r in self.skipped)
@@ -238,7 +247,8 @@ class _Run:
 
         run_s = []
         t0 = time.perf_counter()
-        at = {int(i): k for k, i in enumerate(idx)}
+        kept = idx if self.kept is None else self.kept
+        at = {int(i): k for k, i in enumerate(kept)}
         seed = self.o.seed + _RERUN_SEED
         left = 0
         passes = self.chunks.run(
@@ -252,13 +262,26 @@ class _Run:
             run_s.append(rs)
             out.store(real, cut)
             out.rerun[real] = True
-            if samples is not None:
+            if samples is not None and self.kept is None:
                 samples.put([at[int(i)] for i in real], cut)
+            elif samples is not None:
+                rows = self._rows(real)
+                samples.put([at[int(i)] for i in real[rows]], cut.take(rows))
         if self.chunks.deadline is not None:
             self.timings["time_limit_second_pass_left"] = left
         self.timings["rerun_s"] = float(np.sum(run_s))
         self.timings["rerun_wall_s"] = time.perf_counter() - t0
         self.timings["rerun_pixels"] = int(again.size) - left
+
+
+def _kept(idx: np.ndarray, o: AdaptiveOptions) -> np.ndarray | None:
+    """The MCMC pixels whose draws are kept, in ``idx``'s order: a random subset of
+    ``o.max_kept_pixels`` (seeded by ``o.seed``) where there are more; None: all."""
+    cap = o.max_kept_pixels
+    if not o.keep_samples or cap is None or idx.size <= cap:
+        return None
+    chosen = np.random.default_rng([o.seed, _KEEP_STREAM]).choice(idx, cap, replace=False)
+    return idx[np.isin(idx, chosen)]
 
 
 def _choose_methods(has: np.ndarray, unreliable: np.ndarray, o: AdaptiveOptions, rng) -> np.ndarray:

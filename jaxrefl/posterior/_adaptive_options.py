@@ -29,7 +29,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from jaxrefl._errors import JaxreflError
-from jaxrefl._map_defaults import MAP_AUDIT, MAP_CHUNK, MAP_GIBBS, MAP_SAMPLER
+from jaxrefl._map_defaults import MAP_AUDIT, MAP_CHUNK, MAP_GIBBS, MAP_KEEP_PIXELS, MAP_SAMPLER
 from jaxrefl._map_defaults import RERUN_RHAT as _RERUN_RHAT
 from jaxrefl._names import PRIOR_SOURCES
 
@@ -104,6 +104,10 @@ class AdaptiveOptions:
     chunk:       MCMC pixels per compiled sampler call (>= 1)
     seed:        chooses the audit pixels and seeds the chains (chunk i: ``seed + i``)
     keep_samples: keep the draws in :attr:`UncertaintyMap.samples` (False: summaries only)
+    max_kept_pixels: keep the draws of at most this many MCMC pixels (a random subset,
+                 seeded by ``seed``, where more were sampled; :attr:`UncertaintyMap.kept_pixels`
+                 says which); None: every MCMC pixel's. Default
+                 :data:`jaxrefl._map_defaults.MAP_KEEP_PIXELS`
     workers:     chunks sampled at once, each in its own thread (None: 2 on a CPU, else 1:
                  :func:`jaxrefl.posterior._workers.default_workers`);
                  the summaries do not depend on it (chunk i is seeded ``seed + i`` wherever
@@ -124,6 +128,7 @@ class AdaptiveOptions:
     chunk: int = MAP_CHUNK
     seed: int = 0
     keep_samples: bool = True
+    max_kept_pixels: int | None = MAP_KEEP_PIXELS
     workers: int | None = None
     priors: str | Mapping[str, Any] = PRIOR_SOURCES[0]
 
@@ -152,6 +157,8 @@ class AdaptiveOptions:
             )
         if self.chunk < 1:
             raise JaxreflError(f"chunk must be >= 1, got {self.chunk}")
+        if self.max_kept_pixels is not None and self.max_kept_pixels < 1:
+            raise JaxreflError(f"max_kept_pixels must be >= 1 or None, got {self.max_kept_pixels}")
         if self.workers is not None and self.workers < 1:
             raise JaxreflError(f"workers must be >= 1 or None, got {self.workers}")
         second = self.rerun_hmc

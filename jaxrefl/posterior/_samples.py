@@ -46,18 +46,20 @@ class Samples:
         x = self.natural[pixel]
         return x.reshape(-1, x.shape[-1])
 
-    def take(self, m: int) -> Samples:
-        """The first ``m`` pixels (drops the padding of a chunk)."""
+    def take(self, m: int | np.ndarray) -> Samples:
+        """The first ``m`` pixels (an int: drops the padding of a chunk), or the pixels at
+        the indices ``m`` (an integer array)."""
+        at = slice(None, m) if isinstance(m, int) else np.asarray(m, dtype=np.int64)
         return Samples(
-            theta=self.theta[:m],
-            natural=self.natural[:m],
+            theta=self.theta[at],
+            natural=self.natural[at],
             labels=self.labels,
-            stats={k: v[:m] for k, v in self.stats.items()},
+            stats={k: v[at] for k, v in self.stats.items()},
             method=self.method,
-            tuning={k: v[:m] for k, v in self.tuning.items()},
+            tuning={k: v[at] for k, v in self.tuning.items()},
             compile_s=self.compile_s,
             run_s=self.run_s,
-            extra={**self.extra, "no_estimate": self.extra["no_estimate"][:m]},
+            extra={**self.extra, "no_estimate": self.extra["no_estimate"][at]},
         )
 
     @classmethod

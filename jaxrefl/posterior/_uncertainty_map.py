@@ -37,9 +37,11 @@ class UncertaintyMap:
 
     mean, std, q05, q95: (N, D) natural units; method: (N,) uint8 (:data:`METHODS`);
     rhat, ess_bulk, ess_tail: (N,) max R-hat / min ESS over parameters (NaN off MCMC);
-    divergences: (N,) count (0 off MCMC); mcmc_pixels: indices of the sampled pixels,
-    in the order of ``samples`` (those without censored observations first);
-    samples: their draws; laplace_std: (N, D) the Laplace std everywhere (NaN where none);
+    divergences: (N,) count (0 off MCMC); mcmc_pixels: indices of the sampled pixels
+    (those without censored observations first); samples: the draws of the pixels
+    ``kept_pixels`` (a subset of ``mcmc_pixels`` in its order, at most
+    ``AdaptiveOptions.max_kept_pixels``; None: every MCMC pixel's); laplace_std: (N, D)
+    the Laplace std everywhere (NaN where none);
     rerun: (N,) bool, the pixel's numbers come from the second pass; rhat_first: (N,) its
     first pass's max R-hat (NaN where no second pass ran); reasons: why the pixels chosen
     for MCMC were (:func:`mcmc_reasons`)
@@ -62,6 +64,12 @@ class UncertaintyMap:
     rhat_first: np.ndarray
     timings: dict[str, float] = field(default_factory=dict)
     reasons: dict[str, int] = field(default_factory=dict)
+    kept_pixels: np.ndarray | None = None
+
+    @property
+    def sample_pixels(self) -> np.ndarray:
+        """Indices of the pixels whose draws :attr:`samples` holds, in its order."""
+        return self.mcmc_pixels if self.kept_pixels is None else self.kept_pixels
 
     @property
     def audit_std_ratio(self) -> np.ndarray:
@@ -103,6 +111,8 @@ class UncertaintyMap:
                 "pixels_rhat_above_1.05": int(np.sum(self.rhat[on] > 1.05)),
                 # NaN: a parameter whose draws did not vary (no R-hat); counted apart
                 "pixels_rhat_nan": int(np.sum(np.isnan(self.rhat[on]))),
+                # the pixels whose draws are kept (posterior.nc): at most max_kept_pixels
+                "pixels_with_draws": int(self.sample_pixels.size) if self.samples else 0,
                 "pixels_with_divergences": int(np.sum(self.divergences[on] > 0)),
                 "divergences": int(np.sum(self.divergences[on])),
                 "second_pass": {

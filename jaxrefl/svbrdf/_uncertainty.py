@@ -126,20 +126,21 @@ class CaptureUncertainty:
         return self.fit.job.model
 
     def inference_data(self, n_draws: int = _PPC_DRAWS):
-        """ArviZ InferenceData of the MCMC pixels (None when no pixel was sampled or
+        """ArviZ InferenceData of the MCMC pixels whose draws are kept (all of them up to
+        ``AdaptiveOptions.max_kept_pixels``; None when no pixel was sampled or
         ``AdaptiveOptions.keep_samples`` is False): posterior and sample stats (float32),
-        observed data
-        (dims ``pixel``, ``photo``, ``channel``), weights and censoring flags
+        observed data (dims ``pixel``, ``photo``, ``channel``), weights and censoring flags
         (``constant_data``), the pointwise log-likelihood (``log_likelihood``, float32, where it
         holds at most :data:`LOG_LIKELIHOOD_MAX` values; else attr
         ``log_likelihood_left_out`` says why) and ``n_draws`` posterior predictive draws
-        per pixel (float32). The ``pixel`` axis (in the order of :attr:`UncertaintyMap.mcmc_pixels`)
+        per pixel (float32). The ``pixel`` axis (in the order of
+        :attr:`UncertaintyMap.sample_pixels`)
         carries coordinates ``row`` and ``col``, each pixel's place in the map; attrs
         ``rows``, ``cols``, ``width``, ``height``."""
         u = self.map
         if u.samples is None:
             return None
-        idx = u.mcmc_pixels
+        idx = u.sample_pixels
         sub = jax.tree.map(lambda a: a[idx], self.data)
         ppc = jp.posterior_predictive(
             self.posterior, u.samples, sub, n_draws=n_draws, seed=self.options.seed

@@ -99,7 +99,7 @@ def write_uncertainty_plots(
         save(fig, "rhat.png")
 
     if u.samples is not None and n_pairs > 0:
-        idx = u.mcmc_pixels
+        idx = u.sample_pixels
         rh = np.nan_to_num(u.rhat[idx], nan=np.inf)
         worst = int(np.argmax(rh))
         rest = [i for i in range(idx.size) if i != worst]
