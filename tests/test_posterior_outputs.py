@@ -339,8 +339,9 @@ def test_adaptive_chunks_have_one_shape_and_map_back(lambert, monkeypatch):
 
 def test_chunks_sampled_in_threads_give_the_map_of_a_loop(lambert, monkeypatch):
     """workers > 1 runs chunks at once in threads; each chunk's seed is its index's, so the
-    map equals the one-at-a-time loop's, the chunks come back in order, and the first
-    chunk runs alone on the calling thread (it compiles the program the others reuse)."""
+    map equals the one-at-a-time loop's, the chunks come back in order, and every chunk
+    runs in the pool's threads, the first ones included (they share one compilation:
+    test_threads_share_one_compilation)."""
     import threading
 
     from jaxrefl.posterior import _chunks
@@ -364,7 +365,7 @@ def test_chunks_sampled_in_threads_give_the_map_of_a_loop(lambert, monkeypatch):
         maps[workers] = jp.adaptive_uncertainty(lp, data, th, sd, flag, o)
     one, three = where[1], where[3]
     assert sorted(s for s, _ in three) == [s for s, _ in one] == list(range(3, 3 + th.shape[0]))
-    assert three[0] == (3, threading.main_thread()) and three[0][1] not in [t for _, t in three[1:]]
+    assert all(t is not threading.main_thread() for _, t in three)
     # the same draws per pixel, whatever thread sampled them
     np.testing.assert_array_equal(maps[1].samples.theta, maps[3].samples.theta)
     for name in ("mean", "std", "q05", "q95", "rhat", "ess_bulk", "method"):
@@ -374,16 +375,53 @@ def test_chunks_sampled_in_threads_give_the_map_of_a_loop(lambert, monkeypatch):
 
 
 def test_chunk_count_fills_whole_rounds_of_workers():
-    """After the first chunk (alone: it compiles), chunks run ``workers`` at a time; their
-    count is rounded up so that no round is left with an idle worker."""
+    """A pass's chunk count is rounded up to an even number, so two workers never leave a
+    core idle, a pass of one chunk's pixels included; the partition does not depend on
+    the number of workers."""
     from jaxrefl.posterior._chunks import chunk_size as _chunk_size
 
     assert _chunk_size(22979, 2048, 128) == 1920  # 12 chunks
-    assert _chunk_size(22979, 2048, 128, workers=2) == 1792  # 13: the first, then 6 pairs
+    assert _chunk_size(22000, 2048, 128) == 1920  # 12, not 11 with a core idle
     assert _chunk_size(3078, 2048, 128) == 1664  # 2 chunks, not 2 of 2048
-    assert _chunk_size(3078, 2048, 128, workers=2) == 1152  # 3
-    assert _chunk_size(1000, 2048, 128, workers=2) == 1024  # one chunk (of whole batches)
-    assert _chunk_size(2, 1, 128, workers=3) == 1  # never more chunks than pixels
+    assert _chunk_size(1000, 2048, 128) == 512  # two at once
+    assert _chunk_size(100, 2048, 128) == 50  # two single batches
+    assert _chunk_size(1, 1, 128) == 1  # never more chunks than pixels
+
+
+def test_threads_share_one_compilation():
+    """Items that need the same program, run at once in threads from the first on
+    (in_order), compile it once: the premise of running a pass's first chunks together."""
+    import logging
+
+    import jax.numpy as jnp
+
+    from jaxrefl.posterior._workers import in_order
+
+    def f(x):
+        for i in range(200):  # a program whose compilation takes a while
+            x = jnp.sin(x) * (i + 1.0)
+        return x
+
+    program = jax.jit(f)
+    xs = [jnp.full((8,), float(i)) for i in range(4)]
+    lines: list[str] = []
+
+    class Lines(logging.Handler):
+        def emit(self, record):
+            lines.append(record.getMessage())
+
+    log = logging.getLogger("jax._src.dispatch")
+    handler, level = Lines(), log.level
+    log.addHandler(handler)
+    log.setLevel(logging.DEBUG)
+    try:
+        with jax.log_compiles(True):
+            out = list(in_order(lambda i: program(xs[i]).block_until_ready(), range(4), 2))
+    finally:
+        log.removeHandler(handler)
+        log.setLevel(level)
+    assert sum("XLA compilation of jit(f)" in m for m in lines) == 1, lines
+    np.testing.assert_allclose(out[3], f(xs[3]), rtol=1e-5)
 
 
 def test_in_order_raises_at_the_failing_item():
@@ -440,8 +478,10 @@ def test_second_pass_reruns_the_pixels_whose_chains_disagree(lambert, monkeypatc
     o = jp.AdaptiveOptions(mcmc="all", hmc=opts, chunk=4, seed=7, rerun_rhat=1.1, workers=1)
     assert o.second_pass == jp.longer_options(opts)
     u = jp.adaptive_uncertainty(lp, data, th, sd, flag, o)
-    assert len(calls) == 3  # two first-pass chunks (6 pixels), one second-pass chunk
-    x0, sd0, o2 = calls[2]
+    assert len(calls) == 4  # two first-pass chunks (6 pixels), two second-pass chunks
+    x0, sd0 = (np.concatenate([calls[2][k], calls[3][k]]) for k in (0, 1))
+    o2 = calls[2][2]
+    assert calls[3][2] == o2
     assert (o2.num_warmup, o2.thin, o2.init_jitter) == (10, 4, 0.0)
     assert (o2.num_chains, o2.num_samples) == (opts.num_chains, opts.num_samples)
     assert x0.shape[:2] == (2, 2)  # the 2 pixels, one start per chain
@@ -452,7 +492,9 @@ def test_second_pass_reruns_the_pixels_whose_chains_disagree(lambert, monkeypatc
     assert np.all(u.rhat_first[apart] > 1.5) and np.all(np.isnan(u.rhat_first[[0, 2, 3, 5]]))
     assert np.all(u.rhat < 1.1)
     at = [int(np.flatnonzero(u.mcmc_pixels == i)[0]) for i in apart]
-    np.testing.assert_allclose(u.samples.theta[at].mean((1, 2)), start[apart] + 0.5, atol=0.01)
+    # about the mean of the two restarts (first-pass draws, each with the stand-in's 1e-2
+    # noise: the mean's std is about 0.007), halfway between chains 1 apart
+    np.testing.assert_allclose(u.samples.theta[at].mean((1, 2)), start[apart] + 0.5, atol=0.03)
     np.testing.assert_allclose(u.mean[apart], u.samples.natural[at].mean((1, 2)))
     sp = u.report()["mcmc"]["second_pass"]
     assert sp["pixels"] == 2 and sp["pixels_rhat_above_1.1_after"] == 0
@@ -584,9 +626,9 @@ def test_chunk_folder_resumes_without_sampling_again(lambert, monkeypatch, tmp_p
     o = jp.AdaptiveOptions(mcmc="all", hmc=opts, chunk=4, seed=7, workers=1)
     folder = tmp_path / "mcmc"
     first = jp.adaptive_uncertainty(lp, data, th, sd, flag, o, chunk_dir=folder)
-    assert len(calls) == 3 and first.rerun.any()  # two first-pass chunks, one second-pass
+    assert len(calls) == 4 and first.rerun.any()  # two first-pass chunks, two second-pass
     assert len(list(folder.glob("first_*/chunk_*.npz"))) == 2
-    assert len(list(folder.glob("second_*/chunk_*.npz"))) == 1
+    assert len(list(folder.glob("second_*/chunk_*.npz"))) == 2
     calls.clear()
     again = jp.adaptive_uncertainty(lp, data, th, sd, flag, o, chunk_dir=folder)
     assert calls == []
@@ -595,14 +637,14 @@ def test_chunk_folder_resumes_without_sampling_again(lambert, monkeypatch, tmp_p
     np.testing.assert_array_equal(again.samples.theta, first.samples.theta)
     assert again.timings["mcmc_s"] == first.timings["mcmc_s"] == 2.0
     jp.adaptive_uncertainty(lp, data, th, sd, flag, replace(o, seed=8), chunk_dir=folder)
-    assert len(calls) == 3  # another seed: other chunks
+    assert len(calls) == 4  # another seed: other chunks
     # another parameter box (theta's coordinates differ): other chunks
     calls.clear()
     m = lp.space.model
     narrow = fit.ParamSpace(m, channels=3, bounds={"albedo": (0.0, 0.99)})
     lp_narrow = jp.log_posterior(m, narrow, fit.GaussianNoise(SIGMA))
     jp.adaptive_uncertainty(lp_narrow, data, th, sd, flag, o, chunk_dir=folder)
-    assert len(calls) == 3
+    assert len(calls) == 4
     # other priors (another posterior): other chunks
     calls.clear()
     lp_prior = jp.log_posterior(
@@ -610,7 +652,7 @@ def test_chunk_folder_resumes_without_sampling_again(lambert, monkeypatch, tmp_p
     )
     assert repr(lp_prior.priors) != repr(lp.priors)
     jp.adaptive_uncertainty(lp_prior, data, th, sd, flag, o, chunk_dir=folder)
-    assert len(calls) == 3
+    assert len(calls) == 4
 
 
 def test_second_pass_of_an_untuned_sampler_reuses_the_first_pass_program(lambert, monkeypatch):

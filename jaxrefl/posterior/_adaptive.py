@@ -55,7 +55,7 @@ from jaxrefl._errors import JaxreflError
 from jaxrefl.fit import LaplaceFlag, PixelData
 
 from ._adaptive_options import UNTUNED, AdaptiveOptions, MCMCPixels, untuned_rerun
-from ._chunks import Chunks, chunk_size
+from ._chunks import CHUNK_ROUND, Chunks, chunk_size
 from ._diagnostics import diagnostics
 from ._laplace_summary import laplace_summary
 from ._logpost import LogPosterior
@@ -219,12 +219,12 @@ class _Run:
         if self.chunks.deadline is not None:
             tm["time_limit_pixels_left"] = sum(r.size for r in self.skipped)
         tm["sampler"] = "+".join(dict.fromkeys(used))  # each chunk's (Samples.method)
-        workers = self.chunks.workers
-        tm["mcmc_chunk_size"] = chunk_size(int(idx.size), o.chunk, o.hmc.batch_size, workers)
-        if len(run_s) > 1:
-            # the first chunk compiles; the others reuse it
-            tm["mcmc_compile_s"] = max(0.0, run_s[0] - float(np.median(run_s[1:])))
-            tm["mcmc_chunk_s_median"] = float(np.median(run_s[1:]))
+        tm["mcmc_chunk_size"] = chunk_size(int(idx.size), o.chunk, o.hmc.batch_size)
+        if len(run_s) > CHUNK_ROUND:
+            # the first round of chunks waits for the one compilation; the others reuse it
+            rest = float(np.median(run_s[CHUNK_ROUND:]))
+            tm["mcmc_compile_s"] = max(0.0, run_s[0] - rest)
+            tm["mcmc_chunk_s_median"] = rest
         return (Samples.concat(parts) if o.keep_samples and parts else None), restart
 
     def second_pass(self, idx, restart, out: _Summaries, samples: Samples | None) -> None:

@@ -7,7 +7,7 @@ the sampler compiles once for the whole map whatever the number of pixels, and m
 bounded.
 
 Chunks at once: a process samples ``workers`` chunks at a time, each in its own thread
-(:mod:`jaxrefl.posterior._workers`), the first chunk alone since it compiles; chunk i is
+(:mod:`jaxrefl.posterior._workers`; they share the program's one compilation); chunk i is
 seeded ``seed + i`` wherever it runs, so the map does not depend on ``workers``.
 
 Chunks on disk and across processes: with a folder, each chunk's draws are written there as
@@ -45,9 +45,10 @@ from ._options import GibbsOptions, HMCOptions
 from ._samples import Samples
 from ._workers import in_order
 
-__all__ = ["HEARTBEAT_S", "Chunks", "chunk_size"]
+__all__ = ["CHUNK_ROUND", "HEARTBEAT_S", "Chunks", "chunk_size"]
 
 HEARTBEAT_S = 30.0  # seconds between the progress lines of a pass (module docstring)
+CHUNK_ROUND = 2  # a pass's chunk count is a multiple of it (chunk_size)
 
 
 @dataclass
@@ -84,7 +85,7 @@ class Chunks:
         came first, run seconds) in chunk order.
         """
         if size is None:
-            size = chunk_size(idx.size, self.chunk, opts.batch_size, self.workers)
+            size = chunk_size(idx.size, self.chunk, opts.batch_size)
         firsts = list(range(0, idx.size, size))
         many = jax.process_count() > 1
         mine = set(process_share(list(range(len(firsts)))))
@@ -167,8 +168,8 @@ _SKIPPED = _Skipped()
 class _Pace:
     """One pass's chunks done, their wall time, and its progress lines (module docstring):
     the pass's start and end, and every :data:`HEARTBEAT_S` seconds from a timer thread the
-    chunks done and the time left, estimated from the chunks after the first (which
-    compiles)."""
+    chunks done and the time left, estimated from the last chunk's wall time (the first
+    round's also compile)."""
 
     def __init__(self, desc: str, chunks: int, pixels: int, log, workers: int) -> None:
         self.desc, self.chunks, self.pixels, self.log = desc, chunks, pixels, log
@@ -223,18 +224,17 @@ class _Pace:
         self.n_skipped += skipped
 
 
-def chunk_size(n: int, chunk: int, batch: int, workers: int = 1) -> int:
+def chunk_size(n: int, chunk: int, batch: int) -> int:
     """The fewest chunks of at most ``chunk`` pixels, balanced: ceil(n / ceil(n / chunk)),
     rounded up to a multiple of the sampler's ``batch`` where that stays within ``chunk``
     (sample_pixels pads a chunk to whole batches). 3,078 pixels in chunks of at most 2048,
     batches of 128, run as 2 chunks of 1664, not 2 of 2048 with 1,018 of them padding.
-    With ``workers`` chunks at once after the first (which runs alone: it compiles), the
-    count is rounded up so that those after the first fill whole rounds: 12 chunks with
-    2 workers leave the last round one chunk and a core idle, 13 smaller ones do not."""
+    The count is rounded up to a multiple of :data:`CHUNK_ROUND`: two workers (a CPU's
+    default) are never left with one chunk and a core idle (11 chunks leave the last round
+    one, 12 smaller ones do not; a pass of one chunk's pixels runs as two at once), and
+    the partition, so the map, does not depend on the number of workers."""
     k = -(-n // chunk)
-    if workers > 1 and k > 1:
-        k = 1 + -(-(k - 1) // workers) * workers
-    k = min(k, n)
+    k = min(-(-k // CHUNK_ROUND) * CHUNK_ROUND, n)
     size = -(-n // k)
     if size <= batch:  # one batch: sample_pixels does not pad it
         return size

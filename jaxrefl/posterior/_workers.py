@@ -4,11 +4,12 @@ A map's MCMC chunks are independent compiled programs. On a CPU, XLA runs one su
 program on part of the cores only (its vectorised loops are mostly single-threaded), and
 a chunk's summaries (R-hat, ESS: NumPy) leave the cores idle between programs. JAX
 releases Python's global interpreter lock while a compiled program runs, so a second
-thread can run the next chunk meanwhile: :func:`in_order` does that, with the first item
-run alone (it compiles the program the others reuse: two threads would compile it twice)
-and at most ``2 x workers`` results waiting, so memory stays bounded however many chunks
-a map has. The results are those of a loop: each item's work depends on the item only
-(its seed included), not on the thread that ran it.
+thread can run the next chunk meanwhile: :func:`in_order` does that from the first item
+on (threads that need the same program at once share one compilation: JAX's compilation
+cache waits for the thread that is compiling it), with at most ``2 x workers`` results
+waiting, so memory stays bounded however many chunks a map has. The results are those of
+a loop: each item's work depends on the item only (its seed included), not on the thread
+that ran it.
 
 :func:`default_workers` is 2 on a CPU backend with at least two cores and 1 elsewhere:
 an accelerator runs a chunk at full width by itself, and JAX already overlaps its host
@@ -43,13 +44,9 @@ def default_workers() -> int:
 
 def in_order(fn: Callable[[T], R], items: Iterable[T], workers: int) -> Iterator[R]:
     """``fn(item)`` for each item, yielded in the items' order; with ``workers > 1`` the
-    items after the first run ``workers`` at a time in threads (module docstring). An
-    exception in ``fn`` is raised here, at its item; items not yet started are then
-    cancelled."""
+    items run ``workers`` at a time in threads (module docstring). An exception in ``fn``
+    is raised here, at its item; items not yet started are then cancelled."""
     it = iter(items)
-    for first in it:  # the first item alone
-        yield fn(first)
-        break
     if workers <= 1:
         for item in it:
             yield fn(item)
