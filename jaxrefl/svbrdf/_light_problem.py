@@ -391,8 +391,8 @@ class LightProblem:
         step lowers the cost by less than 1e-9 of it, or one that fails to lower it moves no
         parameter by more than :data:`STEP_TOL`. A step is tried on the cost alone
         (:meth:`cost`) and the Jacobian computed only where it is taken: at the optimum
-        most trials fail (the cost is rough there, :data:`STEP_TOL`), and a trial without
-        the Jacobian costs about a third of one with it."""
+        most trials fail (the cost is rough there, :data:`STEP_TOL`), and the Jacobian, a
+        forward-mode pass over every light parameter, costs more than the trial itself."""
         _x0, a = self.embed(mode)
         theta = np.zeros(a.shape[1]) if theta0 is None else np.asarray(theta0, np.float64)
         cost, widths = self.cost(theta, mode, halves, weights)
