@@ -21,7 +21,15 @@ from __future__ import annotations
 
 from typing import Any
 
-__all__ = ["MAP_AUDIT", "MAP_CHUNK", "MAP_GIBBS", "MAP_KEEP_PIXELS", "MAP_SAMPLER", "RERUN_RHAT"]
+__all__ = [
+    "MAP_AUDIT",
+    "MAP_CHUNK",
+    "MAP_GIBBS",
+    "MAP_KEEP_PIXELS",
+    "MAP_SAMPLER",
+    "RERUN_PASSES",
+    "RERUN_RHAT",
+]
 
 #: Keyword arguments of :class:`jaxrefl.posterior.HMCOptions` for an uncertainty map.
 MAP_SAMPLER: dict[str, Any] = {
@@ -45,3 +53,6 @@ MAP_KEEP_PIXELS = 16384
 #: the map's convergence threshold (a 2 x 100-draw chain cannot be held to Vehtari et al.
 #: 2021's 1.01; BDA3's 1.1 lets a few percent of pixels through).
 RERUN_RHAT = 1.05
+#: Later passes a map runs at most: the second, on the pixels above :data:`RERUN_RHAT`, and a
+#: third, twice as long between kept draws, on those still above it after the second.
+RERUN_PASSES = 2

@@ -594,6 +594,56 @@ def test_vectorised_diagnostics_match_arviz():
         np.testing.assert_array_equal(a, b(flat))
 
 
+def test_third_pass_reruns_the_pixels_still_apart(lambert, monkeypatch):
+    """Pixels whose chains still disagree after the second pass run a third, with twice
+    its scans between kept draws, from second-pass draws; the others keep the second
+    pass's numbers, and the report counts them. rerun_passes=1 stops after the second
+    (stand-in sampler: chains 1 apart until thin 8)."""
+    from jaxrefl.posterior import _chunks
+
+    lp, data, r, lap = lambert
+    th, sd, flag = np.asarray(r.theta), np.asarray(lap.theta_std), np.asarray(lap.flag)
+    start = np.asarray(lp.init_theta(th))
+    apart, stubborn = [1, 4], 4  # chains apart in the first pass; 4 also in the second
+    calls = []
+
+    def fake(lp_, sub, th0, *, theta_std, normals, options, gibbs, seed):
+        th0 = np.asarray(th0)
+        calls.append((options.thin, th0.copy()))
+        rng = np.random.default_rng(seed)
+        c, m = options.num_chains, options.num_samples
+        base = th0 if th0.ndim == 2 else th0[:, 0]
+        px = [int(np.argmin(np.abs(start - t).sum(-1))) for t in base]
+        x = np.repeat(base[:, None, None, :], c, 1).repeat(m, 2)
+        x = x + 1e-2 * rng.normal(size=x.shape)
+        for k, p in enumerate(px):
+            if (p in apart and options.thin == 1) or (p == stubborn and options.thin == 4):
+                x[k, 1] += 1.0
+        st = {"acceptance_rate": np.ones(x.shape[:3]), "diverging": np.zeros(x.shape[:3], bool)}
+        n = x.shape[0]
+        return jp.Samples(
+            x, x, lp_.labels, st, "hmc", run_s=1.0, extra={"no_estimate": np.zeros(n, bool)}
+        )
+
+    monkeypatch.setattr(_chunks, "sample_pixels", fake)
+    opts = jp.HMCOptions(num_warmup=5, num_samples=30, num_chains=2)
+    o = jp.AdaptiveOptions(mcmc="all", hmc=opts, chunk=4, seed=7, rerun_rhat=1.1, workers=1)
+    u = jp.adaptive_uncertainty(lp, data, th, sd, flag, o)
+    thins = [t for t, _ in calls]
+    assert thins == [1, 1, 4, 4, 8]  # 2 first-pass chunks, 2 second-pass, 1 third-pass
+    assert calls[4][1].shape[0] == 1  # the one stubborn pixel
+    assert np.all(u.rhat < 1.1) and list(np.flatnonzero(u.rerun)) == apart
+    tp = u.report()["mcmc"]["third_pass"]
+    assert tp == {"pixels": 1, "pixels_rhat_above_1.05_after": 0}
+    calls.clear()
+    once = jp.adaptive_uncertainty(lp, data, th, sd, flag, replace(o, rerun_passes=1))
+    assert [t for t, _ in calls] == [1, 1, 4, 4] and once.rhat[stubborn] > 1.1
+    assert once.report()["mcmc"]["third_pass"]["pixels"] == 0
+    np.testing.assert_array_equal(once.std[[0, 1, 2, 3, 5]], u.std[[0, 1, 2, 3, 5]])
+    with pytest.raises(ValueError, match="rerun_passes"):
+        replace(o, rerun_passes=3)
+
+
 def test_chunk_folder_resumes_without_sampling_again(lambert, monkeypatch, tmp_path):
     """With ``chunk_dir`` every chunk's draws (both passes) are written as they finish; a
     rerun reads them and samples nothing, with the same map; another seed, another box of

@@ -24,10 +24,11 @@ then :func:`jaxrefl.posterior.adaptive_uncertainty` with the
 allows, Gibbs sampling instead
 of HMC, exact for ``pooled``, with the lobe width from its collapsed marginal for the
 per-pixel models (:mod:`jaxrefl.posterior._width_gibbs`),
-``--rerun-rhat``: the max R-hat above which a pixel runs the longer second pass, 0 for
-none, ``--seed``). The noise scale is unknown (sampled per pixel, Jeffreys prior). The
-lobe's priors (``--priors``) are by default estimated from the population of fitted
-pixels (:func:`jaxrefl.svbrdf.population_priors`); ``default`` takes the model's own.
+``--rerun-rhat``: the max R-hat above which a pixel runs the longer second pass (and,
+still above it, a third), 0 for none, ``--seed``). The noise scale is unknown (sampled
+per pixel, Jeffreys prior). The lobe's priors (``--priors``) are by default estimated
+from the population of fitted pixels (:func:`jaxrefl.svbrdf.population_priors`);
+``default`` takes the model's own.
 Writes OUT_DIR/uncertainty.exr (mean, std, q05, q95 per parameter, method, R-hat, ESS) and
 OUT_DIR/posterior.nc (ArviZ InferenceData of the MCMC pixels, with observed data and
 posterior predictive draws) by :func:`jaxrefl.svbrdf.write_uncertainty`, and
@@ -466,6 +467,12 @@ def _run_capture(args, path: Path, opts, dist) -> dict:
             f"second pass on {sp['pixels']} pixels: max R-hat median "
             f"{sp['max_rhat_before']['median']:.3f} -> {sp['max_rhat_after']['median']:.3f}, "
             f"still above 1.05: {sp['pixels_rhat_above_1.05_after']}"
+        )
+    tp = m["mcmc"]["third_pass"]
+    if tp["pixels"]:
+        print(
+            f"third pass on the {tp['pixels']} still above: "
+            f"{tp['pixels_rhat_above_1.05_after']} above 1.05 after it"
         )
     return report
 

@@ -33,6 +33,7 @@ from ._adaptive_options import UNCERTAINTY_MAP_GIBBS as UNCERTAINTY_MAP_GIBBS
 from ._adaptive_options import UNCERTAINTY_MAP_HMC as UNCERTAINTY_MAP_HMC
 from ._adaptive_options import AdaptiveOptions as AdaptiveOptions
 from ._adaptive_options import longer_options as longer_options
+from ._adaptive_options import third_pass_options as third_pass_options
 from ._adaptive_options import untuned_rerun as untuned_rerun
 from ._choice import sample_pixels as sample_pixels
 from ._chunks import HEARTBEAT_S  # noqa: F401
@@ -124,6 +125,7 @@ __all__ = [
     "sample_pixels",
     "save_netcdf",
     "sbc_summary",
+    "third_pass_options",
     "to_inference_data",
     "untuned_rerun",
     "write_uncertainty_exr",

@@ -35,8 +35,11 @@ pass had nothing to tune (:data:`~jaxrefl.posterior._adaptive_options.UNTUNED`) 
 chunks of the first pass's size, reusing its compiled program. The second pass's summaries
 and draws replace the first's (``rerun`` marks those pixels and ``rhat_first`` keeps the
 first pass's R-hat, so ``report()`` shows what it changed). Pixels still above the
-threshold after it stay marked by their ``rhat``: read their std as a lower bound. A
-second-pass chunk the time limit left leaves its pixels their first pass's draws.
+threshold after it run a third pass (``rerun_passes`` 2, the default:
+:func:`~jaxrefl.posterior._adaptive_options.third_pass_options`, twice the second pass's
+scans between kept draws, from second-pass draws); pixels still above the threshold after
+the last pass stay marked by their ``rhat``: read their std as a lower bound. A later
+pass's chunk the time limit left leaves its pixels the earlier pass's draws.
 """
 
 from __future__ import annotations
@@ -54,7 +57,13 @@ import numpy as np
 from jaxrefl._errors import JaxreflError
 from jaxrefl.fit import LaplaceFlag, PixelData
 
-from ._adaptive_options import UNTUNED, AdaptiveOptions, MCMCPixels, untuned_rerun
+from ._adaptive_options import (
+    UNTUNED,
+    AdaptiveOptions,
+    MCMCPixels,
+    third_pass_options,
+    untuned_rerun,
+)
 from ._chunks import CHUNK_ROUND, Chunks, chunk_size
 from ._diagnostics import diagnostics
 from ._laplace_summary import laplace_summary
@@ -147,7 +156,7 @@ def adaptive_uncertainty(
         kept = _kept(idx, o)
         run = _Run(o, chunks, timings, kept)
         samples, restart = run.first_pass(idx, first_starts, out, rng)
-        run.second_pass(idx, restart, out, samples)
+        run.second_pass(idx, restart, out, samples, rng)
         if run.skipped:
             left = np.concatenate(run.skipped)
             method[left] = Method.LAPLACE_TIME_LIMIT
@@ -227,9 +236,10 @@ class _Run:
             tm["mcmc_chunk_s_median"] = rest
         return (Samples.concat(parts) if o.keep_samples and parts else None), restart
 
-    def second_pass(self, idx, restart, out: _Summaries, samples: Samples | None) -> None:
+    def second_pass(self, idx, restart, out: _Summaries, samples: Samples | None, rng) -> None:
         """Sample the pixels of ``restart`` again from their starts under the second
-        pass's settings; their summaries and draws replace the first pass's."""
+        pass's settings, and those still above the threshold once more under the third
+        pass's (module docstring); their summaries and draws replace the earlier pass's."""
         second = self.o.second_pass
         if second is None or not restart:
             return
@@ -241,22 +251,52 @@ class _Run:
             self.timings["rerun_settings"] = "untuned"
         again = idx[np.isin(idx, np.fromiter(restart, int))]  # first pass's order
         out.rhat_first[again] = out.rhat[again]
+        kept = idx if self.kept is None else self.kept
+        at = {int(i): k for k, i in enumerate(kept)}
+        t0 = time.perf_counter()
+        seed = self.o.seed + _RERUN_SEED
+        run_s, left, restart = self._rerun(
+            again, restart, second, size, seed, "second", out, samples, at, rng
+        )
+        if self.chunks.deadline is not None:
+            self.timings["time_limit_second_pass_left"] = left
+        self.timings["rerun_s"] = float(np.sum(run_s))
+        self.timings["rerun_wall_s"] = time.perf_counter() - t0
+        self.timings["rerun_pixels"] = int(again.size) - left
+        if self.o.rerun_passes < 2 or not restart:
+            return
+        third = third_pass_options(second)
+        again = idx[np.isin(idx, np.fromiter(restart, int))]
+        t0 = time.perf_counter()
+        seed = self.o.seed + 2 * _RERUN_SEED
+        run_s, left, _ = self._rerun(
+            again, restart, third, None, seed, "third", out, samples, at, rng
+        )
+        if self.chunks.deadline is not None:
+            self.timings["time_limit_third_pass_left"] = left
+        self.timings["third_pass_s"] = float(np.sum(run_s))
+        self.timings["third_pass_wall_s"] = time.perf_counter() - t0
+        self.timings["third_pass_pixels"] = int(again.size) - left
+        self.timings["third_pass_rhat_above_after"] = int(
+            np.sum(~(out.rhat[again] <= self.o.rerun_rhat))
+        )
+
+    def _rerun(self, again, restart, settings, size, seed, tag, out, samples, at, rng):
+        """One later pass over the pixels ``again`` from their ``restart`` starts; returns
+        its chunks' run seconds, the pixels the time limit left, and the restarts of the
+        pixels whose chains still disagree."""
 
         def starts(rows):
             return tuple(np.stack([restart[int(i)][k] for i in rows]) for k in (0, 1))
 
-        run_s = []
-        t0 = time.perf_counter()
-        kept = idx if self.kept is None else self.kept
-        at = {int(i): k for k, i in enumerate(kept)}
-        seed = self.o.seed + _RERUN_SEED
-        left = 0
-        passes = self.chunks.run(
-            again, starts, second, self.o.gibbs, seed, "MCMC second pass", "second", size
-        )
-        for real, cut, rs in passes:
-            if cut is None:  # the time limit came first: the first pass's draws stay
-                out.rhat_first[real] = np.nan
+        run_s, left, stuck_starts = [], 0, {}
+        desc = f"MCMC {tag} pass"
+        for real, cut, rs in self.chunks.run(
+            again, starts, settings, self.o.gibbs, seed, desc, tag, size
+        ):
+            if cut is None:  # the time limit came first: the earlier pass's draws stay
+                if tag == "second":
+                    out.rhat_first[real] = np.nan
                 left += real.size
                 continue
             run_s.append(rs)
@@ -267,11 +307,11 @@ class _Run:
             elif samples is not None:
                 rows = self._rows(real)
                 samples.put([at[int(i)] for i in real[rows]], cut.take(rows))
-        if self.chunks.deadline is not None:
-            self.timings["time_limit_second_pass_left"] = left
-        self.timings["rerun_s"] = float(np.sum(run_s))
-        self.timings["rerun_wall_s"] = time.perf_counter() - t0
-        self.timings["rerun_pixels"] = int(again.size) - left
+            # NaN R-hat (a chain that never moved) counts as disagreeing
+            stuck = ~(out.rhat[real] <= self.o.rerun_rhat) & ~cut.extra["no_estimate"]
+            for j in np.flatnonzero(stuck):
+                stuck_starts[int(real[j])] = _restarts(cut, int(j), settings.num_chains, rng)
+        return run_s, left, stuck_starts
 
 
 def _kept(idx: np.ndarray, o: AdaptiveOptions) -> np.ndarray | None:

@@ -29,7 +29,14 @@ from dataclasses import dataclass
 from typing import Any
 
 from jaxrefl._errors import JaxreflError
-from jaxrefl._map_defaults import MAP_AUDIT, MAP_CHUNK, MAP_GIBBS, MAP_KEEP_PIXELS, MAP_SAMPLER
+from jaxrefl._map_defaults import (
+    MAP_AUDIT,
+    MAP_CHUNK,
+    MAP_GIBBS,
+    MAP_KEEP_PIXELS,
+    MAP_SAMPLER,
+    RERUN_PASSES,
+)
 from jaxrefl._map_defaults import RERUN_RHAT as _RERUN_RHAT
 from jaxrefl._names import PRIOR_SOURCES
 
@@ -43,6 +50,7 @@ __all__ = [
     "AdaptiveOptions",
     "MCMCPixels",
     "longer_options",
+    "third_pass_options",
     "untuned_rerun",
 ]
 
@@ -75,6 +83,12 @@ def longer_options(opts: HMCOptions) -> HMCOptions:
     return dataclasses.replace(opts, num_warmup=2 * opts.num_warmup, thin=4, init_jitter=0.0)
 
 
+def third_pass_options(second: HMCOptions) -> HMCOptions:
+    """The third pass's settings from the second's: twice the scans between kept draws
+    (thin x 2), for the pixels whose chains still disagree after the second pass."""
+    return dataclasses.replace(second, thin=2 * second.thin, init_jitter=0.0)
+
+
 class MCMCPixels(enum.StrEnum):
     """Which pixels :func:`adaptive_uncertainty` samples (:attr:`AdaptiveOptions.mcmc`)."""
 
@@ -101,6 +115,9 @@ class AdaptiveOptions:
     rerun_hmc:   the second pass's settings; None: :func:`longer_options` of ``hmc``. It
                  keeps ``hmc``'s ``num_chains`` and ``num_samples`` (its draws replace the
                  first pass's); lengthen it with ``num_warmup`` and ``thin``
+    rerun_passes: later passes at most (1: the second; 2, the default
+                 :data:`jaxrefl._map_defaults.RERUN_PASSES`: also a third, on the pixels
+                 still above ``rerun_rhat`` after the second, :func:`third_pass_options`)
     chunk:       MCMC pixels per compiled sampler call (>= 1)
     seed:        chooses the audit pixels and seeds the chains (chunk i: ``seed + i``)
     keep_samples: keep the draws in :attr:`UncertaintyMap.samples` (False: summaries only)
@@ -125,6 +142,7 @@ class AdaptiveOptions:
     gibbs: GibbsOptions | None = UNCERTAINTY_MAP_GIBBS
     rerun_rhat: float | None = RERUN_RHAT
     rerun_hmc: HMCOptions | None = None
+    rerun_passes: int = RERUN_PASSES
     chunk: int = MAP_CHUNK
     seed: int = 0
     keep_samples: bool = True
@@ -155,6 +173,8 @@ class AdaptiveOptions:
             raise JaxreflError(
                 f"rerun_rhat must be a positive number or None, got {self.rerun_rhat}"
             )
+        if self.rerun_passes not in (1, 2):
+            raise JaxreflError(f"rerun_passes must be 1 or 2, got {self.rerun_passes}")
         if self.chunk < 1:
             raise JaxreflError(f"chunk must be >= 1, got {self.chunk}")
         if self.max_kept_pixels is not None and self.max_kept_pixels < 1:

@@ -6,8 +6,8 @@ colour, Y for a scalar). For each parameter label and statistic ``mean``, ``std`
 ``albedo_mean`` with R, G, B, so viewers show it as a colour image), a scalar ``alpha``
 becomes ``alpha_<stat>.Y``. Then ``method.Y`` (UINT, :data:`~jaxrefl.posterior.METHODS`),
 ``rhat.Y``, ``ess_bulk.Y``, ``ess_tail.Y`` (FLOAT, NaN off the MCMC pixels),
-``divergences.Y`` (UINT) and ``mcmc_pass.Y`` (UINT: 0 off MCMC, 1 the first pass, 2 the
-longer second pass of the pixels whose first chains disagreed). For GGX-type models
+``divergences.Y`` (UINT) and ``mcmc_pass.Y`` (UINT: 0 off MCMC, 1 the first pass, 2 a
+longer later pass, second or third, of the pixels whose first chains disagreed). For GGX-type models
 ``roughness_<stat>.Y`` (perceptual roughness sqrt(alpha): quantiles and mean mapped through
 the square root, std by the delta method std(alpha) / (2 sqrt(alpha))) is added. The
 method codes and labels go into the file's metadata.

@@ -42,9 +42,9 @@ class UncertaintyMap:
     ``kept_pixels`` (a subset of ``mcmc_pixels`` in its order, at most
     ``AdaptiveOptions.max_kept_pixels``; None: every MCMC pixel's); laplace_std: (N, D)
     the Laplace std everywhere (NaN where none);
-    rerun: (N,) bool, the pixel's numbers come from the second pass; rhat_first: (N,) its
-    first pass's max R-hat (NaN where no second pass ran); reasons: why the pixels chosen
-    for MCMC were (:func:`mcmc_reasons`)
+    rerun: (N,) bool, the pixel's numbers come from a later pass (second or third);
+    rhat_first: (N,) its first pass's max R-hat (NaN where no second pass ran); reasons:
+    why the pixels chosen for MCMC were (:func:`mcmc_reasons`)
     """
 
     labels: tuple[str, ...]
@@ -121,6 +121,13 @@ class UncertaintyMap:
                     "max_rhat_after": dist(self.rhat[self.rerun]),
                     "pixels_rhat_above_1.05_after": int(np.sum(self.rhat[self.rerun] > 1.05)),
                     "pixels_rhat_above_1.1_after": int(np.sum(self.rhat[self.rerun] > 1.1)),
+                },
+                # the second pass's pixels still above the threshold, run once more
+                "third_pass": {
+                    "pixels": int(self.timings.get("third_pass_pixels", 0)),
+                    "pixels_rhat_above_1.05_after": int(
+                        self.timings.get("third_pass_rhat_above_after", 0)
+                    ),
                 },
             },
             "audit_laplace_over_mcmc_std": audit,

@@ -196,6 +196,7 @@ class CaptureUncertainty:
             },
             "sampler": {**vars(o.hmc), "gibbs": None if o.gibbs is None else {**vars(o.gibbs)}},
             "second_pass": {"rerun_rhat": o.rerun_rhat, "options": {**vars(second)}},
+            "third_pass": {"passes": o.rerun_passes, "thin": jp.third_pass_options(second).thin},
             # misspecified pixels (jaxrefl.svbrdf._check): their intervals are not calibrated
             "fit_report": {
                 k: self.fit.report.get(k)
