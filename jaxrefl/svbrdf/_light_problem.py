@@ -220,22 +220,29 @@ def _residuals(x, d: LightData, w, la):
 
 @jax.jit
 def _res_jac(x, d: LightData, w, la):
-    """(residuals (R,), Jacobian (R, 3 + K), predictions (N, K, C)) at the light x, each
-    pixel's width at its optimum ``la`` (:func:`_widths`): one compiled program for every
-    light value (x is an array argument).
+    """(residuals (R,), Jacobian (R, 3 + K), predictions (N, K, C), gradient (3 + K,)) at
+    the light x, each pixel's width at its optimum ``la`` (:func:`_widths`): one compiled
+    program for every light value (x is an array argument).
 
     The widths are profiled out in Gauss-Newton form: each pixel's rows of d r / d x lose
     their projection on that pixel's d r / d la (the Schur complement of its width in
-    J^T J), as the non-negative least squares profiles out the coefficients."""
+    J^T J), as the non-negative least squares profiles out the coefficients. That gives
+    the curvature, not the gradient: the projected rows' J^T r also drops each pixel's
+    (d r / d la . r), which is 0 only where the width sits at its exact stationary point,
+    and the grid and parabolic steps leave it off by a fraction of their spacing. The
+    gradient is the profiled cost's own, d r / d x . r at the widths (the envelope theorem:
+    the cost does not move with a width at its optimum); an optimiser stepping on the
+    projected J^T r stops where that, not the cost's slope, vanishes."""
     r, pred = _residuals(x, d, w, la)
     jx = jax.jacfwd(lambda v: _residuals(v, d, w, la)[0])(x)  # (N, K, C, P)
+    grad = jnp.einsum("nkc,nkcp->p", r, jx)
     _, jl = jax.jvp(lambda v: _residuals(x, d, w, v)[0], (la,), (jnp.ones_like(la),))
     num = jnp.einsum("nkc,nkcp->np", jl, jx)
     den = jnp.sum(jl * jl, (1, 2))
     # A pixel whose residuals do not move with its width (no lobe seen) projects nothing.
     coef = num / jnp.where(den > 0, den, 1.0)[:, None]
     jx = jx - jl[..., None] * coef[:, None, None, :]
-    return r.ravel(), jx.reshape(r.size, x.shape[0]), pred
+    return r.ravel(), jx.reshape(r.size, x.shape[0]), pred, grad
 
 
 @jax.jit
@@ -372,19 +379,26 @@ class LightProblem:
     def residuals(self, theta, mode: str, halves: list[int], weights, widths=None):
         """(r, J) stacked over ``halves``, prior rows appended, J with respect to theta;
         ``widths``: each half's log widths at theta (:meth:`cost`; None: sought here)."""
+        r, jac, _g = self.linearise(theta, mode, halves, weights, widths)
+        return r, jac
+
+    def linearise(self, theta, mode: str, halves: list[int], weights, widths=None):
+        """(r, J, g) of :meth:`residuals` and g the gradient of r.r / 2 with respect to
+        theta, the profiled cost's own (:func:`_res_jac`), not J^T r."""
         x0, a = self.embed(mode)
         x = jnp.asarray(x0 + a @ theta)
         if widths is None:
             widths = [_widths(x, self.halves[i], w) for i, w in zip(halves, weights, strict=True)]
-        rs, js = [], []
+        sp = np.sqrt(self.prior_precision(mode))
+        rs, js, grad = [], [], sp * sp * theta
         for i, w, la in zip(halves, weights, widths, strict=True):
-            r, jac, _ = _res_jac(x, self.halves[i], w, la)
+            r, jac, _, g = _res_jac(x, self.halves[i], w, la)
             rs.append(np.asarray(r))
             js.append(np.asarray(jac) @ a)
-        sp = np.sqrt(self.prior_precision(mode))
+            grad = grad + np.asarray(g) @ a
         rs.append(sp * theta)
         js.append(np.diag(sp))
-        return np.concatenate(rs), np.concatenate(js)
+        return np.concatenate(rs), np.concatenate(js), grad
 
     def solve(self, mode: str, halves: list[int], weights, theta0=None, max_iter: int = 60):
         """Levenberg-Marquardt (Marquardt's diagonal scaling) from theta0 (default 0), until a
@@ -396,14 +410,13 @@ class LightProblem:
         _x0, a = self.embed(mode)
         theta = np.zeros(a.shape[1]) if theta0 is None else np.asarray(theta0, np.float64)
         cost, widths = self.cost(theta, mode, halves, weights)
-        r, jac = self.residuals(theta, mode, halves, weights, widths)
+        r, jac, g = self.linearise(theta, mode, halves, weights, widths)
         lam = 1e-3
         it = 0
         for it in range(1, max_iter + 1):  # noqa: B007 (the count is reported)
             if theta.size == 0:
                 break
             h = jac.T @ jac
-            g = jac.T @ r
             dh = np.diag(h)
             # A parameter no residual moves keeps its damping through the tiny floor.
             damp = lam * np.maximum(dh, 1e-12 * max(float(dh.max()), 1e-300))
@@ -412,7 +425,7 @@ class LightProblem:
             if np.isfinite(c_n) and c_n < cost:
                 done = cost - c_n <= 1e-9 * cost
                 theta, cost = theta + step, c_n
-                r, jac = self.residuals(theta, mode, halves, weights, w_n)
+                r, jac, g = self.linearise(theta, mode, halves, weights, w_n)
                 lam = max(lam / 3.0, 1e-9)
                 if done:
                     break
