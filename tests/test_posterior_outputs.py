@@ -604,7 +604,8 @@ def test_third_pass_reruns_the_pixels_still_apart(lambert, monkeypatch):
     lp, data, r, lap = lambert
     th, sd, flag = np.asarray(r.theta), np.asarray(lap.theta_std), np.asarray(lap.flag)
     start = np.asarray(lp.init_theta(th))
-    apart, stubborn = [1, 4], 4  # chains apart in the first pass; 4 also in the second
+    apart = [1, 4]  # chains apart in the first pass
+    stubborn = [4]  # ... and in the second
     calls = []
 
     def fake(lp_, sub, th0, *, theta_std, normals, options, gibbs, seed):
@@ -617,7 +618,7 @@ def test_third_pass_reruns_the_pixels_still_apart(lambert, monkeypatch):
         x = np.repeat(base[:, None, None, :], c, 1).repeat(m, 2)
         x = x + 1e-2 * rng.normal(size=x.shape)
         for k, p in enumerate(px):
-            if (p in apart and options.thin == 1) or (p == stubborn and options.thin == 4):
+            if (p in apart and options.thin == 1) or (p in stubborn and options.thin == 4):
                 x[k, 1] += 1.0
         st = {"acceptance_rate": np.ones(x.shape[:3]), "diverging": np.zeros(x.shape[:3], bool)}
         n = x.shape[0]
@@ -634,12 +635,19 @@ def test_third_pass_reruns_the_pixels_still_apart(lambert, monkeypatch):
     assert calls[4][1].shape[0] == 1  # the one stubborn pixel
     assert np.all(u.rhat < 1.1) and list(np.flatnonzero(u.rerun)) == apart
     tp = u.report()["mcmc"]["third_pass"]
-    assert tp == {"pixels": 1, "pixels_rhat_above_1.05_after": 0}
+    assert tp == {"pixels": 1, "skipped": "", "pixels_rhat_above_1.05_after": 0}
     calls.clear()
     once = jp.adaptive_uncertainty(lp, data, th, sd, flag, replace(o, rerun_passes=1))
-    assert [t for t, _ in calls] == [1, 1, 4, 4] and once.rhat[stubborn] > 1.1
+    assert [t for t, _ in calls] == [1, 1, 4, 4] and once.rhat[4] > 1.1
     assert once.report()["mcmc"]["third_pass"]["pixels"] == 0
     np.testing.assert_array_equal(once.std[[0, 1, 2, 3, 5]], u.std[[0, 1, 2, 3, 5]])
+    assert "rerun_passes is 1" in once.report()["mcmc"]["third_pass"]["skipped"]
+    # A second pass that leaves most of its pixels apart runs no third: both stay apart.
+    calls.clear()
+    stubborn[:] = [1, 4]
+    both = jp.adaptive_uncertainty(lp, data, th, sd, flag, o)
+    assert [t for t, _ in calls] == [1, 1, 4, 4] and np.all(both.rhat[apart] > 1.1)
+    assert "2 of the second pass's 2 pixels" in both.report()["mcmc"]["third_pass"]["skipped"]
     with pytest.raises(ValueError, match="rerun_passes"):
         replace(o, rerun_passes=3)
 

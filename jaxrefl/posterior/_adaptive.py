@@ -37,9 +37,11 @@ and draws replace the first's (``rerun`` marks those pixels and ``rhat_first`` k
 first pass's R-hat, so ``report()`` shows what it changed). Pixels still above the
 threshold after it run a third pass (``rerun_passes`` 2, the default:
 :func:`~jaxrefl.posterior._adaptive_options.third_pass_options`, twice the second pass's
-scans between kept draws, from second-pass draws); pixels still above the threshold after
-the last pass stay marked by their ``rhat``: read their std as a lower bound. A later
-pass's chunk the time limit left leaves its pixels the earlier pass's draws.
+scans between kept draws, from second-pass draws) where the second pass brought most of
+its pixels under it (:data:`THIRD_PASS_SHARE`; ``timings["third_pass_skipped"]`` says why
+not); pixels still above the threshold after the last pass stay marked by their
+``rhat``: read their std as a lower bound. A later pass's chunk the time limit left
+leaves its pixels the earlier pass's draws.
 """
 
 from __future__ import annotations
@@ -76,6 +78,9 @@ from ._workers import default_workers
 __all__ = ["adaptive_uncertainty"]
 
 _RERUN_SEED = 100_003  # offsets the second pass's seeds from the first's chunk seeds
+#: The third pass runs where the second left at most this share of its pixels apart
+#: (:func:`_third_pass_skipped`).
+THIRD_PASS_SHARE = 0.5
 _KEEP_STREAM = 1  # the kept pixels' draw has its own stream (the audit's choice is unchanged)
 
 
@@ -263,7 +268,10 @@ class _Run:
         self.timings["rerun_s"] = float(np.sum(run_s))
         self.timings["rerun_wall_s"] = time.perf_counter() - t0
         self.timings["rerun_pixels"] = int(again.size) - left
-        if self.o.rerun_passes < 2 or not restart:
+        self.timings["third_pass_skipped"] = _third_pass_skipped(
+            self.o.rerun_passes, len(restart), int(again.size) - left
+        )
+        if self.timings["third_pass_skipped"]:
             return
         third = third_pass_options(second)
         again = idx[np.isin(idx, np.fromiter(restart, int))]
@@ -312,6 +320,23 @@ class _Run:
             for j in np.flatnonzero(stuck):
                 stuck_starts[int(real[j])] = _restarts(cut, int(j), settings.num_chains, rng)
         return run_s, left, stuck_starts
+
+
+def _third_pass_skipped(passes: int, apart: int, rerun: int) -> str:
+    """Why no third pass runs ("" where it does): ``apart`` of the second pass's ``rerun``
+    pixels still disagree. A second pass that left most of its pixels apart says their
+    chains lack more than length (several modes, a ridge along a bound): a pass twice as
+    long would cost more than the second and leave them apart, so their R-hat marks them."""
+    if passes < 2:
+        return "rerun_passes is 1"
+    if apart == 0:
+        return "no pixel above the threshold after the second pass"
+    if apart > THIRD_PASS_SHARE * rerun:
+        return (
+            f"{apart} of the second pass's {rerun} pixels still apart: longer chains are not "
+            "what they lack"
+        )
+    return ""
 
 
 def _kept(idx: np.ndarray, o: AdaptiveOptions) -> np.ndarray | None:

@@ -125,6 +125,7 @@ class UncertaintyMap:
                 # the second pass's pixels still above the threshold, run once more
                 "third_pass": {
                     "pixels": int(self.timings.get("third_pass_pixels", 0)),
+                    "skipped": self.timings.get("third_pass_skipped", ""),
                     "pixels_rhat_above_1.05_after": int(
                         self.timings.get("third_pass_rhat_above_after", 0)
                     ),
