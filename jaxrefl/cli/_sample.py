@@ -483,15 +483,14 @@ def _run_brdf(args, path: Path, opts) -> dict:
     matplotlib.use("Agg")
     from jaxrefl import measured
     from jaxrefl import posterior as jp
-    from jaxrefl.measured._posterior import HMC_SEED
 
     sampler = opts  # --sampler hmc: HMC, as asked
     if args.sampler == "emcee":
         sampler = jp.EmceeOptions(n_walkers=args.walkers, max_steps=args.max_steps, seed=args.seed)
-    elif args.seed != HMC_SEED:
+    elif args.seed != measured.HMC_SEED:
         raise JaxreflError(
             f"--seed seeds emcee on a BRDF file; --sampler hmc runs its chains seeded "
-            f"{HMC_SEED} (leave --seed out, or use --sampler emcee)"
+            f"{measured.HMC_SEED} (leave --seed out, or use --sampler emcee)"
         )
     res = measured.sample_posterior(path, args.brdf_model, sampler, progress=_progress(args))
     files = [p.name for p in measured.write_posterior(res, args.out)]

@@ -51,6 +51,7 @@ from ._plan import greedy_design as greedy_design
 from ._plan import information as information
 from ._plan import rank_candidates as rank_candidates
 from ._plots import plot_fit_lobes as plot_fit_lobes
+from ._posterior import HMC_SEED as HMC_SEED
 from ._posterior import BRDFPosterior as BRDFPosterior
 from ._posterior import sample_posterior as sample_posterior
 from ._posterior import write_posterior as write_posterior
@@ -72,6 +73,7 @@ from ._starts import fit_multistart as fit_multistart
 __all__ = [
     "CRITERIA",
     "DEFAULT_MODELS",
+    "HMC_SEED",
     "METRICS",
     "MODEL_NAMES",
     "BRDFPosterior",
