@@ -258,16 +258,10 @@ class _Run:
         out.rhat_first[again] = out.rhat[again]
         kept = idx if self.kept is None else self.kept
         at = {int(i): k for k, i in enumerate(kept)}
-        t0 = time.perf_counter()
         seed = self.o.seed + _RERUN_SEED
-        run_s, left, restart = self._rerun(
-            again, restart, second, size, seed, "second", out, samples, at, rng
+        left, restart = self._rerun(
+            again, restart, second, size, seed, ("rerun", "second"), out, samples, at, rng
         )
-        if self.chunks.deadline is not None:
-            self.timings["time_limit_second_pass_left"] = left
-        self.timings["rerun_s"] = float(np.sum(run_s))
-        self.timings["rerun_wall_s"] = time.perf_counter() - t0
-        self.timings["rerun_pixels"] = int(again.size) - left
         self.timings["third_pass_skipped"] = _third_pass_skipped(
             self.o.rerun_passes, len(restart), int(again.size) - left
         )
@@ -275,24 +269,20 @@ class _Run:
             return
         third = third_pass_options(second)
         again = idx[np.isin(idx, np.fromiter(restart, int))]
-        t0 = time.perf_counter()
         seed = self.o.seed + 2 * _RERUN_SEED
-        run_s, left, _ = self._rerun(
-            again, restart, third, None, seed, "third", out, samples, at, rng
+        self._rerun(
+            again, restart, third, None, seed, ("third_pass", "third"), out, samples, at, rng
         )
-        if self.chunks.deadline is not None:
-            self.timings["time_limit_third_pass_left"] = left
-        self.timings["third_pass_s"] = float(np.sum(run_s))
-        self.timings["third_pass_wall_s"] = time.perf_counter() - t0
-        self.timings["third_pass_pixels"] = int(again.size) - left
         self.timings["third_pass_rhat_above_after"] = int(
             np.sum(~(out.rhat[again] <= self.o.rerun_rhat))
         )
 
-    def _rerun(self, again, restart, settings, size, seed, tag, out, samples, at, rng):
-        """One later pass over the pixels ``again`` from their ``restart`` starts; returns
-        its chunks' run seconds, the pixels the time limit left, and the restarts of the
-        pixels whose chains still disagree."""
+    def _rerun(self, again, restart, settings, size, seed, names, out, samples, at, rng):
+        """One later pass over the pixels ``again`` from their ``restart`` starts, its
+        timings under ``names`` = (timings prefix, pass tag); returns the pixels the time
+        limit left and the restarts of the pixels whose chains still disagree."""
+        key, tag = names
+        t0 = time.perf_counter()
 
         def starts(rows):
             return tuple(np.stack([restart[int(i)][k] for i in rows]) for k in (0, 1))
@@ -319,7 +309,12 @@ class _Run:
             stuck = ~(out.rhat[real] <= self.o.rerun_rhat) & ~cut.extra["no_estimate"]
             for j in np.flatnonzero(stuck):
                 stuck_starts[int(real[j])] = _restarts(cut, int(j), settings.num_chains, rng)
-        return run_s, left, stuck_starts
+        if self.chunks.deadline is not None:
+            self.timings[f"time_limit_{tag}_pass_left"] = left
+        self.timings[f"{key}_s"] = float(np.sum(run_s))
+        self.timings[f"{key}_wall_s"] = time.perf_counter() - t0
+        self.timings[f"{key}_pixels"] = int(again.size) - left
+        return left, stuck_starts
 
 
 def _third_pass_skipped(passes: int, apart: int, rerun: int) -> str:
