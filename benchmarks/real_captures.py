@@ -131,7 +131,9 @@ def _jaxrefl_folds(cap, job) -> tuple[dict, float]:
         c0 = time.process_time()
         fit = fit_capture(cap, replace(job, holdout=(i,)))
         cpu += time.process_time() - c0
-        preds[i] = predict_photos(fit, fit.light.apply(cap), [i])[1][0]
+        # predict_photos places the fit's light itself: it takes the capture as its files
+        # state the light, as the fit did.
+        preds[i] = predict_photos(fit, cap, [i])[1][0]
     return _scores(cap, preds), cpu
 
 
