@@ -16,13 +16,19 @@ the deleted groups)
     V = (G - 1) / G  sum_k (d_(k) - mean) (d_(k) - mean)^T
 
 over the G training photos, d_(k) the offset's x and y estimated without photo k. Each d_(k)
-is :data:`JACKKNIFE_STEPS` Gauss-Newton steps from the estimate on the same pixels and
-weights with photo k's weight 0, every pixel's width and coefficients profiled again without
-it (on a real capture one step, the infinitesimal jackknife with the pixels' refit, falls
+is at most :data:`JACKKNIFE_STEPS` steps of the estimate's own optimiser
+(:meth:`jaxrefl.svbrdf.LightProblem.solve`: the profiled cost's own gradient with the
+projected curvature, a step taken only where it lowers the cost) from the estimate on the
+same pixels and weights with photo k's weight 0, every pixel's width and coefficients
+profiled again without it. Steps on the projected gradient instead stop where that, not the
+cost's slope, vanishes: each pixel's width sits off its exact stationary point by a fraction
+of its search's spacing, and a fold's re-estimate would stop short of its optimum by an amount
+that differs from fold to fold (on a real capture one step, the infinitesimal jackknife with
+the pixels' refit, falls
 well short of the full re-estimates' spread, and the clustered sandwich, which leaves the
 pixels' refit out, falls shorter: with seven parameters a pixel and a handful of photos,
-every photo is a point of high leverage). The cost:
-:data:`JACKKNIFE_STEPS` evaluations of the profiled residuals per training photo.
+every photo is a point of high leverage). The cost: per training photo, at most
+:data:`JACKKNIFE_STEPS` + 1 evaluations of the profiled cost and of its Jacobian.
 
 The reported covariance is the wider of L and V in every direction of the offset: with
 M = L_oo^-1/2 V L_oo^-1/2, its eigenvalues floored at 1, the offset's block becomes
@@ -103,10 +109,7 @@ def robust_cov(problem, mode: str, theta: np.ndarray, jac: np.ndarray, weights, 
     for k in photos:
         drop = jnp.asarray(np.arange(problem.k) != k, jnp.float64)[None, :, None]
         w_k = [w * drop for w in weights]
-        t = np.array(theta, np.float64)
-        for _ in range(JACKKNIFE_STEPS):
-            r, j = problem.residuals(t, mode, both, w_k)
-            t = t - np.linalg.solve(j.T @ j, j.T @ r)
+        t = problem.solve(mode, both, w_k, theta0=theta, max_iter=JACKKNIFE_STEPS)[0]
         folds.append(t[:n_off])
     d = np.asarray(folds)
     g = d.shape[0]
