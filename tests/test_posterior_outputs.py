@@ -279,11 +279,6 @@ def test_cli_sample_brdf_file(shared_data, tmp_path, capsys):
     assert res.n_used == int(np.sum(np.asarray(res.data.weight) > 0)) > 0
     with pytest.raises(TypeError, match="EmceeOptions or HMCOptions"):
         jm.sample_posterior(src, "lambert", jp.AdaptiveOptions())
-    # --seed is emcee's option; HMC's chains are seeded as the library seeds them.
-    capsys.readouterr()
-    hmc = ["sample", str(src), "--out", str(tmp_path / "hmc"), "--sampler", "hmc", "--seed", "2"]
-    assert main(hmc) == 1
-    assert "--seed seeds emcee on a BRDF file" in capsys.readouterr().err
 
 
 def _draws_at_start(lp, th0, options, seed):

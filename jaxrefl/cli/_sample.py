@@ -51,8 +51,8 @@ A measured BRDF file (Cornell .astm, MERL .binary, CURET; spectra converted to R
 through :func:`jaxrefl.measured.sample_posterior`: the least-squares fit of
 ``--brdf-model`` (f_r cos theta_i residuals, 80 degree limit), then emcee
 (:class:`~jaxrefl.posterior.EmceeOptions` from ``--max-steps``, ``--walkers``, ``--seed``;
-the default) or HMC (``--warmup``/``--samples``/``--chains``; its chains' seed is fixed), the
-noise scale unknown. emcee runs until
+the default) or HMC (``--warmup``/``--samples``/``--chains``, ``--seed`` as
+``HMCOptions.seed``), the noise scale unknown. emcee runs until
 its chain is at least 50 integrated autocorrelation times long with split R-hat <= 1.01
 and bulk ESS >= 400 for every parameter (:func:`jaxrefl.posterior.sample_emcee`), or
 ``--max-steps``. Writes OUT_DIR/posterior.nc and OUT_DIR/corner.png
@@ -484,14 +484,11 @@ def _run_brdf(args, path: Path, opts) -> dict:
     from jaxrefl import measured
     from jaxrefl import posterior as jp
 
-    sampler = opts  # --sampler hmc: HMC, as asked
+    sampler: jp.EmceeOptions | jp.HMCOptions
     if args.sampler == "emcee":
         sampler = jp.EmceeOptions(n_walkers=args.walkers, max_steps=args.max_steps, seed=args.seed)
-    elif args.seed != measured.HMC_SEED:
-        raise JaxreflError(
-            f"--seed seeds emcee on a BRDF file; --sampler hmc runs its chains seeded "
-            f"{measured.HMC_SEED} (leave --seed out, or use --sampler emcee)"
-        )
+    else:  # --sampler hmc: HMC, as asked, its chains seeded by --seed
+        sampler = dataclasses.replace(opts, seed=args.seed)
     res = measured.sample_posterior(path, args.brdf_model, sampler, progress=_progress(args))
     files = [p.name for p in measured.write_posterior(res, args.out)]
     rep = res.report()

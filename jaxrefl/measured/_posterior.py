@@ -49,7 +49,7 @@ NOISE = "Gaussian on f_r cos(theta_i), unknown scale (Jeffreys prior)"
 _MULTISTART = MultiStart()
 _OPTIONS = MeasuredOptions()
 FILE_DRAWS = 2000  # draws in posterior.nc: with the log-likelihood, ~35 MB for 4,300 values
-HMC_SEED = 0  # the HMC chains' seed: HMCOptions, shared with the maps, carries none
+HMC_SEED = 0  # the HMC chains' seed where HMCOptions.seed is None
 _EMCEE_KEYS = ("tau", "burn", "thin", "tau_reliable", "n_steps", "max_steps", "n_walkers")
 
 
@@ -197,9 +197,8 @@ def sample_posterior(
 
     measured:      a :class:`jaxrefl.io.MeasuredBRDF`, or a file :func:`load_measured` reads
     sampler:       :class:`jaxrefl.posterior.EmceeOptions` (None: its defaults; its
-                   ``seed`` seeds the walkers) or :class:`jaxrefl.posterior.HMCOptions` (the
-                   chains seeded :data:`HMC_SEED`: HMC's settings carry no seed, a map's
-                   chunks are seeded by :class:`~jaxrefl.posterior.AdaptiveOptions`)
+                   ``seed`` seeds the walkers) or :class:`jaxrefl.posterior.HMCOptions` (its
+                   ``seed`` seeds the chains; None: :data:`HMC_SEED`)
     options:       the samples used and the residual (:class:`MeasuredOptions`: the angle
                    limit, the cosine factor, the illuminant of spectral data; the fit runs in
                    float64, so no retry; ``spectral="bands"`` is refused: one posterior is
@@ -247,7 +246,7 @@ def sample_posterior(
         )
     elif isinstance(sampler, jp.HMCOptions):
         batch = jax.tree.map(lambda a: a[None], data)
-        s = jp.sample_pixels(lp, batch, th0[None], options=sampler, seed=HMC_SEED)
+        s = jp.sample_pixels(lp, batch, th0[None], options=sampler, seed=_hmc_seed(sampler))
     else:
         raise TypeError(f"sampler must be EmceeOptions or HMCOptions, not {type(sampler).__name__}")
     return BRDFPosterior(
@@ -267,10 +266,15 @@ def sample_posterior(
     )
 
 
+def _hmc_seed(sampler: jp.HMCOptions) -> int:
+    """The HMC chains' seed: the options', or :data:`HMC_SEED` where they leave it None."""
+    return HMC_SEED if sampler.seed is None else sampler.seed
+
+
 def _sampler_json(sampler: jp.EmceeOptions | jp.HMCOptions) -> dict[str, Any]:
-    """The sampler's fields, and for HMC the chains' seed its settings do not carry."""
+    """The sampler's fields, HMC's seed as it ran (:func:`_hmc_seed`)."""
     out = asdict(sampler)
-    return out if isinstance(sampler, jp.EmceeOptions) else {**out, "seed": HMC_SEED}
+    return out if isinstance(sampler, jp.EmceeOptions) else {**out, "seed": _hmc_seed(sampler)}
 
 
 def write_posterior(result: BRDFPosterior, out_dir: str | Path) -> list[Path]:

@@ -119,7 +119,9 @@ class AdaptiveOptions:
                  :data:`jaxrefl._map_defaults.RERUN_PASSES`: also a third, on the pixels
                  still above ``rerun_rhat`` after the second, :func:`third_pass_options`)
     chunk:       MCMC pixels per compiled sampler call (>= 1)
-    seed:        chooses the audit pixels and seeds the chains (chunk i: ``seed + i``)
+    seed:        chooses the audit pixels and seeds the chains (chunk i: ``seed + i``);
+                 the only seed of a map (an ``hmc`` or ``rerun_hmc`` with its own ``seed``
+                 is refused)
     keep_samples: keep the draws in :attr:`UncertaintyMap.samples` (False: summaries only)
     max_kept_pixels: keep the draws of at most this many MCMC pixels (a random subset,
                  seeded by ``seed``, where more were sampled; :attr:`UncertaintyMap.kept_pixels`
@@ -181,6 +183,14 @@ class AdaptiveOptions:
             raise JaxreflError(f"max_kept_pixels must be >= 1 or None, got {self.max_kept_pixels}")
         if self.workers is not None and self.workers < 1:
             raise JaxreflError(f"workers must be >= 1 or None, got {self.workers}")
+        for name in ("hmc", "rerun_hmc"):
+            given = getattr(self, name)
+            if given is not None and given.seed is not None:
+                raise JaxreflError(
+                    f"AdaptiveOptions.{name} has seed={given.seed}: an uncertainty map's "
+                    "chains are seeded by AdaptiveOptions.seed (chunk i: seed + i); leave "
+                    f"{name}.seed None and set AdaptiveOptions(seed=...)"
+                )
         second = self.rerun_hmc
         if second is not None and (
             second.num_chains != self.hmc.num_chains or second.num_samples != self.hmc.num_samples

@@ -38,7 +38,7 @@ def sample_pixels(
     normals: Array | None = None,
     options: HMCOptions | None = None,
     gibbs: GibbsOptions | None = None,
-    seed: int = 0,
+    seed: int | None = None,
     timing: bool = False,
     devices: int | None = None,
 ) -> Samples:
@@ -51,6 +51,8 @@ def sample_pixels(
     normals:   (N, K, 3) world normals when the light direction is sampled
     options:   the chains and HMC (:class:`HMCOptions`; None: its defaults)
     gibbs:     Gibbs sampling where the posterior allows it (module docstring); None: HMC
+    seed:      the chains' seed; None: ``options.seed``, or 0 where that is None too. Both
+               given and different is refused (one seed, said once)
     timing:    HMC runs twice on the first batch to measure compilation apart
                (``compile_s``)
     devices:   how many of this process's devices share the pixels (None: all of them;
@@ -59,6 +61,11 @@ def sample_pixels(
                on any device; its draws agree with one device's up to rounding
     """
     opts = HMCOptions() if options is None else options
+    if seed is not None and opts.seed is not None and seed != opts.seed:
+        raise JaxreflError(
+            f"sample_pixels got seed={seed} and HMCOptions.seed={opts.seed}: give one of them"
+        )
+    seed = seed if seed is not None else (0 if opts.seed is None else opts.seed)
     lp = lp.for_data(data)  # drops the censored branch where nothing is censored
     dtype = data.obs.dtype
     t0 = jnp.asarray(theta0, dtype)

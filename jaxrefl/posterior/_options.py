@@ -5,6 +5,13 @@ sampling instead of HMC: :mod:`._gibbs`, :mod:`._width_gibbs`).
 The chains' count and lengths (``num_chains``, ``num_warmup``, ``num_samples``, ``thin``)
 are :class:`HMCOptions`' whichever sampler :func:`~jaxrefl.posterior.sample_pixels` picks,
 so a map's pixels keep one shape of draws.
+
+The chains' seed: ``HMCOptions.seed`` is for a call that samples one problem on its own
+(:func:`~jaxrefl.posterior.sample_pixels`, :func:`jaxrefl.measured.sample_posterior`); None
+leaves it to the caller (``sample_pixels``' ``seed``, 0 by default). An uncertainty map
+seeds its chunks from :attr:`AdaptiveOptions.seed` (chunk i: ``seed + i``), so
+:class:`~jaxrefl.posterior.AdaptiveOptions` refuses an ``HMCOptions`` with a seed rather
+than ignore it.
 """
 
 from __future__ import annotations
@@ -19,7 +26,8 @@ __all__ = ["GibbsOptions", "HMCOptions"]
 
 @dataclass(frozen=True)
 class HMCOptions:
-    """Settings of the chains and of HMC/NUTS (:mod:`jaxrefl.posterior._hmc`)."""
+    """Settings of the chains and of HMC/NUTS (:mod:`jaxrefl.posterior._hmc`); ``seed``: the
+    chains' seed where one call samples on its own (module docstring; None: the caller's)."""
 
     num_warmup: int = 300
     num_samples: int = 500
@@ -42,8 +50,13 @@ class HMCOptions:
     # (acceptance averaged over, and divergences counted in, the steps between). Used by
     # the longer second pass of adaptive_uncertainty, whose draws keep the first's shape.
     thin: int = 1
+    seed: int | None = None
 
     def __post_init__(self):
+        if self.seed is not None and (
+            isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0
+        ):
+            raise JaxreflError(f"seed must be an integer >= 0 or None, got {self.seed!r}")
         if self.reparam not in ("auto", "albedo", "none"):
             raise JaxreflError(f"reparam must be 'auto', 'albedo' or 'none', not {self.reparam!r}")
         if not 0.15 < self.metric_window_end <= 1.0:
