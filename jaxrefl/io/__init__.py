@@ -41,3 +41,32 @@ from ._npz import save_npz_atomic as save_npz_atomic
 from ._photos import PNGError as PNGError
 from ._photos import read_png as read_png
 from ._photos import write_png as write_png
+
+__all__ = [
+    "OBS_STATUS",
+    "Capture",
+    "CaptureError",
+    "CaptureWarning",
+    "ExrFormatError",
+    "ExrImage",
+    "MeasuredBRDF",
+    "MeasuredDataError",
+    "ObsStatus",
+    "PNGError",
+    "corr_name",
+    "exr_channel",
+    "load_capture",
+    "map_key",
+    "map_name",
+    "read_cornell",
+    "read_curet",
+    "read_curet_geometry",
+    "read_exr",
+    "read_merl",
+    "read_png",
+    "save_generic_capture",
+    "write_exr",
+    "write_exr_rgb",
+    "write_merl",
+    "write_png",
+]

@@ -52,3 +52,36 @@ from ._synthetic import render_photo as render_photo
 from ._synthetic import render_sample as render_sample
 from ._synthetic import write_jpeg as write_jpeg
 from ._tags import tag_cells as tag_cells
+
+__all__ = [
+    "SAMPLE_FRACTION",
+    "TAG_FAMILY",
+    "TAG_IDS",
+    "Calibration",
+    "CalibrationOptions",
+    "CaptureOptions",
+    "Detection",
+    "DetectorOptions",
+    "FrameLayout",
+    "Intrinsics",
+    "PhoneCamera",
+    "PhoneCapture",
+    "PhoneCaptureError",
+    "PhotoMeta",
+    "Pose",
+    "Rectified",
+    "Refinement",
+    "SyntheticSample",
+    "calibrate",
+    "default_sample",
+    "detect_markers",
+    "list_photos",
+    "locate",
+    "photos_to_capture",
+    "read_photo_meta",
+    "rectify",
+    "render_photo",
+    "render_sample",
+    "write_frame_sheet",
+    "write_jpeg",
+]

@@ -32,3 +32,28 @@ from ._sh import sh_basis as sh_basis
 from ._sh import sh_irradiance as sh_irradiance
 from ._sh import sh_lambert as sh_lambert
 from ._sh import sh_project as sh_project
+
+__all__ = [
+    "SH_CONSTANTS",
+    "AreaLight",
+    "Camera",
+    "DirectionalLight",
+    "EnvironmentMap",
+    "GammaResponse",
+    "Light",
+    "LinearResponse",
+    "OrthographicCamera",
+    "PinholeCamera",
+    "PointLight",
+    "Response",
+    "SRGBResponse",
+    "TabulatedResponse",
+    "cos4_falloff",
+    "planar_points",
+    "render",
+    "render_planar_sample",
+    "sh_basis",
+    "sh_irradiance",
+    "sh_lambert",
+    "sh_project",
+]
