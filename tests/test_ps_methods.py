@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import jaxrefl
-from jaxrefl import ps
+from jaxrefl import fit, ps
 from jaxrefl.fit import Status
 
 LAMBERT = jaxrefl.brdf.get("lambert")
@@ -64,6 +64,12 @@ def test_robust_rejects_shadows_and_highlights(sphere):
     assert np.nanmedian(err_ls) > 5.0
     assert np.nanmedian(err_rb[ok]) < 0.5
     assert np.nanpercentile(err_rb[ok], 90) < 0.5
+    # Its settings are one Robust, the method object: without reweighting or the trimmed
+    # start it is shadow-free least squares, which the highlights pull away.
+    plain = ps.robust(obs, lights, e, None, ps.Robust(iters=0, trim=0.0))
+    assert np.nanmedian(ps.angular_error(np.asarray(plain.normals), n[m])) > 5.0
+    same = ps.Robust().solve(obs, lights, e, None, None)
+    np.testing.assert_array_equal(np.asarray(same.normals), np.asarray(rb.normals))
 
 
 def test_robust_exact_on_clean_data_with_attached_shadows(sphere):
@@ -301,6 +307,10 @@ def test_method_objects_name_and_validate_themselves():
     }
     j = ps.NormalBRDF(model=ps.default_model()).to_json()
     assert j["type"] == "brdf" and j["model"] == "CookTorrance" and j["config"]["type"]
+    assert j["space"] is None
+    space = fit.ParamSpace(ps.default_model(), channels=3, grey=("specular",))
+    j = ps.NormalBRDF(space=space).to_json()
+    assert j["space"]["labels"] == list(space.labels) and "specular.R" not in j["space"]["labels"]
     with pytest.raises(ValueError, match="Robust needs a finite shadow"):
         ps.Robust(shadow=-1.0)
     with pytest.raises(ValueError, match="init must be"):

@@ -7,9 +7,10 @@ unit vectors towards the light with intensities per image and channel; I = E rho
 
 * Calibrated: :func:`woodham` (least squares), :func:`robust` (shadows and highlights
   rejected by IRLS), :func:`fit_normal_brdf` (normal + microfacet BRDF per pixel with the
-  :mod:`jaxrefl.fit` engine); as option objects for :func:`solve_capture` and
-  :func:`run_ps`: :class:`LeastSquares`, :class:`Robust`, :class:`NormalBRDF`
-  (``METHODS[name]`` by name).
+  :mod:`jaxrefl.fit` engine); their settings are method objects, which
+  :func:`solve_capture` and :func:`run_ps` also take: :class:`LeastSquares`,
+  :class:`Robust` (``robust(..., options)``), :class:`NormalBRDF`
+  (``fit_normal_brdf(..., options)``); ``METHODS[name]`` by name.
 * Uncalibrated: :func:`factorize` (rank-3 SVD), :func:`gbr_matrix` / :func:`apply_gbr`
   (the bas-relief ambiguity), :func:`uncalibrated` (resolved by known normals in view).
 * Lights: :func:`chrome_sphere_lights`, :func:`lambertian_sphere_lights`,
@@ -22,6 +23,7 @@ unit vectors towards the light with intensities per image and channel; I = E rho
 """
 
 from ._brdf import BRDFFit as BRDFFit
+from ._brdf import NormalBRDF as NormalBRDF
 from ._brdf import NormalBRDFResidual as NormalBRDFResidual
 from ._brdf import default_model as default_model
 from ._brdf import fit_normal_brdf as fit_normal_brdf
@@ -47,11 +49,10 @@ from ._lights import lambertian_sphere_lights as lambertian_sphere_lights
 from ._lights import lights_from_shading as lights_from_shading
 from ._mat import read_mat as read_mat
 from ._mat import write_mat as write_mat
+from ._method import PSMethod as PSMethod
 from ._methods import METHODS as METHODS
 from ._methods import LeastSquares as LeastSquares
-from ._methods import NormalBRDF as NormalBRDF
-from ._methods import PSMethod as PSMethod
-from ._methods import Robust as Robust
+from ._robust import Robust as Robust
 from ._robust import robust as robust
 from ._sphere import Circle as Circle
 from ._sphere import fit_circle as fit_circle

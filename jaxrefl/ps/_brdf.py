@@ -33,6 +33,8 @@ censored (they only count when the prediction falls below them).
 
 from __future__ import annotations
 
+from typing import Any
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -47,10 +49,11 @@ from jaxrefl.brdf import tilt_normal as tilt_slopes
 from jaxrefl.scene import orthonormal_basis
 
 from ._capture import PSInputError
-from ._robust import robust
+from ._method import PSMethod
+from ._robust import Robust, robust
 from ._woodham import PSResult, prepare_inputs
 
-__all__ = ["BRDFFit", "NormalBRDFResidual", "default_model", "fit_normal_brdf"]
+__all__ = ["BRDFFit", "NormalBRDF", "NormalBRDFResidual", "default_model", "fit_normal_brdf"]
 
 # The diffuse albedo starts here after the per-pixel scaling (inside [0, 1], away from 1
 # so that a brighter channel still fits).
@@ -119,35 +122,69 @@ def _batched_local(residual, theta, data):
     return jax.vmap(residual.local)(theta, data)
 
 
+class NormalBRDF(PSMethod):
+    """Normal and BRDF fitted together per pixel (module docstring): the settings of
+    :func:`fit_normal_brdf`, and the method object :func:`jaxrefl.ps.solve_capture` takes
+    (saturated observations censored).
+
+    model:  the BRDF (None: :func:`default_model`)
+    space:  its parameter space (:class:`jaxrefl.fit.ParamSpace`; None: the model's with a
+            grey ``specular``)
+    config: solver, noise (in the units of the observations divided by the per-pixel scale
+            s), loss (None: L2) and dtype (None: that of the observations) of the fit
+    shadow: observations below it times the pixel's brightest get weight 0 (cast and
+            attached shadows); also the robust Lambertian start's dark threshold
+    init:   ``"diffuse"`` (the robust Lambertian albedo and the model's other defaults) or
+            ``"grid"`` (:func:`jaxrefl.fit.initial_theta` at n0: closed-form colours on a
+            roughness grid, a larger program to compile)
+    batch:  pixels fitted at a time (the last batch padded with empty pixels), so every
+            capture size reuses one compiled solver
+    select: e.g. 0.5: keep the robust Lambertian normal where the fitted BRDF does not lower
+            the cost below ``select`` times that of the Lambertian start (a lobe explaining
+            little is likelier to be absorbing a model error than a highlight); None keeps
+            every fitted normal
+    """
+
+    kind = "brdf"
+    model: BRDF | None = None
+    space: jf.ParamSpace | None = None
+    config: jf.FitConfig = jf.FitConfig()
+    shadow: float = 0.05
+    init: str = "diffuse"
+    batch: int = 2048
+    select: float | None = None
+
+    def __check_init__(self) -> None:
+        if self.init not in ("diffuse", "grid"):
+            raise JaxreflError(f"NormalBRDF init must be 'diffuse' or 'grid', not {self.init!r}")
+        jf.check_number("NormalBRDF", "shadow", self.shadow)
+        if self.batch < 1:
+            raise JaxreflError(f"NormalBRDF needs batch >= 1, got {self.batch}")
+
+    def solve(self, obs, lights, intensities, weight, saturated) -> PSResult:
+        return fit_normal_brdf(obs, lights, intensities, weight, saturated, self).ps
+
+    def to_json(self) -> dict[str, Any]:
+        out = super().to_json()
+        out["model"] = None if self.model is None else type(self.model).__name__
+        sp = self.space
+        out["space"] = None if sp is None else {"labels": list(sp.labels), "fixed": list(sp.fixed)}
+        return out
+
+
 def fit_normal_brdf(
     obs: Float[ArrayLike, "N K C"],
     lights: Float[ArrayLike, "K 3"],
     intensities: Float[ArrayLike, "K C"] | None = None,
     weight: Float[ArrayLike, "N K C"] | None = None,
     saturated: ArrayLike | None = None,
-    *,
-    model: BRDF | None = None,
-    space: jf.ParamSpace | None = None,
-    config: jf.FitConfig = jf.FitConfig(),
-    shadow: float = 0.05,
-    init: str = "diffuse",
-    batch: int = 2048,
-    select: float | None = None,
+    options: NormalBRDF | None = None,
 ) -> BRDFFit:
     """Fit normal + BRDF per pixel (module docstring). ``saturated`` (N, K, C) bool marks
-    censored observations; ``space`` defaults to the model's with a grey ``specular``.
-    ``config``: solver, noise (in the units of ``obs`` divided by the per-pixel scale s),
-    loss (None: L2) and dtype (None: that of ``obs``) of the fit.
-
-    ``init``: ``"diffuse"`` (default: the robust Lambertian albedo and the model's other
-    defaults) or ``"grid"`` (:func:`jaxrefl.fit.initial_theta` at n0: closed-form colours
-    on a roughness grid, a larger program to compile). Pixels are fitted ``batch`` at a
-    time (the last batch padded with empty pixels), so every capture size reuses one
-    compiled solver. ``select`` (e.g. 0.5): keep
-    the robust Lambertian normal where the fitted BRDF does not lower the cost below
-    ``select`` times that of the Lambertian start (a lobe explaining little is likelier to
-    be absorbing a model error than a highlight); None keeps every fitted normal.
-    """
+    censored observations; ``options``: every setting of the fit (:class:`NormalBRDF`:
+    model, space, config, shadow, init, batch, select; None: its defaults)."""
+    o = NormalBRDF() if options is None else options
+    config = o.config
     obs, lights, e, w = prepare_inputs(obs, lights, intensities, weight)
     if config.dtype is not None:
         dt = np.dtype(config.dtype)
@@ -159,7 +196,7 @@ def fit_normal_brdf(
             f"must have the shape of obs (N, K, C) = ({n}, {k}, {c}); got {jnp.shape(saturated)}",
         )
     sat = jnp.zeros((n, k, c), bool) if saturated is None else jnp.asarray(saturated, bool)
-    size = min(int(batch), max(256, 1 << max(n - 1, 0).bit_length()))
+    size = min(int(o.batch), max(256, 1 << max(n - 1, 0).bit_length()))
     pad = -n % size
     if pad:
         obs, w, sat = (jnp.pad(a, [(0, pad), (0, 0), (0, 0)]) for a in (obs, w, sat))
@@ -170,12 +207,12 @@ def fit_normal_brdf(
             e,
             w[i : i + size],
             sat[i : i + size],
-            model=model,
-            space=space,
+            model=o.model,
+            space=o.space,
             config=config,
-            shadow=shadow,
-            init=init,
-            select=select,
+            shadow=o.shadow,
+            init=o.init,
+            select=o.select,
         )
         for i in range(0, n + pad, size)
     ]
@@ -193,7 +230,7 @@ def _fit_batch(obs, lights, e, w, sat, *, model, space, config, shadow, init, se
     if space is None:
         grey = ("specular",) if "specular" in model.param_names else ()
         space = jf.ParamSpace(model, channels=c, grey=grey)
-    start = robust(obs, lights, e, jnp.where(sat, 0.0, w), shadow=shadow)
+    start = robust(obs, lights, e, jnp.where(sat, 0.0, w), Robust(shadow=shadow))
     has = jf.has_estimate(start.status)
     n0 = jnp.where(has[:, None], start.normals, jnp.array([[0.0, 0.0, 1.0]], dt))
     peak_rho = jnp.max(jnp.where(has[:, None], start.albedo, 0.0), axis=-1)

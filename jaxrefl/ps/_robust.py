@@ -2,7 +2,9 @@
 
 Lambertian least squares (:mod:`._woodham`) is biased wherever an observation breaks
 I = E rho n.l: attached and cast shadows (I ~ 0 where n.l may be > 0) and specular
-highlights (I far above the Lambertian value). Per pixel this module
+highlights (I far above the Lambertian value). The settings are one :class:`Robust`
+(``shadow``, ``scale_floor``, ``iters``, ``trim``), the method object
+:func:`jaxrefl.ps.solve_capture` also takes. Per pixel :func:`robust`
 
 1. drops dark observations, I_kc < ``shadow`` * I_ref (cast and attached shadows; I_ref
    is the brightest observation once the brightest ``trim`` fraction is set aside, so the
@@ -33,9 +35,13 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import ArrayLike, Float
 
+from jaxrefl import fit as jf
+from jaxrefl._errors import JaxreflError
+
+from ._method import PSMethod
 from ._woodham import PSResult, _woodham, cut, pad_pixels, prepare_inputs, scaled_normals
 
-__all__ = ["robust", "robust_weights"]
+__all__ = ["Robust", "robust", "robust_weights"]
 
 # Tukey biweight tuning constant (95% asymptotic efficiency under Gaussian noise).
 _TUKEY_C = 4.685
@@ -90,23 +96,41 @@ def robust_weights(obs, lights, e, w, shadow, scale_floor, iters: int, trim: flo
     return wt
 
 
+class Robust(PSMethod):
+    """Lambertian PS with shadows and highlights down-weighted (module docstring, :func:`robust`):
+    ``shadow`` dark threshold relative to the pixel's reference level, ``scale_floor`` of
+    the robust scale relative to the median observation, ``iters`` reweighting rounds,
+    ``trim`` brightest share left out of the starting fit."""
+
+    kind = "robust"
+    shadow: float = 0.05
+    scale_floor: float = 1e-3
+    iters: int = 5
+    trim: float = 0.25
+
+    def __check_init__(self) -> None:
+        for name in ("shadow", "scale_floor", "trim"):
+            jf.check_number("Robust", name, getattr(self, name))
+        if self.iters < 0:
+            raise JaxreflError(f"Robust needs iters >= 0, got {self.iters}")
+
+    def solve(self, obs, lights, intensities, weight, saturated) -> PSResult:
+        return robust(obs, lights, intensities, weight, self)
+
+
 def robust(
     obs: Float[ArrayLike, "N K C"],
     lights: Float[ArrayLike, "K 3"],
     intensities: Float[ArrayLike, "K C"] | None = None,
     weight: Float[ArrayLike, "N K C"] | None = None,
-    *,
-    shadow: float = 0.05,
-    scale_floor: float = 1e-3,
-    iters: int = 5,
-    trim: float = 0.25,
+    options: Robust | None = None,
 ) -> PSResult:
     """Robust normals and albedo of N pixels (module docstring); arguments as
-    :func:`jaxrefl.ps.woodham`, plus ``shadow`` (dark threshold relative to the pixel's
-    reference level), ``scale_floor``, ``iters`` (reweighting rounds) and ``trim`` (the
-    brightest fraction left out of the starting fit)."""
+    :func:`jaxrefl.ps.woodham`, plus the settings ``options`` (:class:`Robust`; None: its
+    defaults)."""
+    o = Robust() if options is None else options
     obs, lights, e, w = prepare_inputs(obs, lights, intensities, weight)
     n = obs.shape[0]
     obs, w = pad_pixels(obs, w)
-    wt = robust_weights(obs, lights, e, w, shadow, scale_floor, iters, trim)
+    wt = robust_weights(obs, lights, e, w, o.shadow, o.scale_floor, o.iters, o.trim)
     return cut(_woodham(obs, lights, e, wt), n)
