@@ -38,7 +38,7 @@ from _common import machine, run_and_record, table
 from jaxrefl import measured as jm
 from jaxrefl.brdf import CookTorrance, Lafortune
 from jaxrefl.cli._options import solver_from_flags
-from jaxrefl.fit import FitConfig, Status, fit_samples
+from jaxrefl.fit import FitConfig, SamplesOptions, Status, fit_samples
 from jaxrefl.io import MeasuredBRDF
 from jaxrefl.measured import _retry as jm_retry
 
@@ -54,6 +54,8 @@ MODELS = jm.DEFAULT_MODELS  # Lambert + {Blinn-Phong, Ward, CT Beckmann/GGX, Laf
 BACKENDS = ("lean", "optimistix", "jaxopt")
 DTYPES = ("float32", "float64")
 CURET_SAMPLES = (2, 12)
+# The residual (f̂ - f) cos(theta_i), as the measured fits' (MeasuredOptions().cosine).
+COSINE = SamplesOptions(cosine=True)
 # Pareto: configuration a dominates b when it is no slower and no worse, and better in one.
 
 
@@ -116,12 +118,12 @@ def _fit(model, m: MeasuredBRDF, backend: str, dtype: str):
     # float64 into float32 fits (lineax structure mismatch; reported, jaxrefl.fit).
     if dtype == "float32":
         cfg = FitConfig(solver=solver_from_flags(backend), dtype=jnp.float32)
-        r = fit_samples(model, m, cosine=True, config=cfg)
+        r = fit_samples(model, m, options=COSINE, config=cfg)
         jax.block_until_ready(r.theta)
         return r
     with jm_retry.x64():
         cfg = FitConfig(solver=solver_from_flags(backend), dtype=jnp.float64)
-        r = fit_samples(model, m, cosine=True, config=cfg)
+        r = fit_samples(model, m, options=COSINE, config=cfg)
         jax.block_until_ready(r.theta)
         return r
 

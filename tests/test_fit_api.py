@@ -96,11 +96,15 @@ def test_fit_samples_recovers_a_known_brdf():
     for name, v in truth.items():
         np.testing.assert_allclose(r.params[name], v, rtol=1e-4)
     # channels fitted separately: one problem per channel, results with a leading axis C
-    rs = fit.fit_samples(m, (wi, wo, np.nan_to_num(f)), channels="separate", cosine=True)
+    separate = fit.SamplesOptions(channels="separate", cosine=True)
+    rs = fit.fit_samples(m, (wi, wo, np.nan_to_num(f)), options=separate)
     assert rs.status.shape == (3,) and rs.params["albedo"].shape == (3,)
     assert rs.params["alpha"].shape == (3,)
     np.testing.assert_allclose(rs.params["specular"], truth["specular"], rtol=1e-3)
     np.testing.assert_allclose(rs.params["alpha"], 0.15, rtol=1e-3)
+    assert separate.to_json() == {"type": "samples", "channels": "separate", "cosine": True}
+    with pytest.raises(ValueError, match="channels must be 'joint' or 'separate'"):
+        fit.SamplesOptions(channels="split")
 
 
 def test_cornell_acrylic_band(shared_data):

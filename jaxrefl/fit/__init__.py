@@ -70,6 +70,7 @@ from ._options import check_number  # noqa: F401
 from ._problem import FitConfig as FitConfig
 from ._problem import FitResult as FitResult
 from ._problem import Linearisation as Linearisation
+from ._problem import SamplesOptions as SamplesOptions
 from ._problem import fit_pixels as fit_pixels
 from ._problem import fit_samples as fit_samples
 from ._problem import sample_arrays  # noqa: F401
@@ -143,6 +144,7 @@ __all__ = [
     "PixelData",
     "ProcessGroupError",
     "Residual",
+    "SamplesOptions",
     "ScaledSigmoid",
     "ShotNoise",
     "Softplus",

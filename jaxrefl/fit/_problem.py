@@ -59,6 +59,7 @@ __all__ = [
     "FitConfig",
     "FitResult",
     "Linearisation",
+    "SamplesOptions",
     "fit_pixels",
     "fit_samples",
     "sample_arrays",
@@ -294,12 +295,35 @@ def sample_arrays(
     return obs, scale, weight
 
 
+class SamplesOptions(Option):
+    """How :func:`fit_samples` makes a problem of measured samples.
+
+    channels: ``"joint"``: one problem, colour parameters per channel and shared scalars
+              (results without a leading axis); ``"separate"``: every channel is its own
+              problem with its own scalars (results with a leading axis C, colour
+              parameters as (C,)).
+    cosine:   fit f_r cos(theta_i) instead of f_r (scale = cos_i), which down-weights the
+              noisy grazing samples.
+    """
+
+    kind: ClassVar[str] = "samples"
+    channels: Literal["joint", "separate"] = "joint"
+    cosine: bool = False
+
+    def __check_init__(self) -> None:
+        if self.channels not in ("joint", "separate"):
+            raise JaxreflError(
+                f"SamplesOptions.channels must be 'joint' or 'separate', not {self.channels!r}"
+            )
+        if not isinstance(self.cosine, bool):
+            raise JaxreflError(f"SamplesOptions.cosine must be True or False, not {self.cosine!r}")
+
+
 def fit_samples(
     model: BRDF,
     measured: Any,
     *,
-    channels: Literal["joint", "separate"] = "joint",
-    cosine: bool = False,
+    options: SamplesOptions | None = None,
     config: FitConfig = FitConfig(),
     space: ParamSpace | None = None,
     init: Init = "auto",
@@ -311,18 +335,16 @@ def fit_samples(
     measured: a :class:`jaxrefl.io.MeasuredBRDF` (``wi``, ``wo`` (K, 3), ``values`` (K, C)
               f_r in 1/sr) or a tuple ``(wi, wo, values)``. Non-finite values and samples at
               or below the horizon get weight 0.
-    channels: ``"joint"``: one problem, colour parameters per channel and shared scalars
-              (results without a leading axis); ``"separate"``: every channel is its own
-              problem with its own scalars (results with a leading axis C, colour
-              parameters as (C,)).
-    cosine:   fit f_r cos(theta_i) instead of f_r (scale = cos_i), which down-weights the
-              noisy grazing samples.
+    options:  the problem (:class:`SamplesOptions`: the channels joint or separate, f_r or
+              f_r cos(theta_i); None: its defaults).
     config:   as for :func:`fit_pixels`; its dtype None means float64 if enabled in JAX,
               else float32.
 
     The other arguments are those of :func:`fit_pixels`; with the default L2 loss and
     sigma 1 the cost is in (1/sr)^2.
     """
+    o = SamplesOptions() if options is None else options
+    channels, cosine = o.channels, o.cosine
     if isinstance(measured, tuple):
         wi, wo, values = measured
         names = None
@@ -338,7 +360,7 @@ def fit_samples(
         s1 = None if scale is None else scale[None]
         data = pixel_data(values[None], wi[None], wo[None], scale=s1, weight=weight[None])
         n_ch, ch_names = c, names
-    elif channels == "separate":
+    else:  # "separate" (SamplesOptions admits no other value)
         obs = jnp.transpose(values)[..., None]  # (C, K, 1)
         data = pixel_data(
             obs,
@@ -348,8 +370,6 @@ def fit_samples(
             weight=jnp.transpose(weight)[..., None],
         )
         n_ch, ch_names = 1, None
-    else:
-        raise JaxreflError(f"channels must be 'joint' or 'separate', not {channels!r}")
     if space is None:
         if ch_names is not None and len(ch_names) != n_ch:
             ch_names = None

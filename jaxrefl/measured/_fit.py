@@ -37,7 +37,7 @@ import numpy as np
 
 from jaxrefl._errors import JaxreflError
 from jaxrefl.brdf import BRDF
-from jaxrefl.fit import FitConfig, FitResult, Status, fit_samples
+from jaxrefl.fit import FitConfig, FitResult, SamplesOptions, Status, fit_samples
 from jaxrefl.io import MeasuredBRDF
 
 from ._certificate import Certificate
@@ -246,6 +246,7 @@ def fit_model(
     name = name or type(model).__name__
     max_theta_deg, cosine = options.max_theta_deg, options.cosine
     measured, channels = fit_channels(measured, options)
+    problem = SamplesOptions(channels=channels, cosine=cosine)
     ok = usable_samples(measured.wi, measured.wo, measured.values, max_theta_deg)
     data = measured.select(ok)
     w = None if weight is None else np.asarray(weight, dtype=np.float64)[ok]
@@ -277,7 +278,7 @@ def fit_model(
         def fn() -> FitResult:
             cfg = config.replace(dtype=dt)
             if starts is None:
-                return fit_samples(model, data, channels=channels, cosine=cosine, config=cfg)
+                return fit_samples(model, data, options=problem, config=cfg)
             r, certs[dt], _ = fit_multistart(
                 model,
                 data,
