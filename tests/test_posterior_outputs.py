@@ -828,6 +828,12 @@ def test_time_limit_leaves_laplace_pixels_marked_and_a_pass_says_what_it_does(la
     # without a deadline the same options sample every pixel
     u2 = jp.adaptive_uncertainty(lp, data, theta, theta_std, flag, opts)
     assert np.all(np.isin(u2.method, (jp.Method.MCMC, jp.Method.MCMC_AUDIT)))
+    # the limit as a setting, AdaptiveOptions.time_limit_s (counted from the call): a
+    # nanosecond is over before the first chunk
+    u3 = jp.adaptive_uncertainty(lp, data, theta, theta_std, flag, replace(opts, time_limit_s=1e-9))
+    assert np.all(u3.method == jp.Method.LAPLACE_TIME_LIMIT)
+    with pytest.raises(ValueError, match="time_limit_s must be a positive number"):
+        replace(opts, time_limit_s=0.0)
 
 
 def test_cli_sample_prints_its_stages_without_a_terminal_and_stops_at_its_time_limit(tmp_path):

@@ -409,6 +409,7 @@ def _run_capture(args, path: Path, opts, dist) -> dict:
         chunk=args.chunk,
         seed=args.seed,
         workers=args.workers,
+        time_limit_s=args.time_limit,
         priors=args.priors,
     )
     cap = load_capture(path)
@@ -427,7 +428,6 @@ def _run_capture(args, path: Path, opts, dist) -> dict:
         progress=_progress(args),
         out_dir=args.out,  # the fit's tiles and MCMC chunks as they finish (resume)
         distributed=dist,
-        time_limit_s=args.time_limit,
         log=stages,
     )
     if dist is not None and not dist.is_main:

@@ -113,11 +113,15 @@ def adaptive_uncertainty(
     chunk_dir: a folder where each MCMC chunk's draws are written when sampled and read
     back on a rerun (resume); required in a job of several processes (module docstring),
     which exchange their chunks there. deadline: a :func:`time.perf_counter` value after
-    which no MCMC chunk is started (module docstring; not in a job of several processes).
+    which no MCMC chunk is started (module docstring; not in a job of several processes),
+    or ``options.time_limit_s`` from this call where that comes first.
     log: called with a line of text at each pass's start and end and every
     :data:`HEARTBEAT_S` seconds during a pass.
     """
     o = AdaptiveOptions() if options is None else options
+    if o.time_limit_s is not None:  # the options' limit, or the caller's deadline if sooner
+        end = time.perf_counter() + o.time_limit_s
+        deadline = end if deadline is None else min(deadline, end)
     if chunk_dir is None and jax.process_count() > 1:
         raise JaxreflError(
             "adaptive_uncertainty in a job of several processes needs chunk_dir: a folder "

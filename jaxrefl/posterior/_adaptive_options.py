@@ -131,6 +131,11 @@ class AdaptiveOptions:
                  :func:`jaxrefl.posterior._workers.default_workers`);
                  the summaries do not depend on it (chunk i is seeded ``seed + i`` wherever
                  it runs)
+    time_limit_s: seconds from the call after which no MCMC chunk is started (a chunk is
+                 not started where the last one's time would carry it past): the pixels
+                 not sampled by then keep their Laplace summaries, with method
+                 ``laplace_time_limit``; a rerun with the same chunk folder samples them
+                 (resume). One process only (refused in a job of several). None: no limit
     priors:      a capture map's priors (:func:`jaxrefl.svbrdf.uncertainty_maps`): one of
                  :data:`jaxrefl._names.PRIOR_SOURCES` (``population``, the default: the
                  lobe's priors estimated from the pixels Laplace calls reliable;
@@ -150,6 +155,7 @@ class AdaptiveOptions:
     keep_samples: bool = True
     max_kept_pixels: int | None = MAP_KEEP_PIXELS
     workers: int | None = None
+    time_limit_s: float | None = None
     priors: str | Mapping[str, Any] = PRIOR_SOURCES[0]
 
     def __post_init__(self) -> None:
@@ -183,6 +189,14 @@ class AdaptiveOptions:
             raise JaxreflError(f"max_kept_pixels must be >= 1 or None, got {self.max_kept_pixels}")
         if self.workers is not None and self.workers < 1:
             raise JaxreflError(f"workers must be >= 1 or None, got {self.workers}")
+        limit = self.time_limit_s
+        if limit is not None and not (
+            isinstance(limit, int | float)
+            and not isinstance(limit, bool)
+            and math.isfinite(limit)
+            and limit > 0
+        ):
+            raise JaxreflError(f"time_limit_s must be a positive number of seconds, got {limit}")
         for name in ("hmc", "rerun_hmc"):
             given = getattr(self, name)
             if given is not None and given.seed is not None:

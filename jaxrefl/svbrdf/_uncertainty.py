@@ -96,7 +96,6 @@ class CaptureUncertainty:
                ``timings`` split it), the light's widening (``light_s``), the
                per-pixel widths (``width_s``) and the call (``total_s``)
     model_choice: the model sampled and why (:func:`uncertainty_maps`)
-    time_limit_s: the time limit the map was made under (None: none)
     light_std: (N, P) the estimated light's share of each pixel's std over the model's
                parameters (:mod:`jaxrefl.svbrdf._light_map`: ``map``'s std, q05 and q95
                include it); None where the map carries no light term (._light_map)
@@ -116,9 +115,13 @@ class CaptureUncertainty:
     timings: dict[str, float] = field(default_factory=dict)
     prior_summary: dict[str, Any] = field(default_factory=dict)
     model_choice: dict[str, Any] = field(default_factory=dict)
-    time_limit_s: float | None = None
     light_std: np.ndarray | None = None
     width_spread: WidthSpread | None = None
+
+    @property
+    def time_limit_s(self) -> float | None:
+        """The time limit the map was made under (``options.time_limit_s``; None: none)."""
+        return self.options.time_limit_s
 
     @property
     def model(self) -> str:
@@ -405,7 +408,6 @@ def uncertainty_maps(
     progress: bool = False,
     out_dir: str | Path | None = None,
     distributed: fit.Distributed | None = None,
-    time_limit_s: float | None = None,
     log: Callable[[str], None] | None = None,
 ) -> CaptureUncertainty:
     """Posterior uncertainty of every pixel of ``capture`` (module docstring).
@@ -423,7 +425,10 @@ def uncertainty_maps(
               lobe's priors estimated from the pixels Laplace calls reliable,
               :func:`population_priors`; ``"default"``:
               :func:`jaxrefl.posterior.default_priors`; or priors by parameter name, the
-              defaults for the others)
+              defaults for the others) and its time limit (``time_limit_s``, counted from
+              this call: the fit's time counts; after it no MCMC chunk is started, the
+              pixels not sampled keep their Laplace summaries with method
+              ``laplace_time_limit``, and with ``out_dir`` a rerun samples them)
     progress: tqdm bars over the fit's tiles and the MCMC chunks
     out_dir:  where the fit's tiles (``out_dir/fit``) and the MCMC chunks' draws
               (``out_dir/mcmc``) are written as they finish, and read back by a rerun
@@ -432,10 +437,6 @@ def uncertainty_maps(
               :func:`fit_capture`): the fit's tiles and the MCMC chunks are split among
               the processes, which exchange them in ``out_dir`` (required); every process
               returns the whole result (process 0 writes it: :func:`write_uncertainty`)
-    time_limit_s: seconds from the call after which no MCMC chunk is started: the pixels
-              not sampled by then keep their Laplace summaries, with method
-              ``laplace_time_limit`` (:func:`jaxrefl.posterior.adaptive_uncertainty`'s
-              ``deadline``); with ``out_dir`` a rerun samples them (resume). None: no limit
     log:      called with one line of text per stage (the fit and the model it chose, the
               priors, each MCMC pass with its pixel count, and every
               :data:`jaxrefl.posterior.HEARTBEAT_S` seconds during a pass the chunks done
@@ -470,8 +471,7 @@ def uncertainty_maps(
         from jaxrefl.io import load_capture
 
         capture = load_capture(capture)
-    if time_limit_s is not None and not (np.isfinite(time_limit_s) and time_limit_s > 0):
-        raise JaxreflError(f"time_limit_s must be a positive number of seconds, got {time_limit_s}")
+    time_limit_s = options.time_limit_s
     if time_limit_s is not None and distributed is not None:
         raise JaxreflError("a time limit applies to one process: drop it or --distributed")
     say = log if log is not None else (lambda _line: None)
@@ -570,7 +570,6 @@ def uncertainty_maps(
         },
         prior_summary=prior_summary,
         model_choice=choice,
-        time_limit_s=time_limit_s,
         light_std=light_std,
         width_spread=spread,
     )
