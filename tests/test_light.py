@@ -22,6 +22,7 @@ import capture_family as cf
 
 # One compiled shape for every test here: 16 x 16 pixels (two halves of 128), 9 photos.
 SIZE, HALF = 16, 128
+HALF_OPTIONS = svbrdf.LightOptions(n_pixels=HALF)
 REPEATS = 10
 
 
@@ -45,7 +46,7 @@ def test_offset_and_gains_recovered_with_calibrated_intervals_one_compile(offset
     covered, iterations = [], 0
     for rep in range(REPEATS):
         r = r0.with_noise(1000 + rep)
-        est = svbrdf.estimate_light(r.capture(), "offset+gains", n_pixels=HALF)
+        est = svbrdf.estimate_light(r.capture(), "offset+gains", HALF_OPTIONS)
         assert est.mode == "offset+gains"
         # in the sample plane within 1 mm, gains within 2%, on every noise draw; the
         # out-of-plane z is not estimated: it keeps its prior (OFFSET_PRIOR_CM)
@@ -71,12 +72,12 @@ def test_offset_and_gains_recovered_with_calibrated_intervals_one_compile(offset
 
 def test_auto_keeps_fixed_without_offset_and_estimates_with_one(offset_member):
     at_lens = cf.render_member(_member(0.0, 0.0, "colocated_tiles")).capture()
-    est = svbrdf.estimate_light(at_lens, "auto", n_pixels=HALF)
+    est = svbrdf.estimate_light(at_lens, "auto", HALF_OPTIONS)
     assert est.mode == "fixed"
     assert set(est.cv_rmse) == {"fixed", "offset", "offset+gains"}
     assert est.why.startswith("held-out RMSE") and "offset does not beat fixed" in est.why
     assert est.apply(at_lens) is at_lens
-    off = svbrdf.estimate_light(offset_member.capture(), "auto", n_pixels=HALF)
+    off = svbrdf.estimate_light(offset_member.capture(), "auto", HALF_OPTIONS)
     assert off.mode == "offset+gains"
     # each held-out photo predicted at its prior gain: the gains' spread stays in the score
     assert off.cv_rmse["offset+gains"] < 0.9 * off.cv_rmse["fixed"]
@@ -91,7 +92,7 @@ def test_laplace_std_matches_mcmc(offset_member):
     """emcee over the offset's x and y (the gains fixed), the profiled posterior the Laplace
     approximates: std within 25% and the means within 0.5 std."""
     cap = offset_member.capture()
-    est = svbrdf.estimate_light(cap, "offset", n_pixels=HALF)
+    est = svbrdf.estimate_light(cap, "offset", HALF_OPTIONS)
     train = np.ones(cap.n_photos, bool)
     with jax.enable_x64(True):
         problem = svbrdf.light_problem(cap, train, n_pixels=HALF)
@@ -121,7 +122,9 @@ def test_light_draws_follow_the_laplace_and_apply(offset_member):
     photo's gain follows its prior, and ``apply`` places each draw's flash."""
     cap = offset_member.capture()
     held = 8
-    est = svbrdf.estimate_light(cap, "offset+gains", (held,), n_pixels=HALF)
+    est = svbrdf.estimate_light(
+        cap, "offset+gains", svbrdf.LightOptions(holdout=(held,), n_pixels=HALF)
+    )
     n = 4000
     draws = svbrdf.light_draws(est, n, seed=3)
     assert len(draws) == n
@@ -220,3 +223,17 @@ def test_optimiser_computes_the_jacobian_only_where_a_step_is_taken(offset_membe
         else:
             rejected += i + 1 == len(events) or events[i + 1][0] != "jac"
     assert rejected >= 1, kinds
+
+
+def test_light_options_carry_the_settings_and_check_them():
+    """estimate_light's settings are one LightOptions: a job's are its held-out photos and
+    lobe bound; bad numbers are refused naming the field."""
+    job = svbrdf.FitJob(model="ggx", holdout=(1, 3), alpha_min=0.05)
+    o = svbrdf.LightOptions.of_job(job)
+    assert (o.holdout, o.alpha_min, o.seed) == ((1, 3), 0.05, 0)
+    assert o.n_pixels == svbrdf.LightOptions().n_pixels
+    assert o.to_json()["holdout"] == [1, 3] and o.to_json()["type"] == "light"
+    with pytest.raises(JaxreflError, match="integer n_pixels >= 1"):
+        svbrdf.LightOptions(n_pixels=0)
+    with pytest.raises(JaxreflError, match="holdout must be photo indices"):
+        svbrdf.LightOptions(holdout=(0.5,))

@@ -57,7 +57,9 @@ def test_named_model_vetoes_a_light_that_worsens_it_and_keeps_one_that_helps(at_
     assert out.as_dict()["model_cv_rmse"] == out.model_cv_rmse
     # the flash truly 1 cm from the lens: its estimate helps ggx, and is kept
     cap = _capture(1.0).capture()
-    est = dataclasses.replace(svbrdf.estimate_light(cap, "offset", n_pixels=HALF), asked="auto")
+    est = dataclasses.replace(
+        svbrdf.estimate_light(cap, "offset", svbrdf.LightOptions(n_pixels=HALF)), asked="auto"
+    )
     kept = check_light(cap, est, job)
     assert kept.mode == "offset" and kept.offset_cm is est.offset_cm
     assert kept.model_cv_rmse["offset"] <= kept.model_cv_rmse["fixed"]

@@ -20,6 +20,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import capture_family as cf
 
 SIZE, HALF = 16, 128  # the compiled shape of tests/test_light.py
+HALF_OPTIONS = svbrdf.LightOptions(n_pixels=HALF)
 
 
 @pytest.fixture(scope="module")
@@ -45,7 +46,9 @@ def _jackknife_se(cap) -> np.ndarray:
     """The leave-one-photo-out jackknife's standard error of the offset's x and y."""
     offs = np.stack(
         [
-            svbrdf.estimate_light(cap, "offset", (i,), n_pixels=HALF).offset_cm[:2]
+            svbrdf.estimate_light(
+                cap, "offset", svbrdf.LightOptions(holdout=(i,), n_pixels=HALF)
+            ).offset_cm[:2]
             for i in range(cap.n_photos)
         ]
     )
@@ -56,7 +59,7 @@ def _jackknife_se(cap) -> np.ndarray:
 def test_reported_std_follows_the_photos_spread_where_the_model_misses(rendered):
     lap, rep = [], []
     for seed in range(11, 16):
-        good = svbrdf.estimate_light(rendered.with_noise(seed).capture(), "offset", n_pixels=HALF)
+        good = svbrdf.estimate_light(rendered.with_noise(seed).capture(), "offset", HALF_OPTIONS)
         lap.append(np.sqrt(np.diag(good.cov_laplace)[:2]))
         rep.append(good.offset_std_cm[:2])
     ratio = np.asarray(rep) / np.asarray(lap)
@@ -70,7 +73,7 @@ def test_reported_std_follows_the_photos_spread_where_the_model_misses(rendered)
     assert d["covariance"] == _light_cov.COVARIANCE
 
     bad_cap = _beam_tilted(rendered, 0.2).capture()
-    bad = svbrdf.estimate_light(bad_cap, "offset", n_pixels=HALF)
+    bad = svbrdf.estimate_light(bad_cap, "offset", HALF_OPTIONS)
     jack = _jackknife_se(bad_cap)
     lap_bad = np.sqrt(np.diag(bad.cov_laplace)[:2])
     # the Laplace misses the photos' disagreement by a wide margin, the reported std does not

@@ -35,7 +35,7 @@ def stated_map():
     cap = cfam.render_member(dataclasses.replace(m, size=SIZE, flash_offset_cm=1.0)).capture()
     job = svbrdf.FitJob(model="lambert", config=fit.FitConfig(dtype=np.float64), light="fixed")
     res = svbrdf.uncertainty_maps(cap, job, jp.AdaptiveOptions(mcmc="none"))
-    offset = svbrdf.estimate_light(cap, "offset", job.holdout, alpha_min=job.alpha_min)
+    offset = svbrdf.estimate_light(cap, "offset", svbrdf.LightOptions.of_job(job))
     return res, cap, offset
 
 
@@ -113,7 +113,7 @@ def test_lens_spread_reuses_autos_problem(stated_map, monkeypatch):
     estimate, the same term as the one computed afresh, the estimate computed once."""
     res, cap, _offset = stated_map
     job = res.fit.job
-    scored = svbrdf.estimate_light(cap, "auto", job.holdout, alpha_min=job.alpha_min)
+    scored = svbrdf.estimate_light(cap, "auto", svbrdf.LightOptions.of_job(job))
     source = scored.offset_source
     assert source is not None and source.serves(cap, job.holdout, job.alpha_min)
     assert not source.serves(cap, (0,), job.alpha_min)

@@ -66,6 +66,7 @@ from ._light import (
     light_problem,  # noqa: F401
 )
 from ._light import light_draws as light_draws
+from ._light_options import LightOptions as LightOptions
 from ._models import CAPTURE_MODELS as CAPTURE_MODELS
 from ._models import capture_model as capture_model
 from ._noise_level import NoiseLevel as NoiseLevel
@@ -115,6 +116,7 @@ __all__ = [
     "FitJob",
     "LeaveOneOut",
     "LightEstimate",
+    "LightOptions",
     "ModelCheck",
     "ModelChoice",
     "NoiseLevel",

@@ -58,6 +58,7 @@ from ._auto import ModelChoice, choose_model
 from ._job_types import CaptureFit, FitJob
 from ._light import estimate_light
 from ._light_check import check_light
+from ._light_options import LightOptions
 from ._maps import capture_maps, capture_report, distributed_timings, widen_shared
 from ._noise_level import estimate_noise_level, with_noise
 from ._tile_fitter import TileFitter
@@ -114,7 +115,7 @@ def fit_capture(
     job = replace(job, compact=job.compacts(h * w))
     # The light first (the capture as the estimate places it): every model sees the same.
     t_light = time.perf_counter()
-    light = estimate_light(capture, job.light, job.holdout, alpha_min=job.alpha_min)
+    light = estimate_light(capture, job.light, LightOptions.of_job(job))
     # A named model keeps auto's light only where it predicts held-out photos no worse.
     light = check_light(capture, light, job)
     capture = light.apply(capture)

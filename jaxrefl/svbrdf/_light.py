@@ -60,6 +60,7 @@ from jaxrefl._errors import JaxreflError
 from jaxrefl._names import LIGHT_CHOICES
 
 from ._light_cov import COVARIANCE, robust_cov
+from ._light_options import LightOptions
 from ._light_prior import GainPrior, gain_prior
 from ._light_problem import (
     ESTIMATED_OFFSET,
@@ -355,18 +356,14 @@ def choose_light(problem: LightProblem) -> tuple[str, dict[str, float], str]:
 
 
 def estimate_light(
-    capture,
-    light: str = "auto",
-    holdout: tuple[int, ...] = (),
-    *,
-    n_pixels: int = SELECTION_PIXELS,
-    seed: int = 0,
-    alpha_min: float | None = None,
+    capture, light: str = "auto", options: LightOptions | None = None
 ) -> LightEstimate:
     """The light of ``capture`` (module docstring): ``light`` one of :data:`LIGHT_CHOICES`;
-    the photos in ``holdout`` are never looked at. ``fixed`` returns the stated light.
-    ``alpha_min``: the narrowest lobe a pixel may have, the fit's (``FitJob.alpha_min``;
-    None: the capture's resolvable width)."""
+    ``fixed`` returns the stated light. ``options``: the held-out photos (never looked at),
+    the subsample's pixels and seed, and the narrowest lobe (:class:`LightOptions`; None:
+    its defaults)."""
+    o = LightOptions() if options is None else options
+    holdout, n_pixels, seed, alpha_min = o.holdout, o.n_pixels, o.seed, o.alpha_min
     if light not in LIGHT_CHOICES:
         raise JaxreflError(f"light must be one of {', '.join(LIGHT_CHOICES)}, not {light!r}")
     if light == "fixed":

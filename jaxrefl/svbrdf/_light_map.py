@@ -66,6 +66,7 @@ import numpy as np
 
 from ._data import pixel_block
 from ._light import estimate_light, light_draws
+from ._light_options import LightOptions
 from ._light_problem import ESTIMATED_OFFSET
 
 __all__ = ["LIGHT_DRAWS", "MAP_TERMS", "light_spread", "map_term", "widen_for_light"]
@@ -146,7 +147,7 @@ def _lens_estimate(cf, capture):
     if source is not None and source.serves(capture, job.holdout, job.alpha_min):
         est = source.estimate()
     else:
-        est = estimate_light(capture, "offset", job.holdout, alpha_min=job.alpha_min)
+        est = estimate_light(capture, "offset", LightOptions.of_job(job))
     if est.cov is None:
         return None
     cov = np.zeros_like(est.cov)
