@@ -2,7 +2,8 @@
 ``benchmarks/capture_planning.py`` run with ``--flash``.
 
     python benchmarks/capture_planning.py --flash [--size 64] [--subsets 40] [--model pooled]
-        [--family-size 32] [--budget 12] [--target 0.1] [--members a,b] [--random-orders 3]
+        [--family-size 32] [--budget 12] [--target 0.1] [--ref-share 0.5] [--fit-model ggx_rgb]
+        [--members a,b] [--random-orders 3] [--skip-real | --keep-real]
 
 Real photos (``bath_tile``, ``yellow_box``, 9 photos each, read at ``--size``): for random
 subsets of 5 photos, fit ``--model`` on the 5, rank the other 4 by the plan (their camera
@@ -23,19 +24,32 @@ coloured metal; the members' true maps, rendered at ``--family-size``
 from any camera position by :func:`render_at`, the flash at its true offset and the capture
 told so): from the same 3 start photos (the member's own first three), add photos one at a
 time by the plan (the best of a hemisphere grid at 24 cm,
-:func:`jaxrefl.svbrdf.hemisphere_candidates`, after a refit; the default criterion, and
-``information``), at random from the same grid (``--random-orders`` orders), or in a fixed
-3 x 3 pattern (a square grid 6 cm apart, 24 cm up, centre first); fit the per-pixel ``ggx``
-model; photos until the median |ln alpha error| over the pixels is at most ``--target``
-and half of it (``>budget`` where it is not reached within ``--budget`` photos), the error
-at the budget, and the ratio of photos needed (random or 3 x 3 over the plan's), per
-member and on average.
+:func:`jaxrefl.svbrdf.hemisphere_candidates`, after a refit; each of ``--criteria``), at
+random from the same grid (``--random-orders`` orders), or in a fixed 3 x 3 pattern (a
+square grid 6 cm apart, 24 cm up, centre first). Each fit is ``--fit-model`` (default
+``ggx_rgb``, the truth's family: ``ggx``'s grey F0 cannot render a coloured metal) on the
+photos taken so far only, with the library's defaults otherwise, so the lower bound of alpha
+is those photos' resolvable width (:func:`jaxrefl.svbrdf.resolvable_alpha`), as a user's
+``jaxrefl fit --photos`` has it. Two targets: median |ln alpha error| over the pixels at most
+``--target``, and the member's own: ``--ref-share`` of the way, in log error, from the
+start's error to that of a fit on the start and every candidate of the grid (the reference,
+what the candidates teach together whatever the order; 0.5: the geometric mean of the two).
+It depends on no strategy (the start is common to all), and a member reaches it even where
+its lobes are narrower than the photos resolve (``--target`` out of reach) or where the
+reference, on over a hundred photos, is far beyond a few. Photos
+needed per target (``>budget`` where not reached within ``--budget`` photos), the ratios
+random / plan and 3 x 3 / plan per member and on average, the error at the budget.
+
+``--keep-real`` prints the real part of the recorded section again, with the date and
+arguments of the run that measured it, so that a rerun of the generated part alone keeps it.
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
 import time
+from pathlib import Path
 
 import jax.numpy as jnp
 import numpy as np
@@ -47,6 +61,8 @@ from jaxrefl.io import Capture, ObsStatus, load_capture
 from jaxrefl.svbrdf import _plan
 
 REAL = ("bath_tile", "yellow_box")
+SECTION = "capture_planning_flash"  # this part's section of docs/benchmarks.md
+KEPT = "Kept from the recorded run"  # how --keep-real heads the real part it keeps
 # What the generated part runs by default: members that differ in what users vary most
 # (flash offset 0 to 1 cm, near-mirror to rough lobes, grey F0 up to 0.5, a coloured metal,
 # noise 0.5% to 1%); the others of the family take --members.
@@ -171,6 +187,31 @@ def real_part(args, rng) -> None:
     print()
 
 
+def kept_real_part() -> None:
+    """Print the real part of the recorded section (``docs/benchmarks.md``) again, headed by
+    the date and arguments of the run that measured it (``--keep-real``: a rerun of the
+    generated part alone keeps it)."""
+    path = Path(__file__).resolve().parent.parent / "docs" / "benchmarks.md"
+    text = path.read_text() if path.exists() else ""
+    start, end = f"<!-- {SECTION}:start -->", f"<!-- {SECTION}:end -->"
+    if start not in text:
+        raise SystemExit(f"--keep-real: no recorded {SECTION} section in {path}; run it whole")
+    body = text.split(start, 1)[1].split(end, 1)[0]
+    head = body.strip().splitlines()[2]  # "DATE; MACHINE; `ARGS`." under the heading
+    first, last = "### Real captures: pick", "### Generated captures"
+    if first not in body or last not in body:
+        raise SystemExit(f"--keep-real: the recorded {SECTION} section has no real part")
+    real = first + body.split(first, 1)[1].split(last, 1)[0]
+    # run_and_record moves every heading one level down; undo it, it does so again.
+    lines = [ln[1:] if ln.startswith("##") else ln for ln in real.strip().splitlines()]
+    print(lines[0] + "\n")
+    if not lines[2].startswith(KEPT):  # kept once already: its own line says from where
+        date, _, rest = head.partition("; ")
+        where, _, recorded = rest.partition("; `")
+        print(f"{KEPT} of {date} (`{recorded.rstrip('.').rstrip('`')}`; {where}); not rerun.\n")
+    print("\n".join(lines[1:]).strip() + "\n")
+
+
 # ----------------------------------------------------------------------------- generated
 def render_at(member, truth, cams, lights, rng) -> Capture:
     """A capture of ``member``'s true maps from cameras ``cams`` with flashes at ``lights``
@@ -217,19 +258,30 @@ def _alpha_error(result, truth) -> float:
     return float(np.median(np.where(np.isfinite(err), err, np.inf)))
 
 
-def _sequence(member, truth, offset, start, pick, budget, seed):
+def _sequence(member, truth, offset, start, pick, *, budget, seed, model):
     """Median |ln alpha error| after 3 ... ``budget`` photos; ``pick(fit, capture, taken)``
-    gives the next camera position. Slots not yet taken are held out (one compiled fit)."""
+    gives the next camera position. Each fit is of the photos taken so far only (as
+    ``jaxrefl fit --photos`` fits), so the capture's resolvable width
+    (:func:`jaxrefl.svbrdf.resolvable_alpha`, the lower bound of alpha) is theirs; every
+    photo keeps its noise (one render of the ``budget`` slots per step, the same seed)."""
     cams = np.array(list(start) + [start[0]] * (budget - len(start)), np.float64)
     errors = []
     for n in range(len(start), budget + 1):
-        cap = render_at(member, truth, cams, cams + offset, np.random.default_rng(seed))
-        job = svbrdf.FitJob(model="ggx", holdout=tuple(range(n, budget)))
-        result = svbrdf.fit_capture(cap, job)
+        full = render_at(member, truth, cams, cams + offset, np.random.default_rng(seed))
+        cap = full.select(range(n))
+        result = svbrdf.fit_capture(cap, svbrdf.FitJob(model=model))
         errors.append(_alpha_error(result, truth))
         if n < budget:
             cams[n] = pick(result, cap, n)
     return errors
+
+
+def _reference(member, truth, offset, start, grid, seed, model) -> tuple[float, int]:
+    """The median |ln alpha error| of a fit on the start and every candidate of ``grid``
+    (what the candidates can teach at most, whatever the order), and its photo count."""
+    cams = np.concatenate([start, grid.camera_pos])
+    cap = render_at(member, truth, cams, cams + offset, np.random.default_rng(seed))
+    return _alpha_error(svbrdf.fit_capture(cap, svbrdf.FitJob(model=model)), truth), len(cams)
 
 
 def _needed(errors, start: int, target: float, budget: int) -> str:
@@ -239,9 +291,17 @@ def _needed(errors, start: int, target: float, budget: int) -> str:
     return f">{budget}"
 
 
-def _ratio(other: float, plan: float) -> str:
-    """Photos needed by ``other`` over the plan's; '-' where either misses the target."""
-    return f"{other / plan:.2f}" if np.isfinite(other) and np.isfinite(plan) else "-"
+def _ratio(other: float, plan: float, budget: int) -> str:
+    """Photos needed by ``other`` over the plan's: '>x' where only the plan reaches the
+    target within the budget (``other`` needs more than ``budget``), '<=x' where only
+    ``other`` does, '-' where neither does."""
+    if np.isfinite(other) and np.isfinite(plan):
+        return f"{other / plan:.2f}"
+    if np.isfinite(plan):
+        return f">{budget / plan:.2f}"
+    if np.isfinite(other):
+        return f"<={other / (budget + 1):.2f}"
+    return "-"
 
 
 def generated_part(args, rng) -> None:
@@ -249,19 +309,31 @@ def generated_part(args, rng) -> None:
 
     criteria = args.criteria.split(",")
     plans = [f"plan ({c})" for c in criteria]
+    keys = (*plans, "random", "3x3")
     print("## Generated captures: photos until the maps are accurate\n")
     print(
-        f"{args.family_size} x {args.family_size} pixels, per-pixel `ggx`, 3 start photos, "
-        f"budget {args.budget} photos; target: median |ln alpha error| <= {args.target} "
-        f"(and <= {args.target / 2:g}). Plans by criterion: {', '.join(criteria)} (the "
-        f"default: {svbrdf.PlanOptions().criterion}). Photos needed (start included) and the "
-        "error at the budget.\n"
+        f"{args.family_size} x {args.family_size} pixels, 3 start photos, budget "
+        f"{args.budget} photos. Every fit is `FitJob(model={args.fit_model!r})` on the photos "
+        "taken so far only, as `jaxrefl fit --photos` fits (defaults otherwise: the flash "
+        "estimated or kept as the capture states it, `light='auto'`; the lower bound of alpha "
+        "the photos' resolvable width). `ggx_rgb` is the truth's own family (the members are "
+        "rendered with it): what `auto` (`jaxrefl fit`'s default) can choose at best, "
+        "without its choice among five models re-made at every photo count (five times the "
+        "fits). Plans by criterion: "
+        f"{', '.join(criteria)} (the default: {svbrdf.PlanOptions().criterion}); random: "
+        f"{args.random_orders} orders of the same grid; 3 x 3: a square grid 6 cm apart, "
+        "24 cm up, centre first. Two targets: the absolute one, median |ln alpha error| <= "
+        f"{args.target}; and a member's own, {args.ref_share:g} of the way in log error from "
+        "the start's error to the reference's (a fit on the start and every candidate of the "
+        "grid: what the candidates teach together, whatever the order): the start's error^"
+        f"{1 - args.ref_share:g} x the reference's^{args.ref_share:g}. It depends on no "
+        "strategy, and a member reaches it even where its lobes are narrower than the photos "
+        "resolve or the reference, on over a hundred photos, is far beyond a few. Photos "
+        "needed (start included).\n"
     )
-    targets = (args.target, args.target / 2)
-    rows = []
-    counts: dict[float, dict[str, list[float]]] = {
-        t: {key: [] for key in (*plans, "random", "3x3")} for t in targets
-    }
+    rows: dict[str, list[list[str]]] = {"abs": [], "rel": []}
+    end_rows = []
+    counts: dict[str, dict[str, list[float]]] = {t: {k: [] for k in keys} for t in rows}
     for name in args.members.split(","):
         t0 = time.perf_counter()
         m = dataclasses.replace(next(f for f in FAMILY if f.name == name), size=args.family_size)
@@ -271,70 +343,57 @@ def generated_part(args, rng) -> None:
         offset = lights[0] - cams[0]
         start = cams[:3]
         grid = svbrdf.hemisphere_candidates(render_at(m, truth, start, start + offset, r0))
+        ref, n_ref = _reference(m, truth, offset, start, grid, 1, args.fit_model)
 
         def plan_pick(result, cap, n, criterion, g=grid):
             plan = svbrdf.plan_next(result, cap, g, svbrdf.PlanOptions(criterion=criterion))
             return g.camera_pos[plan.best]
 
+        run = functools.partial(
+            _sequence, m, truth, offset, start, budget=args.budget, seed=1, model=args.fit_model
+        )
+
         seq = {
-            key: _sequence(
-                m,
-                truth,
-                offset,
-                start,
-                lambda res, cap, n, c=c: plan_pick(res, cap, n, c),
-                args.budget,
-                1,
-            )
+            key: run(lambda res, cap, n, c=c: plan_pick(res, cap, n, c))
             for key, c in zip(plans, criteria, strict=True)
         }
         rand = []
         for s in range(args.random_orders):
             order = np.random.default_rng(100 + s).permutation(len(grid))
-            rand.append(
-                _sequence(
-                    m,
-                    truth,
-                    offset,
-                    start,
-                    lambda res, cap, n, o=order, g=grid: g.camera_pos[o[n - 3]],
-                    args.budget,
-                    1,
-                )
-            )
+            rand.append(run(lambda res, cap, n, o=order, g=grid: g.camera_pos[o[n - 3]]))
         xy = [(0, 0), (6, 0), (0, 6), (-6, 0), (0, -6), (6, 6), (-6, 6), (-6, -6), (6, -6)]
         pattern = np.array([[x, y, 24.0] for x, y in xy])
-        seq["3x3"] = _sequence(
-            m, truth, offset, start, lambda res, cap, n, p=pattern: p[(n - 3) % 9], args.budget, 1
-        )
-        need = {
-            t: {key: _needed(seq[key], 3, t, args.budget) for key in (*plans, "3x3")}
-            for t in targets
-        }
-        for t, cnt in counts.items():
-            for key in (*plans, "3x3"):
-                cnt[key].append(_count(need[t][key]))
-            cnt["random"].append(
-                float(np.mean([_count(_needed(e, 3, t, args.budget)) for e in rand]))
+        seq["3x3"] = run(lambda res, cap, n, p=pattern: p[(n - 3) % 9])
+        first = seq["3x3"][0]  # the start's error: every strategy's first fit
+        rel = first ** (1 - args.ref_share) * ref**args.ref_share
+        for t, target in {"abs": args.target, "rel": rel}.items():
+            need = {k: _needed(seq[k], 3, target, args.budget) for k in (*plans, "3x3")}
+            rand_need = [_needed(e, 3, target, args.budget) for e in rand]
+            cnt = counts[t]
+            for k in (*plans, "3x3"):
+                cnt[k].append(_count(need[k]))
+            cnt["random"].append(float(np.mean([_count(x) for x in rand_need])))
+            rows[t].append(
+                [
+                    name,
+                    f"{target:.3f}",
+                    *[need[k] for k in plans],
+                    ", ".join(rand_need),
+                    need["3x3"],
+                    *[_ratio(cnt["random"][-1], cnt[k][-1], args.budget) for k in plans],
+                    *[_ratio(cnt["3x3"][-1], cnt[k][-1], args.budget) for k in plans],
+                ]
             )
-        c = counts[args.target]
         # The error over photos 4 .. budget (after the start), the plan's as a share of
         # random's: below 1, the plan's maps are better on average along the way.
         mean_rand = np.mean([e[1:] for e in rand])
-        rows.append(
+        end_rows.append(
             [
                 name,
-                *[need[args.target][k] for k in plans],
-                ", ".join(_needed(e, 3, args.target, args.budget) for e in rand),
-                need[args.target]["3x3"],
-                *[need[targets[1]][k] for k in plans],
-                ", ".join(_needed(e, 3, targets[1], args.budget) for e in rand),
-                need[targets[1]]["3x3"],
+                f"{ref:.3f} ({n_ref})",
                 *[f"{seq[k][-1]:.3f}" for k in plans],
                 f"{np.mean([e[-1] for e in rand]):.3f}",
                 f"{seq['3x3'][-1]:.3f}",
-                *[_ratio(c["random"][-1], c[k][-1]) for k in plans],
-                _ratio(c["3x3"][-1], c[plans[0]][-1]),
                 *[f"{np.mean(seq[k][1:]) / mean_rand:.2f}" for k in plans],
                 f"{time.perf_counter() - t0:.0f}",
             ]
@@ -345,42 +404,59 @@ def generated_part(args, rng) -> None:
         )
         curves.append("3x3 " + " ".join(f"{e:.3f}" for e in seq["3x3"]))
         print(
-            f"{name}: median |ln alpha error| by photo count 3..{args.budget}: " + "; ".join(curves)
+            f"{name}: median |ln alpha error| by photo count 3..{args.budget}: "
+            + "; ".join(curves)
+            + f"; reference ({n_ref} photos) {ref:.3f}"
         )
     print()
-    strict = f"{targets[1]:g}"
+    head = [
+        "member",
+        "target",
+        *plans,
+        f"random ({args.random_orders} orders)",
+        "3 x 3",
+        *[f"random / {k}" for k in plans],
+        *[f"3 x 3 / {k}" for k in plans],
+    ]
+    labels = {
+        "abs": f"median |ln alpha error| <= {args.target:g}",
+        "rel": f"the member's own ({args.ref_share:g} of the way from the start's error to "
+        "the reference's, in log)",
+    }
+    for t, label in labels.items():
+        print(f"### Photos needed: {label}\n")
+        print(table(head, rows[t]))
+        print()
+    print("### Error at the budget\n")
     print(
         table(
             [
                 "member",
-                *plans,
-                f"random ({args.random_orders} orders)",
-                "3 x 3 pattern",
-                *[f"{k} (<= {strict})" for k in plans],
-                f"random (<= {strict})",
-                f"3 x 3 (<= {strict})",
-                *[f"{k} error at {args.budget}" for k in plans],
-                "random error",
-                "3 x 3 error",
-                *[f"random / {k}" for k in plans],
-                f"3 x 3 / {plans[0]}",
-                *[f"{k} / random mean error" for k in plans],
+                "reference (photos)",
+                *[f"{k} at {args.budget}" for k in plans],
+                "random",
+                "3 x 3",
+                *[f"{k} / random, mean error" for k in plans],
                 "s",
             ],
-            rows,
+            end_rows,
         )
     )
     print(
-        "\nphotos needed, ratio to the plan's (the mean over members where both reach the "
-        f"target; random: the mean of its {args.random_orders} orders, where all reach it; "
-        "per member in the table's ratio columns, at the first target). plan / random mean "
-        "error: the median |ln alpha error| averaged over photos 4 .. budget, the plan's over "
-        "random's (below 1: the plan's maps are better along the way):"
+        f"\nphotos needed: '>{args.budget}' where the target is not reached within the "
+        f"budget; random: each order's, its column of ratios the mean of the "
+        f"{args.random_orders} orders' counts (where all reach it). Ratios: photos needed by "
+        "random or 3 x 3 over the plan's; '>x' where only the plan reaches the target (x "
+        "counts the other's as the budget), '<=x' where only the other does (x counts the "
+        "plan's as one over the budget). mean error: the median |ln alpha error| averaged "
+        "over photos 4 .. budget, the plan's over random's (below 1: the plan's maps are "
+        "better along the way). Mean ratios over the members where both reach the target:"
     )
-    for t, cnt in counts.items():
+    for t, label in labels.items():
         parts = []
         for plan_key in plans:
             for key in ("random", "3x3"):
+                cnt = counts[t]
                 both = [
                     (b, a)
                     for a, b in zip(cnt[plan_key], cnt[key], strict=True)
@@ -388,7 +464,7 @@ def generated_part(args, rng) -> None:
                 ]
                 r = f"{np.mean([b / a for b, a in both]):.2f}" if both else "- (not reached)"
                 parts.append(f"{key} / {plan_key} {r} ({len(both)} of {len(cnt[key])})")
-        print(f"- median |ln alpha error| <= {t:g}: " + ", ".join(parts))
+        print(f"- {label}: " + ", ".join(parts))
 
 
 def _count(needed: str) -> float:
@@ -405,7 +481,12 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--family-size", type=int, default=32, help="generated captures' size")
     ap.add_argument("--budget", type=int, default=12, help="photos at most (generated)")
     ap.add_argument("--target", type=float, default=0.1, help="median |ln alpha error|")
+    ap.add_argument(
+        "--ref-share", type=float, default=0.5, help="own target: share of the way, start to ref"
+    )
+    ap.add_argument("--fit-model", default="ggx_rgb", help="capture model of the generated part")
     ap.add_argument("--skip-real", action="store_true", help="only the generated part")
+    ap.add_argument("--keep-real", action="store_true", help="the recorded real part, not rerun")
     ap.add_argument("--members", default=",".join(FAMILY_MEMBERS), help="generated members")
     ap.add_argument("--random-orders", type=int, default=3, help="random orders a member")
     ap.add_argument(
@@ -414,10 +495,14 @@ def main(argv: list[str]) -> int:
         help="plan criteria of the generated part (the default's first)",
     )
     args = ap.parse_args(argv)
+    if not 0 < args.ref_share <= 1:
+        ap.error(f"--ref-share must be in (0, 1], got {args.ref_share}")
     t0 = time.perf_counter()
     rng = np.random.default_rng(0)
     print(f"machine: {machine()}\n")
-    if not args.skip_real:
+    if args.keep_real:
+        kept_real_part()
+    elif not args.skip_real:
         real_part(args, rng)
     generated_part(args, rng)
     print(f"\n({time.perf_counter() - t0:.0f} s)")
