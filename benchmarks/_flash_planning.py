@@ -273,7 +273,12 @@ def _sequence(member, truth, offset, start, pick, *, budget, seed, model):
         errors.append(_alpha_error(result, truth))
         if n < budget:
             cams[n] = pick(result, cap, n)
+    FLOORS.append(svbrdf.resolvable_alpha(cap))
     return errors
+
+
+# The lower bound of alpha (the photos' resolvable width) of each sequence's last fit.
+FLOORS: list[float] = []
 
 
 def _reference(member, truth, offset, start, grid, seed, model) -> tuple[float, int]:
@@ -281,6 +286,7 @@ def _reference(member, truth, offset, start, grid, seed, model) -> tuple[float, 
     (what the candidates can teach at most, whatever the order), and its photo count."""
     cams = np.concatenate([start, grid.camera_pos])
     cap = render_at(member, truth, cams, cams + offset, np.random.default_rng(seed))
+    FLOORS.append(svbrdf.resolvable_alpha(cap))
     return _alpha_error(svbrdf.fit_capture(cap, svbrdf.FitJob(model=model)), truth), len(cams)
 
 
@@ -403,10 +409,18 @@ def generated_part(args, rng) -> None:
             f"random (mean of {len(rand)}) " + " ".join(f"{e:.3f}" for e in np.mean(rand, 0))
         )
         curves.append("3x3 " + " ".join(f"{e:.3f}" for e in seq["3x3"]))
+        # Sequences in the order run: plans, random orders, 3 x 3; the reference's first.
+        floors = FLOORS[-(len(plans) + len(rand) + 2) :]
+        below = np.mean(truth["alpha"] < floors[-1])
         print(
             f"{name}: median |ln alpha error| by photo count 3..{args.budget}: "
             + "; ".join(curves)
-            + f"; reference ({n_ref} photos) {ref:.3f}"
+            + f"; reference ({n_ref} photos) {ref:.3f}. Lower bound of alpha (the photos' "
+            f"resolvable width) at {args.budget} photos: "
+            + ", ".join(f"{k} {f:.3f}" for k, f in zip(plans, floors[1:], strict=False))
+            + f", random {np.mean(floors[1 + len(plans) : -1]):.3f}, 3x3 {floors[-1]:.3f}, "
+            f"reference {floors[0]:.3f}; the truth's alpha: median "
+            f"{np.median(truth['alpha']):.3f}, {below:.0%} of the pixels below 3x3's bound\n"
         )
     print()
     head = [
