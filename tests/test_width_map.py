@@ -5,6 +5,7 @@ relaxes."""
 from __future__ import annotations
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -187,6 +188,14 @@ def test_relaxed_map_widens_inside_the_box_and_adds_the_width(varying):
     lo, hi = np.asarray(lp.space.lower), np.asarray(lp.space.upper)
     assert np.all(out.q05[:, :p] >= lo - 1e-12) and np.all(out.q95[:, :p] <= hi + 1e-12)
     assert np.all(out.q05 <= out.q95)
+    # albedo and F0 (finite down/up): the interval holds the conditional optimum's range
+    # over the width's 90% range, about the moved mean
+    ex = np.isfinite(sp.down) & (std[:, :p] > 0)
+    assert ex.sum() > n
+    lo_end = np.maximum(out.mean[:, :p] - sp.down, lo[:p])
+    hi_end = np.minimum(out.mean[:, :p] + sp.up, hi[:p])
+    assert np.all(out.q05[:, :p][ex] <= lo_end[ex] + 1e-12)
+    assert np.all(out.q95[:, :p][ex] >= hi_end[ex] - 1e-12)
     # columns past the model's parameters (the noise scale) are left as they were
     np.testing.assert_array_equal(out.std[:, p:d], std[:, p:d])
 
@@ -204,3 +213,31 @@ def test_pooled_uncertainty_map_gives_each_pixel_its_width(varying, tmp_path):
     write_uncertainty(res, tmp_path)
     ch = read_exr(tmp_path / "uncertainty.exr").channels
     np.testing.assert_allclose(ch["alpha_q95.Y"].reshape(-1), res.map.q95[:, -1], rtol=1e-3)
+
+
+def test_conditional_fit_is_the_exact_nonnegative_least_squares_at_each_width():
+    """_conditional's albedo and F0 at each pixel's own width, with F0's prior as one more
+    row, against scipy's NNLS on the same rows (the pooled model's basis images)."""
+    from scipy.optimize import nnls
+
+    from jaxrefl.svbrdf._pooled import _lobe_basis
+    from jaxrefl.svbrdf._width_map import _conditional
+
+    cap, _truth = _capture(np.full((SIZE, SIZE), 0.2))
+    with jax.enable_x64(True):
+        data = pixel_block(cap, 0, 6, dtype=np.float64)
+        alpha = np.array([0.05, 0.1, 0.2, 0.3, 0.5, 0.8])
+        prior_w, prior_mu = np.array([0.0, 0.5, 2.0]), np.array([0.1, 0.3, 0.05])
+        got = np.asarray(_conditional(jnp.asarray(alpha), data, prior_w, prior_mu))
+        lobe = np.asarray(_lobe_basis(jnp.asarray(alpha)[:, None], data))
+    obs, scale = np.asarray(data.obs), np.asarray(data.scale)
+    use = (np.asarray(data.weight) > 0) & (np.asarray(data.censored) == 0)
+    for i in range(6):
+        for ch in range(3):
+            u = use[i, :, ch]
+            a_mat = np.stack([scale[i, u, ch] / np.pi, lobe[i, u, ch]], 1)
+            y = obs[i, u, ch]
+            a_mat = np.vstack([a_mat, [0.0, prior_w[ch]]])
+            y = np.append(y, prior_w[ch] * prior_mu[ch])
+            want, _ = nnls(a_mat, y)
+            np.testing.assert_allclose(got[i, [ch, 3 + ch]], want, rtol=1e-7, atol=1e-10)

@@ -29,16 +29,32 @@ median estimate and tau is at least their estimates' robust spread, one material
 inf) gets the population's width; one that sees its lobe its own, shrunk towards the
 population by its uncertainty.
 
-The other parameters follow their pixel's width. Their values at the per-pixel fit's width
-are that fit's; at the posterior mean m_i they lie, to first order in log alpha, on the line
-from the pooled fit's to the per-pixel fit's, at the shrinkage weight w_i = (1 / V_i) / P_i
-(the map's means move by w_i (x_i(ggx_rgb) - x_i(pooled)), natural units). The width's
-posterior spread adds, to first order, v_i^2 / P_i to their variances, with v_i = d x_i /
-d log alpha the slope of the pixel's conditional optimum at the shared width (the
-Gauss-Newton terms of :mod:`jaxrefl.svbrdf._shared`: v_i = H_i^-1 J_i^T j_i). The map's 5%
-and 95% quantiles move and widen alike (as :func:`jaxrefl.svbrdf._light_map.widen_for_light`
-does for the light), inside the parameters' box. The draws in ``posterior.nc`` stay the
-pooled posterior's.
+The other parameters follow their pixel's width. The albedo and F0 follow it along the
+pixel's conditional optimum x_i(alpha): given a width, ``pooled``'s per-pixel problem is a
+non-negative least-squares fit of two basis images (:mod:`jaxrefl.svbrdf._pooled`), solved
+exactly and cheaply at any width. The map's means move by x_i(exp m_i) - x_i(alpha_shared)
+on the curve the pooled fit's prior on F0 regularises (it passes through the pooled fit's
+optimum), and the width's 90% range [q05_i, q95_i] spans x_i(q05_i) .. x_i(q95_i) on the
+curve without that prior, which adds to the interval's ends in quadrature (as a sum of
+independent spreads does):
+
+    lower_i = mean_i - sqrt((mean_i - q05_i)^2 + (x_i(exp m_i) - min x_i)^2), upper alike,
+
+the min and max over the three widths. The prior is left out of the spread because it is
+the population of F0 fitted at the shared width: at another width the pixels' F0 lie
+elsewhere, and held to it the curve hardly moves (on ``dim_many`` of
+``benchmarks/capture_family.py`` F0's 90% intervals then cover 47% of the pixels, against
+76% without it). The curve is far from straight over a population's
+spread: along the ridge a flash photo of the highlight's peak leaves, F0 scales with alpha^2
+(D_GGX(h = n) = 1 / (pi alpha^2)), and in a lobe's tail the other way; a first-order line
+through the shared width misses a rough pixel's F0 by a factor of several (``dim_many`` of
+``benchmarks/capture_family.py``). The other parameters (the noise scale) move, to first
+order, on the line from the pooled fit's to the per-pixel fit's at the shrinkage weight w_i
+= (1 / V_i) / P_i, and gain v_i^2 / P_i in variance, with v_i = d x_i / d log alpha at the
+shared width (the Gauss-Newton terms of :mod:`jaxrefl.svbrdf._shared`: v_i = H_i^-1 J_i^T
+j_i). The map's 5% and 95% quantiles move and widen alike (as
+:func:`jaxrefl.svbrdf._light_map.widen_for_light` does for the light), inside the
+parameters' box. The draws in ``posterior.nc`` stay the pooled posterior's.
 """
 
 from __future__ import annotations
@@ -54,6 +70,7 @@ import numpy as np
 
 from ._job import fit_capture
 from ._models import ALPHA_RANGE
+from ._pooled import _censored_nnls, _columns, _lobe_basis, _obs_major
 from ._population import ALPHA_FLOOR_LOG_STD
 
 __all__ = [
@@ -99,6 +116,8 @@ class WidthSpread:
     mean, std, q05, q95: (N,) each pixel's width (NaN where the fit has no estimate)
     move:      (N, P) the move of each parameter's mean, natural units
     var:       (N, P) the variance each parameter gains, natural units
+    down, up:  (N, P) the width's share of the distance from the mean to the 5% and the 95%
+               quantile, natural units (NaN: from ``var`` as a normal's)
     """
 
     alpha: float
@@ -112,6 +131,8 @@ class WidthSpread:
     q95: np.ndarray
     move: np.ndarray
     var: np.ndarray
+    down: np.ndarray
+    up: np.ndarray
 
     def summary(self) -> dict[str, Any]:
         """JSON-ready: the population and how far the pixels' widths spread."""
@@ -157,6 +178,49 @@ def _slopes(residual, theta, data):
         return jnp.where(jnp.all(jnp.isfinite(v)), v, jnp.nan)
 
     return jax.vmap(pixel)(theta, data)
+
+
+@jax.jit
+def _conditional(alpha, data, prior_w, prior_mu):
+    """(N, 2C): each pixel's albedo and F0 (C channels each) of ``pooled``'s fit
+    (:mod:`jaxrefl.svbrdf._pooled`) at the pixel's own width ``alpha`` (N,): non-negative
+    least squares over every usable photo, censored rows one-sided, and F0's Gaussian prior
+    N(prior_mu, (sigma / prior_w)^2) per channel as one more row (prior_w = sigma / prior
+    std; 0: none), so that the curve passes through the pooled fit's optimum."""
+    n, _k, c = data.obs.shape
+    y, cens, base, b0 = _columns(data)
+    b1 = _obs_major(_lobe_basis(alpha[:, None], data))
+    pw, pm = jnp.repeat(prior_w, n)[None], jnp.repeat(prior_w * prior_mu, n)[None]
+    a, u = _censored_nnls(
+        jnp.concatenate([b0, jnp.zeros_like(pw)]),
+        jnp.concatenate([b1, pw]),
+        jnp.concatenate([y, pm]),
+        jnp.concatenate([cens, jnp.zeros_like(cens[:1])]),
+        jnp.concatenate([base.astype(y.dtype), jnp.ones_like(pw)]),
+    )
+    return jnp.concatenate([a.reshape(c, n).T, u.reshape(c, n).T], axis=1)
+
+
+def _curve(cf, data, widths: tuple[np.ndarray, ...], prior: bool) -> list[np.ndarray]:
+    """:func:`_conditional` at each (N,) array of ``widths``, under ``cf``'s pooled prior
+    on F0 where ``prior``, in tiles of :data:`_TILE`."""
+    n, c = widths[0].shape[0], data.obs.shape[-1]
+    dtype = np.asarray(data.obs).dtype
+    pooled = cf.extra.get("pooled")
+    prior_w, prior_mu = np.zeros(c), np.zeros(c)
+    if prior and pooled is not None and pooled.sigma is not None and len(pooled.prior_std) == c:
+        sd = np.asarray(pooled.prior_std, np.float64)
+        prior_w = np.where(sd > 0, float(pooled.sigma) / np.where(sd > 0, sd, 1.0), 0.0)
+        prior_mu = np.asarray(pooled.prior_mean, np.float64)
+    pw, pm = jnp.asarray(prior_w, dtype), jnp.asarray(prior_mu, dtype)
+    out = [np.full((n, 2 * c), np.nan) for _ in widths]
+    for a in range(0, n, _TILE):
+        b = min(a + _TILE, n)
+        blk = jax.tree.map(lambda x, a=a, b=b: x[a:b], data)
+        for o, wd in zip(out, widths, strict=True):
+            # a pixel without a width gets the shared one's; its row is masked by the caller
+            o[a:b] = np.asarray(_conditional(jnp.asarray(wd[a:b], dtype), blk, pw, pm))
+    return out
 
 
 def population(
@@ -291,15 +355,53 @@ def pixel_widths(
         v[a:b] = np.asarray(_slopes(lp.residual, jnp.asarray(t[a:b]), blk))
     slope = np.asarray(space.dnatural(jnp.asarray(t)), np.float64)
     var = (np.where(np.isfinite(v), v, 0.0) * slope) ** 2 / prec[:, None]
+    down, up = np.full(theta.shape, np.nan), np.full(theta.shape, np.nan)
+    cols = _lobe_columns(space, data.obs.shape[-1])
+    if cols is not None:
+        # albedo and F0 along the conditional optimum (module docstring)
+        fill = np.where(np.isfinite(m), 1.0, 0.0)
+        med = np.where(fill > 0, np.exp(np.where(fill > 0, m, 0.0)), alpha)
+        lo_w, hi_w = np.where(fill > 0, q05, alpha), np.where(fill > 0, q95, alpha)
+        x_sh, x_md = _curve(cf, data, (np.full(n, alpha), med), prior=True)
+        ends = np.stack(_curve(cf, data, (lo_w, med, hi_w), prior=False))
+        move[:, cols] = x_md - x_sh
+        down[:, cols] = ends[1] - np.min(ends, 0)
+        up[:, cols] = np.max(ends, 0) - ends[1]
+        var[:, cols] = ((ends[2] - ends[0]) / (2 * _Z95)) ** 2
     bad = ~ok
     for arr in (mean, std, q05, q95):
         arr[bad] = np.nan
     move[bad | ~np.all(np.isfinite(move), -1)] = 0.0
-    var[bad] = np.nan
+    for arr in (var, down, up):
+        arr[bad] = np.nan
     informing = int(np.sum(np.isfinite(v_i)))
     return WidthSpread(
-        alpha, float(np.exp(c)), tau, log_std_shared, informing, mean, std, q05, q95, move, var
+        alpha,
+        float(np.exp(c)),
+        tau,
+        log_std_shared,
+        informing,
+        mean,
+        std,
+        q05,
+        q95,
+        move,
+        var,
+        down,
+        up,
     )
+
+
+def _lobe_columns(space, channels: int) -> np.ndarray | None:
+    """Columns of ``space``'s natural vector holding albedo then F0, in the order
+    :func:`_conditional` returns them (None where the space holds them otherwise)."""
+    labels = list(space.labels)
+    want = [f"{p}.{ch}" for p in ("albedo", "specular") for ch in "RGB"[:channels]]
+    if channels == 1:
+        want = ["albedo", "specular"]
+    if not all(w in labels for w in want):
+        return None
+    return np.array([labels.index(w) for w in want])
 
 
 def relax_shared_width(umap, spread: WidthSpread, lower, upper):
@@ -321,8 +423,16 @@ def relax_shared_width(umap, spread: WidthSpread, lower, upper):
     s1 = np.maximum(s0, np.minimum(np.sqrt(s0**2 + extra), (hi - lo) / np.sqrt(12.0)))
     with np.errstate(invalid="ignore", divide="ignore"):
         factor = np.where(s0 > 0, s1 / s0, 1.0)
-    q05[:, :p] = np.clip(m1 - (m0 - q05[:, :p]) * factor, lo, hi)
-    q95[:, :p] = np.clip(m1 + (q95[:, :p] - m0) * factor, lo, hi)
+    n05 = np.clip(m1 - (m0 - q05[:, :p]) * factor, lo, hi)
+    n95 = np.clip(m1 + (q95[:, :p] - m0) * factor, lo, hi)
+    # where the width's share of each end is known (albedo, F0): the two in quadrature
+    down, up = spread.down, spread.up
+    exact = np.isfinite(down) & np.isfinite(up) & (s0 > 0)
+    with np.errstate(invalid="ignore"):
+        e05 = m1 - np.sqrt((m0 - q05[:, :p]) ** 2 + np.where(exact, down, 0.0) ** 2)
+        e95 = m1 + np.sqrt((q95[:, :p] - m0) ** 2 + np.where(exact, up, 0.0) ** 2)
+    q05[:, :p] = np.where(exact, np.clip(e05, lo, hi), n05)
+    q95[:, :p] = np.where(exact, np.clip(e95, lo, hi), n95)
     # A pixel whose posterior had no spread (a std of 0) gets the width's share alone.
     flat = s0 <= 0
     q05[:, :p] = np.where(flat, np.clip(m1 - _Z95 * s1, lo, hi), q05[:, :p])
