@@ -43,7 +43,8 @@ leave-one-photo-out over the training photos under one shared width, the one tha
 the first half's training photos best held out in turn (each pixel's coefficients fitted on
 the other photos, photo j predicted at its prior gain), and the halves swap. The simplest
 candidate within :data:`jaxrefl.svbrdf.TOLERANCE` (relative) of the lowest RMSE wins, as
-``auto`` chooses models. Everything is deterministic given the capture and the held-out
+``auto`` chooses models, and a candidate must also win by more than its margin's noise over
+the photos (:func:`choose_light`). Everything is deterministic given the capture and the held-out
 photos (a fixed subsample seed, a NumPy optimiser), so every process of a distributed fit
 finds the same light.
 """
@@ -85,7 +86,8 @@ __all__ = [  # the problem's and the prior's public names are re-exported from h
 LIGHT_MODES: tuple[str, ...] = LIGHT_CHOICES[:3]  # the estimates; "auto" picks one
 _Z90 = 1.6448536269514722  # the standard normal's 95% quantile: a central 90% interval
 # A more complex light must lower the held-out squared error by this many standard errors of
-# the paired per-pixel difference: a one-sided test at about 2.3% (:func:`choose_light`).
+# the paired difference over the training photos: a one-sided test at about 2.3%
+# (:func:`choose_light`).
 CHOICE_Z = 2.0
 
 
@@ -321,9 +323,16 @@ def _final(problem: LightProblem, mode: str, asked: str, cv: dict, why: str) -> 
 def choose_light(problem: LightProblem) -> tuple[str, dict[str, float], str]:
     """Score ``fixed``, ``offset`` and ``offset+gains`` by the cross-fitted held-out RMSE
     (module docstring). A candidate is kept over the simpler ones only where it wins by more
-    than the tolerance and by more than :data:`CHOICE_Z` standard errors of the paired
-    per-pixel difference of held-out squared errors (the score's own noise: the pixels are
-    the replicates). Returns the choice, the RMSEs and the margins' account."""
+    than the tolerance and by more than :data:`CHOICE_Z` standard errors of its gain, the
+    sum over the training photos of each photo's paired difference of held-out squared
+    errors (both halves' pixels): the photos are the replicates, sqrt(G var) the standard
+    error over G of them. What the model misses is correlated over a photo's pixels (a
+    misplaced highlight spans many, a photo's own exposure or flash beam moves them all),
+    so the pixels are not independent replicates: a light that helps some photos' pixels a
+    great deal and costs another photo's as much wins by many per-pixel standard errors
+    and by none over photos (the photo is the unit of misfit, as in the covariance's
+    jackknife: :mod:`jaxrefl.svbrdf._light_cov`). Returns the choice, the RMSEs and the
+    margins' account."""
     per: dict[str, np.ndarray] = {}
     cnt = np.zeros(0)
     for mode in LIGHT_MODES:
@@ -336,15 +345,16 @@ def choose_light(problem: LightProblem) -> tuple[str, dict[str, float], str]:
             s, n = problem.loo_sse(theta, mode, fit_half, score_half)
             parts.append(s)
             counts.append(n)
-        per[mode] = np.concatenate(parts)
-        cnt = np.concatenate(counts)
+        per[mode] = np.concatenate(parts, 1)  # (K, N): each photo's error at each pixel
+        cnt = np.concatenate(counts, 1)
     total = float(cnt.sum())
     cv = {m: float(np.sqrt(v.sum() / total)) if total > 0 else float("inf") for m, v in per.items()}
     chosen = "fixed"
     notes = []
     for mode in LIGHT_MODES[1:]:
-        diff = per[chosen] - per[mode]  # > 0 where the candidate predicts better
-        se = float(np.sqrt(diff.size * np.var(diff)))
+        # each training photo's gain (> 0 where the candidate predicts it better)
+        diff = (per[chosen] - per[mode]).sum(1)[problem.train]
+        se = float(np.sqrt(diff.size * np.var(diff, ddof=1)))
         gain = float(diff.sum())
         margin = max(CHOICE_Z * se, per[chosen].sum() * (1.0 - 1.0 / (1.0 + _tolerance()) ** 2))
         won = gain > margin

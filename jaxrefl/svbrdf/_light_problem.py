@@ -275,11 +275,11 @@ def _predict_shared(x, la, d: LightData, w):
 
 @jax.jit
 def _loo_sse(x, la, d: LightData, train, log_g_prior):
-    """Each pixel's leave-one-photo-out squared error and count (N,) over the training photos
-    ``train`` (K,) under the light x and the shared width exp(la), unweighted (radiance
-    units): each pixel's coefficients fitted on the other training photos, the held-out photo
-    predicted at its prior log gain ``log_g_prior`` (K,), as a fit predicts a photo it did
-    not see."""
+    """Each pixel's leave-one-photo-out squared error and count (K, N), photo by photo (0
+    for a photo not in ``train``), over the training photos ``train`` (K,) under the light x
+    and the shared width exp(la), unweighted (radiance units): each pixel's coefficients
+    fitted on the other training photos, the held-out photo predicted at its prior log gain
+    ``log_g_prior`` (K,), as a fit predicts a photo it did not see."""
     k = train.shape[0]
     base = d.usable * train[None, :, None]
 
@@ -290,8 +290,7 @@ def _loo_sse(x, la, d: LightData, train, log_g_prior):
         e = (pred - d.obs) * d.usable * held * train[j]
         return jnp.sum(e * e, (1, 2)), jnp.sum(d.usable * held, (1, 2)) * train[j]
 
-    sse, n = jax.lax.map(fold, jnp.arange(k))
-    return jnp.sum(sse, 0), jnp.sum(n, 0)
+    return jax.lax.map(fold, jnp.arange(k))
 
 
 @jax.jit
@@ -482,7 +481,8 @@ class LightProblem:
         """The held-out score of the light x0 + A theta (module docstring): the shared width
         that predicts ``fit_half``'s training photos best held out in turn under that light
         (the grid's best, then one parabolic step), then each pixel's leave-one-photo-out
-        squared error and its count (N,) on ``score_half`` with that width."""
+        squared error and its count on ``score_half`` with that width, photo by photo
+        (K, N)."""
         x0, a = self.embed(mode)
         x = jnp.asarray(x0 + a @ theta)
         train, log_g = jnp.asarray(self.train), jnp.asarray(x0[3:])
