@@ -241,3 +241,25 @@ def test_conditional_fit_is_the_exact_nonnegative_least_squares_at_each_width():
             y = np.append(y, prior_w[ch] * prior_mu[ch])
             want, _ = nnls(a_mat, y)
             np.testing.assert_allclose(got[i, [ch, 3 + ch]], want, rtol=1e-7, atol=1e-10)
+
+
+def test_group_centres_follow_a_precision_that_follows_the_width():
+    """Wide lobes seen hardly (V_i growing with alpha_i): the least precise group's centre
+    sits near its own widths, not at the precise narrow lobes' median (module docstring)."""
+    from jaxrefl.svbrdf._width_map import GROUPS, group_centres
+
+    rng = np.random.default_rng(3)
+    n = 2000
+    log_a = np.log(0.2) + 0.5 * rng.standard_normal(n)
+    var = (0.05 * np.exp(3.0 * (log_a - np.log(0.2)))) ** 2  # rougher: far less precise
+    est = log_a + np.sqrt(var) * rng.standard_normal(n)
+    est[:10], var[:10] = np.nan, np.inf  # no estimate: the global centre
+    c = float(np.median(est[10:]))
+    got = group_centres(est, var, c)
+    assert np.all(got[:10] == c)
+    worst = var >= np.quantile(var[10:], 1.0 - 1.0 / GROUPS)
+    best = var <= np.quantile(var[10:], 1.0 / GROUPS)
+    assert abs(np.median(got[worst]) - np.median(log_a[worst])) < 0.25
+    assert np.median(got[worst]) > c + 0.4 > np.median(got[best]) + 0.8
+    # too few informing pixels for two groups: the global centre everywhere
+    assert np.all(group_centres(est[:40], var[:40], c) == c)
