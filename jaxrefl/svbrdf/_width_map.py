@@ -47,11 +47,11 @@ independent spreads does):
     lower_i = mean_i - sqrt((mean_i - q05_i)^2 + (x_i(exp m_i) - min x_i)^2), upper alike,
 
 the min and max over the three widths on the curve without the prior and the median width
-on the curve with it (so the interval also spans the gap between the two curves). The prior is left out of the spread because it is
-the population of F0 fitted at the shared width: at another width the pixels' F0 lie
-elsewhere, and held to it the curve hardly moves (on ``dim_many`` of
-``benchmarks/capture_family.py`` F0's 90% intervals then cover 47% of the pixels, against
-76% without it). The curve is far from straight over a population's
+on the curve with it (so the interval also spans the gap between the two curves). The
+prior is left out of the spread because it is the population of F0 fitted at the shared
+width: at another width the pixels' F0 lie elsewhere, and held to it the curve hardly moves
+(on ``dim_many`` of ``benchmarks/capture_family.py`` F0's 90% intervals then cover 47% of
+the pixels, against 76% without it). The curve is far from straight over a population's
 spread: along the ridge a flash photo of the highlight's peak leaves, F0 scales with alpha^2
 (D_GGX(h = n) = 1 / (pi alpha^2)), and in a lobe's tail the other way; a first-order line
 through the shared width misses a rough pixel's F0 by a factor of several (``dim_many`` of
