@@ -29,9 +29,9 @@ median estimate and tau is at least their estimates' robust spread, one material
 pixel is shrunk towards the centre of the pixels about as precise as it is, c_i: the median
 estimate of its group of :data:`GROUPS` by V_i's quantiles (the group-linear estimates of
 Weinstein et al. 2018). A rough lobe that a flash photo hardly sees is shrunk towards the
-other hardly seen lobes, not towards the sharply seen narrow ones: on ``dim_many`` of
-``benchmarks/capture_family.py`` those pixels' widths are about 0.4 and the informing
-pixels' median 0.21. A pixel no photo's highlight reached (V_i = inf) gets the
+other hardly seen lobes, not towards the sharply seen narrow ones (on ``dim_many`` of
+``benchmarks/capture_family.py`` the one centre of all informing pixels sat at about half
+the width of its roughest pixels). A pixel no photo's highlight reached (V_i = inf) gets the
 population's width; one that sees its lobe its own, shrunk towards its group's centre by
 its uncertainty.
 
@@ -46,22 +46,22 @@ independent spreads does):
 
     lower_i = mean_i - sqrt((mean_i - q05_i)^2 + (x_i(exp m_i) - min x_i)^2), upper alike,
 
-the min and max over the three widths on the curve without the prior and the median width
-on the curve with it (so the interval also spans the gap between the two curves). The
-prior is left out of the spread because it is the population of F0 fitted at the shared
-width: at another width the pixels' F0 lie elsewhere, and held to it the curve hardly moves
-(on ``dim_many`` of ``benchmarks/capture_family.py`` F0's 90% intervals then cover 47% of
-the pixels, against 76% without it). The curve is far from straight over a population's
-spread: along the ridge a flash photo of the highlight's peak leaves, F0 scales with alpha^2
-(D_GGX(h = n) = 1 / (pi alpha^2)), and in a lobe's tail the other way; a first-order line
-through the shared width misses a rough pixel's F0 by a factor of several (``dim_many`` of
-``benchmarks/capture_family.py``). The other parameters (the noise scale) move, to first
-order, on the line from the pooled fit's to the per-pixel fit's at the shrinkage weight w_i
-= (1 / V_i) / P_i, and gain v_i^2 / P_i in variance, with v_i = d x_i / d log alpha at the
-shared width (the Gauss-Newton terms of :mod:`jaxrefl.svbrdf._shared`: v_i = H_i^-1 J_i^T
-j_i). The map's 5% and 95% quantiles move and widen alike (as
-:func:`jaxrefl.svbrdf._light_map.widen_for_light` does for the light), inside the
-parameters' box. The draws in ``posterior.nc`` stay the pooled posterior's.
+the min and max over the three widths on the curve without the prior and the median width on
+the curve with it (so the interval also spans the gap between the two curves). The prior is
+left out of the spread because it is the population of F0 fitted at the shared width: at
+another width the pixels' F0 lie elsewhere, and held to it the curve hardly moves
+(``dim_many`` of ``benchmarks/capture_family.py``: F0's intervals then miss its rough
+pixels' F0 far more often than one time in ten). The curve is far from straight over a
+population's spread: along the ridge a flash photo of the highlight's peak leaves, F0 scales
+with alpha^2 (D_GGX(h = n) = 1 / (pi alpha^2)), and in a lobe's tail the other way; a first-
+order line through the shared width misses a rough pixel's F0 by a factor of several there.
+The other parameters (the noise scale) move, to first order, on the line from the pooled
+fit's to the per-pixel fit's at the shrinkage weight w_i = (1 / V_i) / P_i, and gain v_i^2 /
+P_i in variance, with v_i = d x_i / d log alpha at the shared width (the Gauss-Newton terms
+of :mod:`jaxrefl.svbrdf._shared`: v_i = H_i^-1 J_i^T j_i). The map's 5% and 95% quantiles
+move and widen alike (as :func:`jaxrefl.svbrdf._light_map.widen_for_light` does for the
+light), inside the parameters' box. The draws in ``posterior.nc`` stay the pooled
+posterior's.
 """
 
 from __future__ import annotations
