@@ -5,7 +5,7 @@
                    [--auto-seed N] [--mcmc flagged|all|none] [--audit 0.02]
                    [--warmup N] [--samples N] [--chains N] [--gibbs-sweeps N]
                    [--rerun-rhat R] [--priors population|default] [--seed S]
-                   [--time-limit SECONDS] [--keep-work] [--quiet]
+                   [--time-limit SECONDS] [--restart] [--keep-work] [--quiet]
     jaxrefl sample BRDF_FILE --out OUT_DIR [--brdf-model ggx]
                    [--sampler emcee|hmc] [--max-steps N] [--walkers N] [--seed S]
 
@@ -40,10 +40,11 @@ Progress: one line per stage on stderr (the fit and the model it chose, the prio
 MCMC pass with its pixel count, writing), each with the seconds since the start, and during
 MCMC a line every 30 s with the chunks done and the time left; with stderr a terminal,
 progress bars too. ``--quiet`` silences both. The fit's tiles and the MCMC chunks are
-written under OUT_DIR (``fit``, ``mcmc``) as they finish: a stopped command says so, and
-the same command run again resumes there. They are removed once the map is whole, unless
-``--keep-work``. ``--time-limit``: no MCMC chunk is started that would end past that many
-seconds from the start; the pixels left keep their Laplace summary (method
+written under OUT_DIR (``fit``, ``mcmc``; a pooled map's per-pixel widths: ``fit_widths``)
+as they finish: a stopped command says so, and the same command run again resumes there
+(``--restart`` discards them and starts over). They are removed once the map is whole,
+unless ``--keep-work``. ``--time-limit``: no MCMC chunk is started that would end past that
+many seconds from the start; the pixels left keep their Laplace summary (method
 ``laplace_time_limit`` in uncertainty.exr, counted in report.json's ``time_limit``), the
 exit status is 3, and the same command run again samples them.
 
@@ -100,7 +101,9 @@ NOT_CONVERGED = 3  # exit status: outputs written, but the draws missed a conver
 EMCEE_MAX_STEPS = 30_000  # jaxrefl.posterior.EmceeOptions().max_steps (not imported: no JAX)
 # HMCOptions()'s warm-up, draws and chains (not imported: no JAX): a BRDF file's --sampler hmc
 BRDF_HMC = {"num_warmup": 300, "num_samples": 500, "num_chains": 4}
-WORK_DIRS = ("fit", "mcmc")  # resumable state under OUT_DIR (fit_<model>: a widened fit)
+# resumable state under OUT_DIR: the fit's tiles, the MCMC chunks, the per-pixel widths' fit
+# of a pooled map (and fit_<model>: a widened model's fit)
+WORK_DIRS = ("fit", "mcmc", "fit_widths")
 HELP = "posterior sampling: uncertainty maps with diagnostics (capture or BRDF file)"
 
 
@@ -221,6 +224,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "command run again samples them); default: no limit",
     )
     p.add_argument(
+        "--restart",
+        action="store_true",
+        help="discard the resumable work of an earlier run in OUT (its fit's tiles and MCMC "
+        "chunks) and start over",
+    )
+    p.add_argument(
         "--keep-work",
         action="store_true",
         help="keep the fit's tiles and the MCMC chunks (OUT/fit, OUT/mcmc) after a whole map",
@@ -259,6 +268,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_distributed_arguments(p)
 
 
+def work_dirs(out: Path) -> list[Path]:
+    """The folders of resumable work under ``out`` (:data:`WORK_DIRS` and a widened model's
+    ``fit_<model>``) that exist."""
+    if not out.is_dir():
+        return []
+    names = {*WORK_DIRS, *(f"fit_{m}" for m in CAPTURE_MODELS)}
+    return sorted(d for d in out.iterdir() if d.is_dir() and d.name in names)
+
+
 def _json(path: Path, obj: Any) -> None:
     from jaxrefl._jsonsafe import report_json
 
@@ -293,6 +311,13 @@ def run(args: argparse.Namespace) -> int:
         if brdf_file:
             raise JaxreflError("--distributed splits a capture's tiles and chunks, not a BRDF file")
         dist.initialize()  # before any JAX computation
+    if args.restart and (dist is None or dist.is_main):
+        for d in work_dirs(args.out):
+            shutil.rmtree(d)
+    if dist is not None and args.restart:
+        from jaxrefl.fit import process_barrier
+
+        process_barrier("restart")  # no process reads OUT_DIR's work before it is cleared
     args.out.mkdir(parents=True, exist_ok=True)
     opts = _options(args, brdf_file)
     if brdf_file:
@@ -301,7 +326,7 @@ def run(args: argparse.Namespace) -> int:
         try:
             report = _run_capture(args, path, opts, dist)
         except KeyboardInterrupt:
-            work = ", ".join(str(args.out / d) for d in WORK_DIRS if (args.out / d).exists())
+            work = ", ".join(str(d) for d in work_dirs(args.out))
             where = f": the work done so far is in {work}" if work else ""
             print(
                 f"jaxrefl sample: stopped{where}; the same command run again resumes there",
@@ -439,9 +464,8 @@ def _run_capture(args, path: Path, opts, dist) -> dict:
     stages(f"writing: done in {res.timings['write_s']:.1f} s")
     limit = res.time_limit_report()
     if not args.keep_work and not (limit and limit["reached"]):
-        for d in args.out.iterdir():
-            if d.is_dir() and d.name in {*WORK_DIRS, *(f"fit_{m}" for m in CAPTURE_MODELS)}:
-                shutil.rmtree(d)
+        for d in work_dirs(args.out):
+            shutil.rmtree(d)
     rep = res.report()
     head = {k: rep.pop(k) for k in ("model", "height", "width")}
     report = {

@@ -1,0 +1,33 @@
+"""``jaxrefl sample``'s resumable work: a rerun of another job in the same OUT folder is
+refused with the way out the message names (``--restart``), which discards the work and
+starts over; a whole map leaves no work folder behind (a pooled map's widths included)."""
+
+from __future__ import annotations
+
+from jaxrefl.cli import main
+from jaxrefl.cli._sample import work_dirs
+
+
+def test_restart_discards_another_jobs_work(tmp_path, capsys):
+    cap = tmp_path / "cap"
+    assert main(["demo", "--out", str(cap), "--size", "8", "--no-fit"]) == 0
+    out = tmp_path / "out"
+    base = ["sample", str(cap), "--out", str(out), "--model", "lambert", "--quiet"]
+    assert main([*base, "--pixels", "0:3,0:3", "--keep-work"]) == 0
+    assert [d.name for d in work_dirs(out)] == ["fit", "mcmc"]
+    capsys.readouterr()
+    # another crop is another job: refused, with the flag that resolves it
+    assert main([*base, "--pixels", "0:4,0:4"]) != 0
+    err = capsys.readouterr().err
+    assert "belongs to a different job" in err and "--restart" in err
+    assert main([*base, "--pixels", "0:4,0:4", "--restart"]) == 0
+    assert work_dirs(out) == []  # whole map, no --keep-work: nothing left to resume
+
+
+def test_work_dirs_name_every_resumable_folder(tmp_path):
+    for name in ("fit", "mcmc", "fit_widths", "fit_ggx_rgb", "previews"):
+        (tmp_path / name).mkdir()
+    (tmp_path / "fit_notes").write_text("a file, not work")
+    names = [d.name for d in work_dirs(tmp_path)]
+    assert names == ["fit", "fit_ggx_rgb", "fit_widths", "mcmc"]
+    assert work_dirs(tmp_path / "missing") == []
