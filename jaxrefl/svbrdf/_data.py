@@ -55,7 +55,9 @@ def is_colocated(capture, tol: float = 1e-9) -> bool:
     return bool(np.all(np.abs(capture.light_pos - capture.camera_pos) <= tol))
 
 
-def resolvable_alpha(capture, floor: float = 1e-3, cap: float = 0.1) -> float:
+def resolvable_alpha(
+    capture, floor: float = 1e-3, cap: float = 0.1, *, photos: np.ndarray | None = None
+) -> float:
     """The narrowest specular lobe a capture can resolve: a GGX/Beckmann alpha.
 
     Each photo k samples a pixel's BRDF at one half vector h_k = (wi + wo)/|wi + wo|. A lobe
@@ -69,7 +71,13 @@ def resolvable_alpha(capture, floor: float = 1e-3, cap: float = 0.1) -> float:
     Example: ``bath_tile`` (9 flash photos about 24 cm above the sample) has its half
     vectors about 5.5 degrees apart, so alpha_min = 0.048. Bounded there, a fit predicts a
     held-out photo better than Lambert; allowed down to 1e-3, its needles predict it worse.
+
+    photos: boolean (K,) of the photos in use (default all): the photos a fit is given. Only
+            their half vectors count: a held-out photo (weight 0) resolves nothing, and
+            counting it would let the fit's lobes be narrower than its own photos resolve.
     """
+    if photos is not None:
+        capture = capture.select(np.asarray(photos, bool))
     k = capture.n_photos
     if k < 2:
         return float(floor)

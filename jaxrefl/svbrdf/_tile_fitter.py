@@ -82,7 +82,10 @@ class TileFitter:
             raise JaxreflError("every photo is held out: nothing left to fit")
         self.train = np.ones(k, bool)
         self.train[list(job.holdout)] = False
-        self.alpha_min = resolvable_alpha(capture) if job.alpha_min is None else job.alpha_min
+        # The resolvable width of the training photos: held-out ones resolve nothing.
+        self.alpha_min = (
+            resolvable_alpha(capture, photos=self.train) if job.alpha_min is None else job.alpha_min
+        )
         self.pooled: PoolChoice | None = None
         if job.model == "pooled":
             self.pooled = pooled or choose_pooled(
