@@ -56,8 +56,26 @@ def test_the_command_line_and_the_options_read_one_defaults_module():
     )
     arch = (ROOT / "docs" / "architecture.md").read_text()
     assert "jaxrefl._map_defaults" in arch and "UNCERTAINTY_MAP_HMC" in arch
+    # The docs name the defaults, never their values (docs/benchmarks.md records runs).
+    numbers = [d.RERUN_RHAT, d.MAP_AUDIT, d.MAP_CHUNK, d.MAP_KEEP_PIXELS]
     for doc in [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]:
-        assert "MAP_OPTIONS" not in doc.read_text(), doc.name
+        text = doc.read_text()
+        assert "MAP_OPTIONS" not in text, doc.name
+        if doc.name != "benchmarks.md":
+            for v in numbers:
+                assert not re.search(rf"(?<![\w.]){re.escape(f'{v:g}')}(?![\w.])", text), (
+                    f"{doc.name} restates {v:g} of jaxrefl._map_defaults"
+                )
+
+
+def test_the_rhat_map_marks_the_pixels_the_map_reruns():
+    """``rhat.png`` marks the pixels above the map's own threshold: its options' second-pass
+    R-hat, or the default one where the map runs no second pass."""
+    from jaxrefl.svbrdf._uncertainty_plots import rhat_mark
+
+    assert rhat_mark(jp.AdaptiveOptions()) == d.RERUN_RHAT
+    assert rhat_mark(jp.AdaptiveOptions(rerun_rhat=1.2)) == 1.2
+    assert rhat_mark(jp.AdaptiveOptions(rerun_rhat=None)) == d.RERUN_RHAT
 
 
 def test_posterior_all_is_what_the_architecture_documents():

@@ -119,3 +119,37 @@ def test_whatever_else_a_package_exposes_is_a_listed_helper(package):
         if not n.startswith("_") and n not in mod.__all__ and not isinstance(v, types.ModuleType)
     }
     assert extra == REACHABLE[package]
+
+
+# The packages whose modules docs/architecture.md tables, each after its line here.
+ROOMS = {
+    "fit": "The rooms of `fit`:",
+    "svbrdf": "Inside `svbrdf`, each module",
+    "posterior": "The rooms of `posterior`:",
+}
+
+
+def rooms_table(text: str, intro: str) -> str:
+    """The Markdown table that first follows the line ``intro`` in ``text``."""
+    assert text.count(intro) == 1, f"docs/architecture.md needs one {intro!r}"
+    lines = text[text.index(intro) :].splitlines()
+    start = next(i for i, ln in enumerate(lines) if ln.startswith("|"))
+    end = next((i for i in range(start, len(lines)) if not lines[i].startswith("|")), len(lines))
+    return "\n".join(lines[start:end])
+
+
+def test_rooms_table_reads_the_table_after_its_line():
+    text = "The rooms of `p`:\n\n| module | what |\n|---|---|\n| `_a.py` | a |\n\n| `_b.py` |\n"
+    table = rooms_table(text, "The rooms of `p`:")
+    assert "`_a.py`" in table and "`_b.py`" not in table
+
+
+@pytest.mark.parametrize("package", sorted(ROOMS))
+def test_the_architecture_tables_every_module_of_the_package(package):
+    """Each module of the package is named in its rooms table, and the table names no module
+    that is not there (the document describes what is there)."""
+    table = rooms_table(ARCHITECTURE.read_text(), ROOMS[package])
+    here = {p.name for p in (ROOT / "jaxrefl" / package).glob("_*.py")} - {"__init__.py"}
+    named = set(re.findall(r"`(_\w+\.py)`", table))
+    assert here - named == set(), f"modules of {package} the table leaves out"
+    assert named - here == set(), f"modules the {package} table names that are not there"

@@ -117,6 +117,9 @@ def adaptive_uncertainty(
     or ``options.time_limit_s`` from this call where that comes first.
     log: called with a line of text at each pass's start and end and every
     :data:`HEARTBEAT_S` seconds during a pass.
+
+    ``noise_scale``, ``normals`` and ``dof`` are per-pixel data of the fit and the capture
+    (like ``theta_hat``), not settings: the map's settings are ``options``'s.
     """
     o = AdaptiveOptions() if options is None else options
     if o.time_limit_s is not None:  # the options' limit, or the caller's deadline if sooner

@@ -6,8 +6,8 @@
   the pixel used), one panel each, on a log colour scale from the 1st to the 99th
   percentile, with a colour bar in the parameter's units (:data:`STD_UNITS`);
 - ``rhat.png`` (where pixels were sampled): the max split R-hat of every MCMC pixel (grey:
-  no MCMC), with the pixels above :data:`RHAT_MARK` marked by red crosses and counted in
-  the title;
+  no MCMC), with the pixels above the map's convergence threshold (:func:`rhat_mark`)
+  marked by red crosses and counted in the title;
 - ``pair_rROW_cCOL.png`` (where draws were kept): pairwise scatter and marginal histograms
   of the draws (:func:`jaxrefl.posterior.plot_corner`) for up to ``n_pairs`` MCMC pixels:
   the one of largest R-hat first, then pixels spread evenly over the rest.
@@ -23,15 +23,15 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from jaxrefl import posterior as jp
+from jaxrefl._map_defaults import RERUN_RHAT
 
 from ._outputs import _log_std
 
 if TYPE_CHECKING:
     from ._uncertainty import CaptureUncertainty
 
-__all__ = ["RHAT_MARK", "STD_UNITS", "write_uncertainty_plots"]
+__all__ = ["STD_UNITS", "rhat_mark", "write_uncertainty_plots"]
 
-RHAT_MARK = 1.05  # pixels above this max R-hat are marked: their draws have not mixed
 # Units of each parameter block's std (the natural units of the capture models).
 STD_UNITS = {
     "albedo": "diffuse albedo, 1",
@@ -41,6 +41,13 @@ STD_UNITS = {
     "normal": "normal component, 1",
     "noise_scale": "multiple of the noise model's std, 1",
 }
+
+
+def rhat_mark(options: jp.AdaptiveOptions) -> float:
+    """The max split R-hat above which a map's pixel is marked as not mixed: the threshold
+    above which the map reran it (``options.rerun_rhat``), or the map's default
+    (:data:`jaxrefl._map_defaults.RERUN_RHAT`) where the map runs no second pass."""
+    return RERUN_RHAT if options.rerun_rhat is None else float(options.rerun_rhat)
 
 
 def _units(label: str) -> str:
@@ -84,14 +91,17 @@ def write_uncertainty_plots(
         rhat = np.asarray(u.rhat, np.float64).reshape(h, w)
         fig, ax = plt.subplots(1, 1, figsize=(4.6, 4.2))
         cmap = matplotlib.colormaps["viridis"].with_extremes(bad="0.6")  # grey: no MCMC
+        # The colour scale reaches 1.1 at least, so chains that all mixed are not coloured
+        # as if their small spread of R-hat were a spread of failures.
         hi = max(1.1, float(np.nanmax(rhat)))
         im = ax.imshow(rhat[::step, ::step], cmap=cmap, vmin=1.0, vmax=hi)
-        r, c = np.nonzero(rhat[::step, ::step] > RHAT_MARK)
-        n_bad = int(np.sum(rhat > RHAT_MARK))
-        ax.plot(c, r, "x", color="red", ms=5, mew=1.2, label=f"R-hat > {RHAT_MARK:g}")
+        mark = rhat_mark(result.options)
+        r, c = np.nonzero(rhat[::step, ::step] > mark)
+        n_bad = int(np.sum(rhat > mark))
+        ax.plot(c, r, "x", color="red", ms=5, mew=1.2, label=f"R-hat > {mark:g}")
         ax.set_title(
             f"max split R-hat of MCMC pixels (grey: none)\n{n_bad} of {int(np.sum(on))} "
-            f"above {RHAT_MARK:g} (red crosses)",
+            f"above {mark:g} (red crosses)",
             fontsize=9,
         )
         ax.axis("off")
