@@ -67,9 +67,9 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 # Both sides run under XLA's default CPU emitters, not the loop emitters the command line
-# (and _common) would choose: the Adam peer's programs run about twice as slow with those,
-# while jaxrefl's fits take the same run time under either (only their compile differs,
-# which is in its own column).
+# (and _common) would choose: those serve jaxrefl's compile time (its own column), and the
+# Adam peer's step programs run slower under them, so the peer is timed as it would run on
+# its own (the header records the flags of each run).
 if "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = (
         os.environ.get("XLA_FLAGS", "") + " --xla_cpu_use_fusion_emitters=true"
