@@ -2,7 +2,7 @@
 
     jaxrefl sample CAPTURE_DIR --out OUT_DIR [--pixels R0:R1,C0:C1] [--downsample F]
                    [--model auto] [--auto-candidates a,b,...] [--auto-pixels N]
-                   [--auto-seed N] [--mcmc flagged|all|none] [--audit 0.02]
+                   [--auto-seed N] [--mcmc flagged|all|none] [--audit SHARE]
                    [--warmup N] [--samples N] [--chains N] [--gibbs-sweeps N]
                    [--rerun-rhat R] [--priors population|default] [--seed S]
                    [--time-limit SECONDS] [--restart] [--keep-work] [--quiet]
@@ -98,9 +98,6 @@ from ._main import (
 from ._options import add_auto_arguments, add_noise_level_argument, auto_options, fit_config
 
 NOT_CONVERGED = 3  # exit status: outputs written, but the draws missed a convergence target
-EMCEE_MAX_STEPS = 30_000  # jaxrefl.posterior.EmceeOptions().max_steps (not imported: no JAX)
-# HMCOptions()'s warm-up, draws and chains (not imported: no JAX): a BRDF file's --sampler hmc
-BRDF_HMC = {"num_warmup": 300, "num_samples": 500, "num_chains": 4}
 # resumable state under OUT_DIR: the fit's tiles, the MCMC chunks, the per-pixel widths' fit
 # of a pooled map (and fit_<model>: a widened model's fit)
 WORK_DIRS = ("fit", "mcmc", "fit_widths")
@@ -171,21 +168,21 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         type=non_negative_int,
         default=None,
         help=f"warm-up steps per chain (default: {MAP_SAMPLER['num_warmup']} for a capture, "
-        f"{BRDF_HMC['num_warmup']} for a BRDF file's HMC)",
+        "HMCOptions().num_warmup for a BRDF file's HMC)",
     )
     p.add_argument(
         "--samples",
         type=positive_int,
         default=None,
         help=f"draws per chain (default: {MAP_SAMPLER['num_samples']} for a capture, "
-        f"{BRDF_HMC['num_samples']} for a BRDF file's HMC)",
+        "HMCOptions().num_samples for a BRDF file's HMC)",
     )
     p.add_argument(
         "--chains",
         type=positive_int,
         default=None,
         help=f"chains per pixel (default: {MAP_SAMPLER['num_chains']} for a capture, "
-        f"{BRDF_HMC['num_chains']} for a BRDF file's HMC)",
+        "HMCOptions().num_chains for a BRDF file's HMC)",
     )
     p.add_argument(
         "--gibbs-sweeps",
@@ -247,8 +244,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--max-steps",
         type=positive_int,
-        default=EMCEE_MAX_STEPS,
-        help="emcee's cap on steps; it stops earlier once converged (exit status 3 if not)",
+        default=None,
+        help="emcee's cap on steps (default: EmceeOptions().max_steps); it stops earlier once "
+        "converged (exit status 3 if not)",
     )
     p.add_argument(
         "--walkers",
@@ -377,6 +375,15 @@ def _options(args, brdf_file: bool):
     return dataclasses.replace(base, **{k: v for k, v in given.items() if v is not None})
 
 
+def _emcee(args):
+    """emcee for a BRDF file: :class:`~jaxrefl.posterior.EmceeOptions`' own defaults, with
+    the flags given (one default, said once)."""
+    from jaxrefl.posterior import EmceeOptions
+
+    cap = {} if args.max_steps is None else {"max_steps": args.max_steps}
+    return EmceeOptions(n_walkers=args.walkers, seed=args.seed, **cap)
+
+
 def _gibbs(args):
     """The map's Gibbs sampling (:data:`jaxrefl.posterior.UNCERTAINTY_MAP_GIBBS`) with
     ``--gibbs-sweeps``; None (HMC everywhere) for 0."""
@@ -478,10 +485,11 @@ def _run_capture(args, path: Path, opts, dist) -> dict:
         "files": files,
     }
     m = rep["uncertainty"]
+    above = f"pixels_rhat_above_{RERUN_RHAT:g}"  # the map's threshold's counts in the report
     print(
         f"{res.height} x {res.width} pixels: {m['method_counts']}; MCMC pixels with R-hat > "
-        f"1.01: {m['mcmc']['pixels_rhat_above_1.01']}, > 1.05: "
-        f"{m['mcmc']['pixels_rhat_above_1.05']}, > 1.1: "
+        f"1.01: {m['mcmc']['pixels_rhat_above_1.01']}, > {RERUN_RHAT:g}: "
+        f"{m['mcmc'][above]}, > 1.1: "
         f"{m['mcmc']['pixels_rhat_above_1.1']}, with divergences: "
         f"{m['mcmc']['pixels_with_divergences']}"
     )
@@ -490,13 +498,13 @@ def _run_capture(args, path: Path, opts, dist) -> dict:
         print(
             f"second pass on {sp['pixels']} pixels: max R-hat median "
             f"{sp['max_rhat_before']['median']:.3f} -> {sp['max_rhat_after']['median']:.3f}, "
-            f"still above 1.05: {sp['pixels_rhat_above_1.05_after']}"
+            f"still above {RERUN_RHAT:g}: {sp[above + '_after']}"
         )
     tp = m["mcmc"]["third_pass"]
     if tp["pixels"]:
         print(
             f"third pass on the {tp['pixels']} still above: "
-            f"{tp['pixels_rhat_above_1.05_after']} above 1.05 after it"
+            f"{tp[above + '_after']} above {RERUN_RHAT:g} after it"
         )
     return report
 
@@ -510,7 +518,7 @@ def _run_brdf(args, path: Path, opts) -> dict:
 
     sampler: jp.EmceeOptions | jp.HMCOptions
     if args.sampler == "emcee":
-        sampler = jp.EmceeOptions(n_walkers=args.walkers, max_steps=args.max_steps, seed=args.seed)
+        sampler = _emcee(args)
     else:  # --sampler hmc: HMC, as asked, its chains seeded by --seed
         sampler = dataclasses.replace(opts, seed=args.seed)
     res = measured.sample_posterior(path, args.brdf_model, sampler, progress=_progress(args))

@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from jaxrefl._map_defaults import RERUN_RHAT
 from jaxrefl.fit import LaplaceFlag
 
 from ._methods import MCMC_METHODS, Method
@@ -107,8 +108,8 @@ class UncertaintyMap:
                 # 1.1: the looser threshold of Gelman et al. (BDA3, sec. 11.4), the one a
                 # 200-draw map chain can be held to; 1.01 is Vehtari et al. 2021's.
                 "pixels_rhat_above_1.1": int(np.sum(self.rhat[on] > 1.1)),
-                # 1.05: RERUN_RHAT, the threshold the maps are held to
-                "pixels_rhat_above_1.05": int(np.sum(self.rhat[on] > 1.05)),
+                # RERUN_RHAT: the threshold the maps are held to
+                f"pixels_rhat_above_{RERUN_RHAT:g}": int(np.sum(self.rhat[on] > RERUN_RHAT)),
                 # NaN: a parameter whose draws did not vary (no R-hat); counted apart
                 "pixels_rhat_nan": int(np.sum(np.isnan(self.rhat[on]))),
                 # the pixels whose draws are kept (posterior.nc): at most max_kept_pixels
@@ -119,14 +120,16 @@ class UncertaintyMap:
                     "pixels": int(np.sum(self.rerun)),
                     "max_rhat_before": dist(self.rhat_first[self.rerun]),
                     "max_rhat_after": dist(self.rhat[self.rerun]),
-                    "pixels_rhat_above_1.05_after": int(np.sum(self.rhat[self.rerun] > 1.05)),
+                    f"pixels_rhat_above_{RERUN_RHAT:g}_after": int(
+                        np.sum(self.rhat[self.rerun] > RERUN_RHAT)
+                    ),
                     "pixels_rhat_above_1.1_after": int(np.sum(self.rhat[self.rerun] > 1.1)),
                 },
                 # the second pass's pixels still above the threshold, run once more
                 "third_pass": {
                     "pixels": int(self.timings.get("third_pass_pixels", 0)),
                     "skipped": self.timings.get("third_pass_skipped", ""),
-                    "pixels_rhat_above_1.05_after": int(
+                    f"pixels_rhat_above_{RERUN_RHAT:g}_after": int(
                         self.timings.get("third_pass_rhat_above_after", 0)
                     ),
                 },
