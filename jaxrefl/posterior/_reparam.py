@@ -5,8 +5,8 @@ light, so the data pin down only albedo_c + (the lobe's diffuse-equivalent level
 *curved* ridge through (albedo, specular F0, alpha) that is ~100 times longer than it is
 wide (noise 0.5% of the signal, F0 free over [0, 0.25]). A constant (even dense) mass
 matrix cannot follow a curved ridge: in the fit's coordinates HMC takes steps of the ridge's
-width and the map's chains do not mix (max R-hat median 1.65, min bulk ESS median 4 on the
-Laplace-flagged pixels of the demo capture, ``benchmarks/posterior_speed.py --only-mixing``).
+width and the map's chains do not mix on the Laplace-flagged pixels of the demo capture
+(``benchmarks/posterior_speed.py --only-mixing`` measures R-hat and ESS with and without it).
 
 The map. The prediction of the capture models is affine in the diffuse albedo rho,
 pred_kc = a_kc(rest) rho_c + r_kc(rest), with ``rest`` every other entry of theta (specular,

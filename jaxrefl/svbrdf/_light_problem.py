@@ -30,8 +30,8 @@ scoring it at its estimated one would credit the gains with what no held-out pho
 Two nuisance models, each where it holds:
 
 * the estimate needs each pixel's own width: a light fitted under one shared width absorbs
-  the widths' spatial variation (on generated captures with widths varying 5-fold, an
-  offset biased by over 1 mm with a Laplace std of 0.15 mm);
+  the widths' spatial variation into its offset, a bias many times its Laplace std where
+  the widths vary over the sample;
 * the score needs predictions of unseen photos that stay bounded: a pixel's own width is
   pinned only where the pixel sees its highlight, and where the held-out photo alone shows
   it, the pixel's lobe fitted to the tails predicts it wildly (per-pixel GGX predicts the
