@@ -9,19 +9,18 @@ values and gradients finite, but a stiff problem can still defeat it:
   the equilibrated condition number of J^T J exceeds 1e7 in float32 (1e10 in float64).
   Above ~1/eps a float32 solve has no correct digit along the weakest direction, while
   float64 still resolves it (nearly collinear lights, grazing-only observations);
-* a fit that float32 stopped short of the optimum with no flag at all (a normalised
-  Blinn-Phong lobe of exponent 1e4: cos^n of a cosine known to 6e-8 is known to 6e-4, so
-  the float32 cost surface is too rough to follow to the bottom): :func:`step_gain`
-  takes one Gauss-Newton step in float64 from the float32 optimum, and when it lowers the
-  float64 cost by more than ``GAIN_RTOL`` (0.1%) the fit is redone (by
-  :func:`fit_pixels_retry`, which has the data; :func:`float64_reasons` sees only the
-  result and does not apply this test). A fit within 0.1% of an optimum cannot gain that
-  much, so a healthy fit is never sent. On the stiff cases of ``benchmarks/_stiff_fits.py``
-  the threshold separates the float32 fits that reached the optimum (smaller gains) from
-  those that stopped short (larger ones). Not caught: the collinear-lights fits that stop
-  short (the step cannot move along the unresolved direction, so it gains nothing) unless
-  flagged ILL_CONDITIONED. The float32 cost itself is no detector: its round-off at a stiff
-  optimum is as large as the shortfall it would have to reveal.
+* a fit that float32 stopped short of the optimum with no flag at all (a normalised Blinn-Phong
+  lobe of exponent 1e4: cos^n of a cosine known to 6e-8 is known to 6e-4, so the float32 cost
+  surface is too rough to follow to the bottom): :func:`step_gain` takes one Gauss-Newton step in
+  float64 from the float32 optimum, and when it lowers the float64 cost by more than
+  :data:`GAIN_RTOL` the fit is redone (by :func:`fit_pixels_retry`, which has the data;
+  :func:`float64_reasons` sees only the result and does not apply this test). A fit whose cost is
+  within that fraction of its optimum's cannot gain more, so a healthy fit is never sent. On the
+  stiff cases of ``benchmarks/_stiff_fits.py`` the threshold separates the float32 fits that
+  reached the optimum (smaller gains) from those that stopped short (larger ones). Not caught: the
+  collinear-lights fits that stop short (the step cannot move along the unresolved direction, so
+  it gains nothing) unless flagged ILL_CONDITIONED. The float32 cost itself is no detector: its
+  round-off at a stiff optimum is as large as the shortfall it would have to reveal.
 
 :func:`float64_reasons` says which of these a result shows (empty: keep it);
 :func:`choose` keeps the float64 redo where it is finite and at least as good (cost
