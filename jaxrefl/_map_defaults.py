@@ -50,8 +50,8 @@ MAP_CHUNK = 2048
 #: capture's size (the summaries of every MCMC pixel are kept whatever the cap).
 MAP_KEEP_PIXELS = 16384
 #: The max split R-hat above which a map pixel's chains disagree and run the second pass:
-#: the map's convergence threshold (a 2 x 100-draw chain cannot be held to Vehtari et al.
-#: 2021's 1.01; BDA3's 1.1 lets a few percent of pixels through).
+#: the map's convergence threshold (the few short chains of :data:`MAP_SAMPLER` cannot be
+#: held to Vehtari et al. 2021's 1.01; BDA3's 1.1 lets a few percent of pixels through).
 RERUN_RHAT = 1.05
 #: Later passes a map runs at most: the second, on the pixels above :data:`RERUN_RHAT`, and a
 #: third, twice as long between kept draws, on those still above it after the second.

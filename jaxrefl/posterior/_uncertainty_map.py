@@ -105,8 +105,8 @@ class UncertaintyMap:
                 "min_ess_bulk": dist(self.ess_bulk[on]),
                 "min_ess_tail": dist(self.ess_tail[on]),
                 "pixels_rhat_above_1.01": int(np.sum(self.rhat[on] > 1.01)),
-                # 1.1: the looser threshold of Gelman et al. (BDA3, sec. 11.4), the one a
-                # 200-draw map chain can be held to; 1.01 is Vehtari et al. 2021's.
+                # 1.1: the looser threshold of Gelman et al. (BDA3, sec. 11.4), one a map's
+                # short chains can be held to; 1.01 is Vehtari et al. 2021's.
                 "pixels_rhat_above_1.1": int(np.sum(self.rhat[on] > 1.1)),
                 # RERUN_RHAT: the threshold the maps are held to
                 f"pixels_rhat_above_{RERUN_RHAT:g}": int(np.sum(self.rhat[on] > RERUN_RHAT)),
