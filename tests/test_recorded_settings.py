@@ -5,6 +5,7 @@ report settings."""
 from __future__ import annotations
 
 import dataclasses
+import inspect
 
 import numpy as np
 import pytest
@@ -124,3 +125,51 @@ def test_the_spectral_choice_and_illuminant_are_options_and_recorded():
         jm.MeasuredOptions(spectral="xyz")
     with pytest.raises(ValueError, match="illuminant one of 'D65', 'E'"):
         jm.MeasuredOptions(illuminant="A")
+
+
+def test_the_entry_points_take_their_settings_as_option_objects():
+    """The keyword arguments (with defaults) of the job-level entry points are option
+    objects, data, the subject of the call, or how it runs (progress, folders, processes,
+    logging): a new keyword that changes a result belongs in an option object, or here with
+    its reason."""
+    from jaxrefl import fit, ps
+    from jaxrefl import posterior as jp
+
+    allowed = {
+        # option objects: job, options, config, starts, sampler, method, discrepancy
+        # data: space, init, bounds, fixed, prior, weight, mask, labels, intensities,
+        #   saturated, theta_std, normals, noise_scale, dof, args, natural, nested, cache,
+        #   candidates, reference, calibrate_lights, models, name, seed (a caller's seed,
+        #   refused where it disagrees with HMCOptions.seed)
+        # the subject: which light (estimate_light), which baseline model (leave_one_out),
+        #   the capture's downsampling (run_ps, as load_capture's resolution)
+        # how it runs: out_dir, restart, progress, on_tile, distributed, log, chunk_dir,
+        #   deadline (the caller's clock; its limit is AdaptiveOptions.time_limit_s),
+        #   timing, devices
+        svbrdf.fit_capture: {"job", "out_dir", "restart", "progress", "on_tile", "distributed"},
+        svbrdf.uncertainty_maps: {"job", "options", "progress", "out_dir", "distributed", "log"},
+        svbrdf.leave_one_out: {"job", "baseline", "progress"},
+        svbrdf.predictive: {"discrepancy"},
+        svbrdf.estimate_discrepancy: {"options"},
+        svbrdf.estimate_light: {"light", "options"},
+        svbrdf.plan_next: {"candidates", "options", "reference"},
+        jp.adaptive_uncertainty: {
+            *("options", "noise_scale", "normals", "dof"),
+            *("progress", "chunk_dir", "deadline", "log"),
+        },
+        jp.sample_pixels: {"theta_std", "normals", "options", "gibbs", "seed", "timing", "devices"},
+        jp.sample_emcee: {"args", "options", "natural", "labels", "theta_std", "progress"},
+        jm.fit_brdf: {"models", "options", "config", "timing", "progress", "starts"},
+        jm.fit_model: {"name", "options", "config", "weight", "timing", "starts", "nested"},
+        jm.sample_posterior: {"sampler", "options", "progress", "starts"},
+        jm.prune: {"options", "mask", "labels", "config", "cache"},
+        fit.fit_pixels: {"config", "space", "init", "bounds", "fixed", "devices", "prior"},
+        fit.fit_samples: {"options", "config", "space", "init", "bounds", "fixed"},
+        ps.run_ps: {"method", "calibrate_lights", "reference", "downsample"},
+        ps.fit_normal_brdf: {"intensities", "weight", "saturated", "options"},
+        ps.robust: {"intensities", "weight", "options"},
+    }
+    for f, names in allowed.items():
+        params = inspect.signature(f).parameters.values()
+        given = {p.name for p in params if p.default is not inspect.Parameter.empty}
+        assert given == names, f"{f.__qualname__}: {sorted(given ^ names)}"

@@ -267,16 +267,11 @@ def _noise_var(fitter: TileFitter, noise_map: np.ndarray, mu: np.ndarray) -> np.
     return s2 * unit * unit
 
 
-def predictive(
-    capture,
-    cf: CaptureFit,
-    discrepancy: Discrepancy | None = None,
-    *,
-    ppc_alpha: float = PPC_ALPHA,
-) -> Predictive:
+def predictive(capture, cf: CaptureFit, discrepancy: Discrepancy | None = None) -> Predictive:
     """Posterior predictive moments of every photo of ``capture`` from the fit ``cf``, and
-    its :class:`ModelCheck` flags (module docstring). ``discrepancy``: the model-discrepancy
-    term (:func:`estimate_discrepancy`; None: none).
+    its :class:`ModelCheck` flags (module docstring; the predictive check at the level
+    :data:`~jaxrefl.svbrdf._check.PPC_ALPHA`, as every check of a fit). ``discrepancy``: the
+    model-discrepancy term (:func:`estimate_discrepancy`; None: none).
 
     Every photo is predicted, the fit's own training photos and its held-out ones; only the
     held-out ones give an honest coverage (:meth:`Predictive.coverage`)."""
@@ -331,7 +326,7 @@ def predictive(
     # Floored at the smallest normal: only a variance function that is 0 somewhere reaches it.
     chi2 = np.sum(r2 / np.maximum(ref + dvar, np.finfo(np.float64).tiny), axis=(1, 2))
     dof = np.sum(use, axis=(1, 2)) - space.size
-    fail = ppc_failed(chi2, dof, ppc_alpha)
+    fail = ppc_failed(chi2, dof, PPC_ALPHA)
     with np.errstate(divide="ignore", invalid="ignore"):
         ok_t = np.all(np.isfinite(theta), -1)
         dn = np.asarray(space.dnatural(jnp.asarray(np.where(ok_t[:, None], theta, 0.0))))
