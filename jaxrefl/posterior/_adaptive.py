@@ -67,7 +67,7 @@ from ._adaptive_options import (
     untuned_rerun,
 )
 from ._chunks import CHUNK_ROUND, Chunks, chunk_size
-from ._diagnostics import diagnostics
+from ._diagnostics import ChunkSummary
 from ._laplace_summary import laplace_summary
 from ._logpost import LogPosterior
 from ._methods import MCMC_METHODS, Method
@@ -219,13 +219,13 @@ class _Run:
         parts, run_s, used = [], [], []
         t0 = time.perf_counter()
         passes = self.chunks.run(idx, starts, o.hmc, o.gibbs, o.seed, "MCMC first pass", "first")
-        for real, cut, rs in passes:
+        for real, cut, rs, summary in passes:
             if cut is None:  # the time limit came first: Laplace summaries stay
                 self.skipped.append(real)
                 continue
             run_s.append(rs)
             used.append(cut.method)
-            out.store(real, cut)
+            out.store(real, summary)
             if second is not None:  # draws kept for the second pass's starts only
                 # NaN R-hat (a chain that never moved) counts as disagreeing
                 stuck = ~(out.rhat[real] <= o.rerun_rhat) & ~cut.extra["no_estimate"]
@@ -296,7 +296,7 @@ class _Run:
 
         run_s, left, stuck_starts = [], 0, {}
         desc = f"MCMC {tag} pass"
-        for real, cut, rs in self.chunks.run(
+        for real, cut, rs, summary in self.chunks.run(
             again, starts, settings, self.o.gibbs, seed, desc, tag, size
         ):
             if cut is None:  # the time limit came first: the earlier pass's draws stay
@@ -305,7 +305,7 @@ class _Run:
                 left += real.size
                 continue
             run_s.append(rs)
-            out.store(real, cut)
+            out.store(real, summary)
             out.rerun[real] = True
             if samples is not None and self.kept is None:
                 samples.put([at[int(i)] for i in real], cut)
@@ -405,15 +405,12 @@ class _Summaries:
             rhat_first=np.full(n, np.nan),
         )
 
-    def store(self, real: np.ndarray, cut: Samples) -> None:
-        """Summaries of the draws ``cut`` of the map's pixels ``real``."""
-        m = real.size
-        flat = cut.natural.reshape(m, -1, cut.natural.shape[-1])
-        self.mean[real] = flat.mean(1)
-        self.std[real] = flat.std(1, ddof=1)
-        self.q05[real] = np.quantile(flat, 0.05, axis=1)
-        self.q95[real] = np.quantile(flat, 0.95, axis=1)
-        dg = diagnostics(cut)
+    def store(self, real: np.ndarray, summary: ChunkSummary) -> None:
+        """The summaries of the draws of the map's pixels ``real`` (computed where the chunk
+        was sampled: :meth:`Chunks.run`)."""
+        self.mean[real], self.std[real] = summary.mean, summary.std
+        self.q05[real], self.q95[real] = summary.q05, summary.q95
+        dg = summary.diag
         self.rhat[real] = dg["max_rhat"]
         self.ess_bulk[real] = dg["min_ess_bulk"]
         self.ess_tail[real] = dg["min_ess_tail"]

@@ -40,6 +40,7 @@ from jaxrefl.fit import PixelData, process_barrier, process_share
 
 from ._choice import sample_pixels
 from ._chunk_files import fingerprint, load_chunk, open_pass, save_chunk
+from ._diagnostics import ChunkSummary, summarise
 from ._logpost import LogPosterior
 from ._options import GibbsOptions, HMCOptions
 from ._samples import Samples
@@ -82,7 +83,10 @@ class Chunks:
         size: pixels per chunk (None: the fewest balanced chunks of at most ``chunk``).
         starts(rows) -> (theta0 (R, D) or (R, chains, D), theta_std (R, D)) for the map's
         pixels ``rows``. Yields (real pixels, their Samples or None where the time limit
-        came first, run seconds) in chunk order.
+        came first, run seconds, their :class:`ChunkSummary` or None) in chunk order. The
+        summaries (R-hat, ESS, quantiles: NumPy) are computed in the thread that sampled
+        or read the chunk, so that two chunks' summaries run on two cores while the caller
+        stores the last ones.
         """
         if size is None:
             size = chunk_size(idx.size, self.chunk, opts.batch_size)
@@ -107,7 +111,7 @@ class Chunks:
 
         pace = _Pace(desc, len(firsts), int(idx.size), self.log, self.workers)
 
-        def get(ci: int) -> tuple[Samples, float] | _Skipped | None:
+        def get(ci: int) -> tuple[Samples, float, ChunkSummary] | _Skipped | None:
             real = idx[firsts[ci] : firsts[ci] + size]
             got = None if store is None else load_chunk(store, ci, real.size, self.lp.labels)
             if got is None and ci in mine:
@@ -118,7 +122,9 @@ class Chunks:
                 if store is not None:
                     save_chunk(store, ci, *got)
                 pace.took(time.perf_counter() - t0)
-            return got
+            if got is None or many:  # another process's chunk: read after the barrier
+                return None
+            return (*got, summarise(got[0]))
 
         try:
             with pace:
@@ -129,7 +135,7 @@ class Chunks:
                     if not many:
                         real = idx[firsts[ci] : firsts[ci] + size]
                         if got is _SKIPPED:
-                            yield real, None, 0.0
+                            yield real, None, 0.0, None
                             continue
                         assert isinstance(got, tuple)  # one process: every chunk is its own
                         yield real, *got
@@ -141,9 +147,9 @@ class Chunks:
             assert store is not None  # adaptive_uncertainty requires a folder here
             for ci, a in enumerate(firsts):
                 real = idx[a : a + size]
-                got = load_chunk(store, ci, real.size, self.lp.labels, required=True)
-                assert got is not None
-                yield real, *got
+                read = load_chunk(store, ci, real.size, self.lp.labels, required=True)
+                assert read is not None
+                yield real, *read, summarise(read[0])
 
     def _sample(self, real, size, starts, opts: HMCOptions, gibbs: GibbsOptions | None, seed):
         """(Samples of the pixels ``real``, run seconds): one chunk, padded to ``size``."""

@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import warnings
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -43,6 +43,7 @@ from ._fastdiag import rank_diagnostics
 from ._samples import Samples
 
 __all__ = [
+    "ChunkSummary",
     "diagnostics",
     "log_likelihood_draws",
     "plot_corner",
@@ -52,6 +53,7 @@ __all__ = [
     "posterior_predictive",
     "save_netcdf",
     "split_rhat",
+    "summarise",
     "to_inference_data",
     "var_name",
 ]
@@ -254,6 +256,30 @@ def diagnostics(samples: Samples) -> dict[str, np.ndarray]:
         "min_ess_bulk": np.min(bulk, axis=-1),
         "min_ess_tail": np.min(tail, axis=-1),
     }
+
+
+class ChunkSummary(NamedTuple):
+    """A chunk's per-pixel summaries: (M, D) mean, std (ddof 1), 5% and 95% quantiles over
+    all chains and draws, and :func:`diagnostics`."""
+
+    mean: np.ndarray
+    std: np.ndarray
+    q05: np.ndarray
+    q95: np.ndarray
+    diag: dict[str, np.ndarray]
+
+
+def summarise(samples: Samples) -> ChunkSummary:
+    """:class:`ChunkSummary` of ``samples`` (M pixels): NumPy throughout, so the threads that
+    sample a map's chunks (:mod:`._workers`) run it side by side, each on its own chunk."""
+    flat = samples.natural.reshape(samples.natural.shape[0], -1, samples.natural.shape[-1])
+    return ChunkSummary(
+        flat.mean(1),
+        flat.std(1, ddof=1),
+        np.quantile(flat, 0.05, axis=1),
+        np.quantile(flat, 0.95, axis=1),
+        diagnostics(samples),
+    )
 
 
 def _select(idata, pixel):

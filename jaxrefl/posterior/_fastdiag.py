@@ -29,18 +29,30 @@ def _split(x: np.ndarray) -> np.ndarray:
 
 
 def _avg_ranks(y: np.ndarray) -> np.ndarray:
-    """(B, L) 1-based ranks with ties given their average rank (scipy ``rankdata``)."""
+    """(B, L) 1-based ranks with ties given their average rank (scipy ``rankdata``).
+
+    A tie's average rank depends only on where its block of equal values starts and ends in
+    the sorted row, so any sort order serves; rows without a tie (continuous draws) take
+    their ranks straight from it, and only rows with one (repeated draws of a rejected
+    proposal) count the blocks."""
     b, n = y.shape
-    order = np.argsort(y, axis=-1, kind="stable")
+    order = np.argsort(y, axis=-1)
     ys = np.take_along_axis(y, order, -1)
-    pos = np.broadcast_to(np.arange(n), (b, n))
     diff = ys[:, 1:] != ys[:, :-1]
-    first = np.concatenate([np.ones((b, 1), bool), diff], -1)
-    last = np.concatenate([diff, np.ones((b, 1), bool)], -1)
-    start = np.maximum.accumulate(np.where(first, pos, 0), axis=-1)
-    end = np.minimum.accumulate(np.where(last, pos, n)[:, ::-1], axis=-1)[:, ::-1]
     ranks = np.empty((b, n))
-    np.put_along_axis(ranks, order, 0.5 * (start + end) + 1.0, -1)
+    np.put_along_axis(ranks, order, np.broadcast_to(np.arange(1.0, n + 1.0), (b, n)), -1)
+    tied = np.flatnonzero(~np.all(diff, axis=-1))
+    if tied.size:
+        d, o = diff[tied], order[tied]
+        k = tied.size
+        pos = np.broadcast_to(np.arange(n), (k, n))
+        first = np.concatenate([np.ones((k, 1), bool), d], -1)
+        last = np.concatenate([d, np.ones((k, 1), bool)], -1)
+        start = np.maximum.accumulate(np.where(first, pos, 0), axis=-1)
+        end = np.minimum.accumulate(np.where(last, pos, n)[:, ::-1], axis=-1)[:, ::-1]
+        sub = np.empty((k, n))
+        np.put_along_axis(sub, o, 0.5 * (start + end) + 1.0, -1)
+        ranks[tied] = sub
     return ranks
 
 
