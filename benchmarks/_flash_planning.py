@@ -51,6 +51,7 @@ import functools
 import time
 from pathlib import Path
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from _common import machine, shared_data, table
@@ -345,6 +346,10 @@ def generated_part(args, rng) -> None:
     end_rows = []
     counts: dict[str, dict[str, list[float]]] = {t: {k: [] for k in keys} for t in rows}
     for name in args.members.split(","):
+        # Compiled programs of the last member's fits are dropped (the lower bound of alpha,
+        # a float of the model, differs with each set of photos): the process's compiled
+        # code, and the memory maps it holds, stay at about one member's.
+        jax.clear_caches()
         t0 = time.perf_counter()
         m = dataclasses.replace(next(f for f in FAMILY if f.name == name), size=args.family_size)
         r0 = np.random.default_rng(m.seed)
