@@ -57,6 +57,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxrefl._errors import JaxreflError
+from jaxrefl._map_defaults import RERUN_RHAT
 from jaxrefl.fit import LaplaceFlag, PixelData
 
 from ._adaptive_options import (
@@ -280,9 +281,9 @@ class _Run:
         self._rerun(
             again, restart, third, None, seed, ("third_pass", "third"), out, samples, at, rng
         )
-        self.timings["third_pass_rhat_above_after"] = int(
-            np.sum(~(out.rhat[again] <= self.o.rerun_rhat))
-        )
+        # counted against the report's threshold (the key it is filed under), whatever
+        # rerun_rhat chose the pixels; NaN (a chain that never moved) counts as above
+        self.timings["third_pass_rhat_above_after"] = int(np.sum(~(out.rhat[again] <= RERUN_RHAT)))
 
     def _rerun(self, again, restart, settings, size, seed, names, out, samples, at, rng):
         """One later pass over the pixels ``again`` from their ``restart`` starts, its
