@@ -30,6 +30,7 @@ REACHABLE = {
         "process_barrier",
         "process_gather",
         "process_share",
+        "refuse_other_work",
         "replace_params",
         "same_residual",
         "sample_arrays",

@@ -1,11 +1,18 @@
 """``jaxrefl sample``'s resumable work: a rerun of another job in the same OUT folder is
 refused with the way out the message names (``--restart``), which discards the work and
-starts over; a whole map leaves no work folder behind (a pooled map's widths included)."""
+starts over, and another capture's work is refused before any fitting; a whole map leaves
+no work folder behind (a pooled map's widths included)."""
 
 from __future__ import annotations
 
+import pytest
+
+from jaxrefl import svbrdf
+from jaxrefl._errors import JaxreflError
 from jaxrefl.cli import main
 from jaxrefl.cli._sample import work_dirs
+from jaxrefl.io import load_capture
+from jaxrefl.svbrdf import _job
 
 
 def test_restart_discards_another_jobs_work(tmp_path, capsys):
@@ -31,3 +38,31 @@ def test_work_dirs_name_every_resumable_folder(tmp_path):
     names = [d.name for d in work_dirs(tmp_path)]
     assert names == ["fit", "fit_ggx_rgb", "fit_widths", "mcmc"]
     assert work_dirs(tmp_path / "missing") == []
+
+
+def test_another_captures_work_is_refused_before_the_light_and_model_choice(tmp_path, monkeypatch):
+    """``fit_capture`` refuses an OUT folder whose tiles hold another capture (here another
+    crop) before it estimates the light or chooses a model, which take a minute on a large
+    capture; ``restart`` goes on."""
+    cap = tmp_path / "cap"
+    assert main(["demo", "--out", str(cap), "--size", "8", "--no-fit"]) == 0
+    full = load_capture(cap)
+    out = tmp_path / "out"
+    job = svbrdf.FitJob(model="lambert", light="fixed")
+    svbrdf.fit_capture(full.crop(0, 3, 0, 3), job, out)
+    calls = []
+
+    def light(*a, **k):
+        calls.append("light")
+        raise AssertionError("the light was estimated before the refusal")
+
+    monkeypatch.setattr(_job, "estimate_light", light)
+    other = svbrdf.FitJob(model="auto", light="auto")
+    with pytest.raises(JaxreflError, match=r"differs in: capture\); use --restart"):
+        svbrdf.fit_capture(full.crop(0, 4, 0, 4), other, out)
+    assert calls == []
+    with pytest.raises(AssertionError, match="the light was estimated"):
+        svbrdf.fit_capture(full.crop(0, 4, 0, 4), other, out, restart=True)
+    # the same capture passes the early check (its job is then checked with the tiles)
+    monkeypatch.undo()
+    svbrdf.fit_capture(full.crop(0, 3, 0, 3), job, out)

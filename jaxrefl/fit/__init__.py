@@ -108,7 +108,10 @@ from ._transform import ScaledSigmoid as ScaledSigmoid
 from ._transform import Softplus as Softplus
 from ._transform import UnitVector as UnitVector
 from ._work_store import WorkStore as WorkStore
-from ._work_store import fingerprint_hash  # noqa: F401
+from ._work_store import (
+    fingerprint_hash,  # noqa: F401
+    refuse_other_work,  # noqa: F401
+)
 
 # The public names. Those imported above without ``as`` are helpers the other packages of
 # jaxrefl share (each package uses another through its ``__init__`` only), not public.

@@ -41,7 +41,7 @@ from jaxrefl.io import save_npz_atomic, write_text_atomic
 
 from ._distributed import process_barrier
 
-__all__ = ["MANIFEST", "WorkStore", "fingerprint_hash"]
+__all__ = ["MANIFEST", "WorkStore", "fingerprint_hash", "refuse_other_work"]
 
 MANIFEST = "manifest.json"
 # The manifest entry holding the fingerprint's hash (module docstring).
@@ -82,6 +82,26 @@ def _check(path: Path, fingerprint: Mapping[str, Any], digest: str) -> bool:
         f"{path}: the work in {path.parent} belongs to a different job{which}; "
         f"{_way_out(path.parent)}"
     )
+
+
+def refuse_other_work(folder: str | Path, entries: Mapping[str, Any]) -> None:
+    """Raise :meth:`WorkStore.open`'s refusal now where ``folder``'s manifest names other
+    values of some of its fingerprint's ``entries``: a job whose whole fingerprint is known
+    only after costly steps (a model chosen by held-out photos) is refused before them.
+    Nothing is raised where the folder has no readable manifest or the entries agree; the
+    store's own check at :meth:`WorkStore.open` still holds."""
+    path = Path(folder) / MANIFEST
+    try:
+        old = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError):
+        return
+    new = json.loads(json.dumps(dict(entries)))  # as it reads back (tuples become lists)
+    differ = [k for k in new if not isinstance(old, dict) or old.get(k) != new[k]]
+    if differ:
+        raise JaxreflError(
+            f"{path}: the work in {path.parent} belongs to a different job (it differs in: "
+            f"{', '.join(differ)}); {_way_out(path.parent)}"
+        )
 
 
 class WorkStore:

@@ -62,7 +62,7 @@ from ._light_options import LightOptions
 from ._maps import capture_maps, capture_report, distributed_timings, widen_shared
 from ._noise_level import estimate_noise_level, with_noise
 from ._tile_fitter import TileFitter
-from ._tile_store import TileStore, fit_tiles, manifest, tile_ranges
+from ._tile_store import TileStore, fit_tiles, manifest, refuse_other_capture, tile_ranges
 
 __all__ = ["CaptureFit", "FitJob", "fit_capture", "map_name"]
 
@@ -113,6 +113,8 @@ def fit_capture(
         )
     _k, h, w, c = capture.shape
     job = replace(job, compact=job.compacts(h * w))
+    if out_dir is not None and not restart:
+        refuse_other_capture(out_dir, capture)  # before the light and the model choice
     # The light first (the capture as the estimate places it): every model sees the same.
     t_light = time.perf_counter()
     light = estimate_light(capture, job.light, LightOptions.of_job(job))

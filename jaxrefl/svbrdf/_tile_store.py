@@ -31,12 +31,19 @@ from typing import Any
 import jax
 import numpy as np
 
-from jaxrefl.fit import WorkStore, process_barrier, process_gather
+from jaxrefl.fit import WorkStore, process_barrier, process_gather, refuse_other_work
 
 from ._job_types import FitJob
 from ._tile_fitter import STAGES, TileFitter
 
-__all__ = ["TILE_KEYS", "TileStore", "fit_tiles", "manifest", "tile_ranges"]
+__all__ = [
+    "TILE_KEYS",
+    "TileStore",
+    "fit_tiles",
+    "manifest",
+    "refuse_other_capture",
+    "tile_ranges",
+]
 
 # The arrays of a tile file (:meth:`TileFitter.__call__`'s result).
 TILE_KEYS = (
@@ -76,6 +83,13 @@ def _capture_fingerprint(capture) -> dict[str, Any]:
         "source": None if capture.source is None else str(capture.source),
         "digest": digest.hexdigest(),
     }
+
+
+def refuse_other_capture(out_dir: str | Path, capture) -> None:
+    """Refuse, before any fitting, an ``out_dir`` whose tiles belong to another capture (a
+    crop, a downsampling or other photos): the light and model choice that come before the
+    tiles take a minute on a large capture (:func:`jaxrefl.fit.refuse_other_work`)."""
+    refuse_other_work(Path(out_dir) / "tiles", {"capture": _capture_fingerprint(capture)})
 
 
 def manifest(job: FitJob, capture, n_tiles: int, ran: dict[str, Any]) -> dict[str, Any]:
