@@ -3,7 +3,7 @@
 
     python benchmarks/capture_planning.py --flash [--size 64] [--subsets 40] [--model pooled]
         [--family-size 32] [--budget 12] [--target 0.1] [--ref-share 0.5] [--fit-model ggx_rgb]
-        [--members a,b] [--random-orders 3] [--skip-real | --keep-real]
+        [--members a,b] [--random-orders 3] [--skip-real | --keep-real] [--keep-generated]
 
 Real photos (``bath_tile``, ``yellow_box``, 9 photos each, read at ``--size``): for random
 subsets of 5 photos, fit ``--model`` on the 5, rank the other 4 by the plan (their camera
@@ -41,7 +41,8 @@ needed per target (``>budget`` where not reached within ``--budget`` photos), th
 random / plan and 3 x 3 / plan per member and on average, the error at the budget.
 
 ``--keep-real`` prints the real part of the recorded section again, with the date and
-arguments of the run that measured it, so that a rerun of the generated part alone keeps it.
+arguments of the run that measured it, so that a rerun of the generated part alone keeps it;
+``--keep-generated`` keeps the generated part alike.
 """
 
 from __future__ import annotations
@@ -63,7 +64,7 @@ from jaxrefl.svbrdf import _plan
 
 REAL = ("bath_tile", "yellow_box")
 SECTION = "capture_planning_flash"  # this part's section of docs/benchmarks.md
-KEPT = "Kept from the recorded run"  # how --keep-real heads the real part it keeps
+KEPT = "Kept from the recorded run"  # how --keep-real / --keep-generated head a kept part
 # What the generated part runs by default: members that differ in what users vary most
 # (flash offset 0 to 1 cm, near-mirror to rough lobes, grey F0 up to 0.5, a coloured metal,
 # noise 0.5% to 1%); the others of the family take --members.
@@ -192,19 +193,35 @@ def kept_real_part() -> None:
     """Print the real part of the recorded section (``docs/benchmarks.md``) again, headed by
     the date and arguments of the run that measured it (``--keep-real``: a rerun of the
     generated part alone keeps it)."""
+    _kept_part("--keep-real", "### Real captures: pick", "### Generated captures")
+
+
+def kept_generated_part() -> None:
+    """Print the generated part of the recorded section again, headed alike
+    (``--keep-generated``: a rerun of the real part alone keeps it)."""
+    _kept_part("--keep-generated", "### Generated captures", None)
+
+
+def _kept_part(flag: str, first: str, last: str | None) -> None:
+    """The recorded section's part from the heading ``first`` to ``last`` (None: to the run's
+    closing time), printed as the script prints it, under a line naming its run."""
     path = Path(__file__).resolve().parent.parent / "docs" / "benchmarks.md"
     text = path.read_text() if path.exists() else ""
     start, end = f"<!-- {SECTION}:start -->", f"<!-- {SECTION}:end -->"
     if start not in text:
-        raise SystemExit(f"--keep-real: no recorded {SECTION} section in {path}; run it whole")
+        raise SystemExit(f"{flag}: no recorded {SECTION} section in {path}; run it whole")
     body = text.split(start, 1)[1].split(end, 1)[0]
     head = body.strip().splitlines()[2]  # "DATE; MACHINE; `ARGS`." under the heading
-    first, last = "### Real captures: pick", "### Generated captures"
-    if first not in body or last not in body:
-        raise SystemExit(f"--keep-real: the recorded {SECTION} section has no real part")
-    real = first + body.split(first, 1)[1].split(last, 1)[0]
+    if first not in body or (last is not None and last not in body):
+        raise SystemExit(f"{flag}: the recorded {SECTION} section has no such part")
+    part = first + body.split(first, 1)[1]
+    if last is not None:
+        part = part.split(last, 1)[0]
+    lines = part.strip().splitlines()
+    if last is None and lines[-1].startswith("(") and lines[-1].endswith(" s)"):
+        lines = lines[:-1]  # the recorded run's total time, not this run's
     # run_and_record moves every heading one level down; undo it, it does so again.
-    lines = [ln[1:] if ln.startswith("##") else ln for ln in real.strip().splitlines()]
+    lines = [ln[1:] if ln.startswith("##") else ln for ln in lines]
     print(lines[0] + "\n")
     if not lines[2].startswith(KEPT):  # kept once already: its own line says from where
         date, _, rest = head.partition("; ")
@@ -510,6 +527,9 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--fit-model", default="ggx_rgb", help="capture model of the generated part")
     ap.add_argument("--skip-real", action="store_true", help="only the generated part")
     ap.add_argument("--keep-real", action="store_true", help="the recorded real part, not rerun")
+    ap.add_argument(
+        "--keep-generated", action="store_true", help="the recorded generated part, not rerun"
+    )
     ap.add_argument("--members", default=",".join(FAMILY_MEMBERS), help="generated members")
     ap.add_argument("--random-orders", type=int, default=3, help="random orders a member")
     ap.add_argument(
@@ -527,6 +547,9 @@ def main(argv: list[str]) -> int:
         kept_real_part()
     elif not args.skip_real:
         real_part(args, rng)
-    generated_part(args, rng)
+    if args.keep_generated:
+        kept_generated_part()
+    else:
+        generated_part(args, rng)
     print(f"\n({time.perf_counter() - t0:.0f} s)")
     return 0
