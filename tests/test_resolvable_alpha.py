@@ -33,3 +33,18 @@ def test_fit_bound_from_training_photos_only(shared_data):
     # a bound the job states is kept whatever the photos
     stated = TileFitter(bath, svbrdf.FitJob(model="ggx", holdout=held, alpha_min=0.01))
     assert stated.alpha_min == 0.01
+
+
+def test_light_problem_widths_from_training_photos_only(shared_data):
+    """The light's lobe widths start at the training photos' resolvable width, as the fit's
+    bound does: held-out photos do not narrow the grid."""
+    from jaxrefl.svbrdf._light_problem import light_problem
+
+    bath = load_capture(shared_data / BATH, resolution=16, max_photos=9)
+    train = np.ones(bath.n_photos, bool)
+    train[5:] = False
+    problem = light_problem(bath, train, n_pixels=16)
+    lowest = float(np.exp(np.min(np.asarray(problem.halves[0].grid))))
+    assert lowest == pytest.approx(svbrdf.resolvable_alpha(bath.select(train)))
+    every = light_problem(bath, np.ones(bath.n_photos, bool), n_pixels=16)
+    assert float(np.exp(np.min(np.asarray(every.halves[0].grid)))) < lowest

@@ -523,8 +523,8 @@ def light_problem(
     """Two pixel halves of ``n_pixels`` each (fewer where the capture is small) with the
     capture's stated geometry and the gains' prior (module docstring). Deterministic given
     the capture, ``train`` and ``seed``. The lobes' widths span ``alpha_min`` (None: the
-    capture's resolvable width, the fit's default) to :data:`ALPHA_MAX`: a lobe narrower
-    than the grid reaches is a misfit the light would absorb."""
+    resolvable width of the ``train`` photos, the fit's default) to :data:`ALPHA_MAX`: a
+    lobe narrower than the grid reaches is a misfit the light would absorb."""
     k, h, w, _c = capture.shape
     total = h * w
     n = min(int(n_pixels), total // 2)
@@ -540,8 +540,10 @@ def light_problem(
             "camera: x right, y down, z forward (cm), each photo's orientation from "
             "calibration.json"
         )
-    lo = resolvable_alpha(capture) if alpha_min is None else float(alpha_min)
+    # the training photos' resolvable width: a held-out photo must not widen what they see
+    train_mask = np.asarray(train, bool)
+    lo = resolvable_alpha(capture, photos=train_mask) if alpha_min is None else float(alpha_min)
     alphas = np.geomspace(min(lo, ALPHA_MAX), ALPHA_MAX, WIDTHS)
     halves = [_light_data(capture, np.sort(part), rot, alphas) for part in (pick[:n], pick[n:])]
-    problem = LightProblem(halves, np.asarray(train, bool), gain_prior(capture), frame)
+    problem = LightProblem(halves, train_mask, gain_prior(capture), frame)
     return problem
