@@ -1,4 +1,4 @@
-"""The pooled model's Laplace uncertainty accounts for the shared width (svbrdf._shared): the
+"""The pooled model's Laplace uncertainty accounts for the shared width (svbrdf._width_laplace): the
 per-pixel covariance plus each pixel's rank-one share equals the marginal of the joint
 Gauss-Newton covariance of every pixel's parameters and log alpha, computed by brute force."""
 
@@ -93,7 +93,7 @@ def test_width_share_equals_the_joint_laplace(pooled_fit):
 def test_a_pixel_without_a_covariance_takes_no_part(pooled_fit):
     """width_terms leaves out a pixel whose per-pixel std is not finite (its curvature was
     not inverted): v NaN, s 0; the others are unchanged."""
-    from jaxrefl.svbrdf._shared import width_terms
+    from jaxrefl.svbrdf._width_laplace import width_terms
 
     cap, cf = pooled_fit
     with jax.enable_x64(True):

@@ -5,7 +5,8 @@ of :class:`~jaxrefl.svbrdf.CaptureFit`: natural parameters and their standard de
 roughness and its std by the delta method, the metallic-roughness view of a coloured
 specular (glTF 2.0), the shading normal of a tilted model, correlations, codes and the
 ``misspecified`` bits (:mod:`jaxrefl.svbrdf._check`). :func:`widen_shared` first adds the
-shared width's share of each pixel's uncertainty for ``pooled`` (:mod:`jaxrefl.svbrdf._shared`).
+shared width's share of each pixel's uncertainty for ``pooled``
+(:mod:`jaxrefl.svbrdf._width_laplace`).
 :func:`capture_report` writes what ``report.json`` holds.
 """
 
@@ -22,8 +23,8 @@ from jaxrefl.fit import Status, undefined_correlations
 from jaxrefl.io import corr_name, map_name
 
 from ._check import ModelCheck, bound_bits, check_counts, ppc_failed
-from ._shared import WidthUncertainty, widen
 from ._tile_fitter import TileFitter
+from ._width_laplace import WidthUncertainty, widen
 
 __all__ = [
     "capture_maps",
@@ -36,7 +37,7 @@ __all__ = [
 
 def widen_shared(fitter: TileFitter, cat: dict[str, np.ndarray]) -> WidthUncertainty | None:
     """For ``pooled`` with a shared width: its share of every pixel's Laplace covariance
-    (:mod:`jaxrefl.svbrdf._shared`) added to ``cat``'s ``std``, ``corr`` and ``flag`` in
+    (:mod:`jaxrefl.svbrdf._width_laplace`) added to ``cat``'s ``std``, ``corr`` and ``flag`` in
     place; returns the width's own uncertainty (None for the other models)."""
     if not (fitter.width_terms and fitter.pooled is not None and fitter.pooled.alpha is not None):
         return None
@@ -100,7 +101,7 @@ def capture_maps(
         maps["alpha"] = shared
         maps["roughness"] = np.sqrt(shared)
         if width is not None:
-            # Its Laplace std (_shared), by the delta method for roughness = sqrt(alpha).
+            # Its Laplace std (_width_laplace), by the delta method for roughness = sqrt(alpha).
             maps[map_name("alpha", "_std")] = np.where(ok, width.alpha_std, np.nan)
             maps[map_name("roughness", "_std")] = np.where(
                 ok, width.alpha_std / (2.0 * np.sqrt(fitter.pooled.alpha)), np.nan

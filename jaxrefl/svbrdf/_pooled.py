@@ -37,7 +37,7 @@ never saw its lobe keeps the population's F0, so its prediction for an unseen di
 the pooled material's, never a lobe the data do not support. The per-pixel fit is then the
 ordinary MAP fit of :func:`jaxrefl.fit.fit_pixels` with alpha fixed at its selected value
 (Laplace uncertainty included: the prior is part of its curvature, and
-:mod:`jaxrefl.svbrdf._shared` adds each pixel's share of the shared alpha's own
+:mod:`jaxrefl.svbrdf._width_laplace` adds each pixel's share of the shared alpha's own
 uncertainty).
 """
 

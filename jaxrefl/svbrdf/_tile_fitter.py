@@ -34,7 +34,7 @@ from ._job_types import FitJob
 from ._models import TWO_STAGE, capture_model
 from ._pooled import PoolChoice, choose_pooled
 from ._score_test import score_test
-from ._shared import width_terms as shared_width_terms
+from ._width_laplace import width_terms as shared_width_terms
 
 __all__ = ["STAGES", "TILT_STARTS", "TileFitter", "extend_start", "traced_noise"]
 
@@ -69,7 +69,7 @@ class TileFitter:
         The lean LM gathers its slow pixels into compaction stages as ``job.compact`` says
         (None: by the capture's size, :meth:`FitJob.compacts`).
         ``width_terms``: for ``pooled``, each pixel's share of the shared width's Laplace
-        uncertainty (:mod:`jaxrefl.svbrdf._shared`; model selection needs no covariance)."""
+        uncertainty (:mod:`jaxrefl.svbrdf._width_laplace`; model selection needs no covariance)."""
         self.capture = capture
         self.width_terms = width_terms
         self.job = job

@@ -58,7 +58,7 @@ order line through the shared width misses a rough pixel's F0 by a factor of sev
 The other parameters (the noise scale) move, to first order, on the line from the pooled
 fit's to the per-pixel fit's at the shrinkage weight w_i = (1 / V_i) / P_i, and gain v_i^2 /
 P_i in variance, with v_i = d x_i / d log alpha at the shared width (the Gauss-Newton terms
-of :mod:`jaxrefl.svbrdf._shared`: v_i = H_i^-1 J_i^T j_i). The map's 5% and 95% quantiles
+of :mod:`jaxrefl.svbrdf._width_laplace`: v_i = H_i^-1 J_i^T j_i). The map's 5% and 95% quantiles
 move and widen alike (as :func:`jaxrefl.svbrdf._light_map.widen_for_light` does for the
 light), inside the parameters' box. The draws in ``posterior.nc`` stay the pooled
 posterior's.
@@ -167,7 +167,7 @@ class WidthSpread:
 def _slopes(residual, theta, data):
     """(N, P) v_i = H_i^-1 J_i^T j_i (module docstring) at the shared width: minus the slope
     of each pixel's conditional optimum in theta per unit of log alpha. The terms of
-    :func:`jaxrefl.svbrdf._shared.width_terms`, but for every pixel the map holds: a ridge
+    :func:`jaxrefl.svbrdf._width_laplace.width_terms`, but for every pixel the map holds: a ridge
     in place of its refusal of a curvature that is not positive definite, so a pixel that
     saw only part of its lobe still gets the width's share in the directions it saw (the
     sampled pixels are mostly such)."""
