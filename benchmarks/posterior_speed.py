@@ -264,7 +264,7 @@ def map_run(args, cap, name):
     m = u.report()
     tm = u.timings
     n_mc = m["mcmc"]["pixels"]
-    from jaxrefl.posterior._workers import default_workers
+    from jaxrefl._threads import default_workers
 
     workers = default_workers()
     o, g = jp.UNCERTAINTY_MAP_HMC, jp.UNCERTAINTY_MAP_GIBBS

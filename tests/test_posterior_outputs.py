@@ -390,7 +390,7 @@ def test_threads_share_one_compilation():
 
     import jax.numpy as jnp
 
-    from jaxrefl.posterior._workers import in_order
+    from jaxrefl._threads import in_order
 
     def f(x):
         for i in range(200):  # a program whose compilation takes a while
@@ -420,7 +420,7 @@ def test_threads_share_one_compilation():
 
 
 def test_in_order_raises_at_the_failing_item():
-    from jaxrefl.posterior._workers import in_order
+    from jaxrefl._threads import in_order
 
     def f(i):
         if i == 4:

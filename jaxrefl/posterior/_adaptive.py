@@ -58,6 +58,7 @@ import numpy as np
 
 from jaxrefl._errors import JaxreflError
 from jaxrefl._map_defaults import RERUN_RHAT
+from jaxrefl._threads import default_workers
 from jaxrefl.fit import LaplaceFlag, PixelData
 
 from ._adaptive_options import (
@@ -74,7 +75,6 @@ from ._logpost import LogPosterior
 from ._methods import MCMC_METHODS, Method
 from ._samples import Samples
 from ._uncertainty_map import UncertaintyMap, mcmc_reasons
-from ._workers import default_workers
 
 __all__ = ["adaptive_uncertainty"]
 

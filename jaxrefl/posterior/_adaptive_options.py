@@ -128,7 +128,7 @@ class AdaptiveOptions:
                  says which); None: every MCMC pixel's. Default
                  :data:`jaxrefl._map_defaults.MAP_KEEP_PIXELS`
     workers:     chunks sampled at once, each in its own thread (None: 2 on a CPU, else 1:
-                 :func:`jaxrefl.posterior._workers.default_workers`);
+                 :func:`jaxrefl._threads.default_workers`);
                  the summaries do not depend on it (chunk i is seeded ``seed + i`` wherever
                  it runs)
     time_limit_s: seconds from the call after which no MCMC chunk is started (a chunk is

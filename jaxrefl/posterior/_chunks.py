@@ -7,7 +7,7 @@ the sampler compiles once for the whole map whatever the number of pixels, and m
 bounded.
 
 Chunks at once: a process samples ``workers`` chunks at a time, each in its own thread
-(:mod:`jaxrefl.posterior._workers`; they share the program's one compilation); chunk i is
+(:mod:`jaxrefl._threads`; they share the program's one compilation); chunk i is
 seeded ``seed + i`` wherever it runs, so the map does not depend on ``workers``.
 
 Chunks on disk and across processes: with a folder, each chunk's draws are written there as
@@ -36,6 +36,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxrefl._threads import in_order
 from jaxrefl.fit import PixelData, process_barrier, process_share
 
 from ._choice import sample_pixels
@@ -44,7 +45,6 @@ from ._diagnostics import ChunkSummary, summarise
 from ._logpost import LogPosterior
 from ._options import GibbsOptions, HMCOptions
 from ._samples import Samples
-from ._workers import in_order
 
 __all__ = ["CHUNK_ROUND", "HEARTBEAT_S", "Chunks", "chunk_size"]
 

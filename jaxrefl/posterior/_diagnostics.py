@@ -271,7 +271,7 @@ class ChunkSummary(NamedTuple):
 
 def summarise(samples: Samples) -> ChunkSummary:
     """:class:`ChunkSummary` of ``samples`` (M pixels): NumPy throughout, so the threads that
-    sample a map's chunks (:mod:`._workers`) run it side by side, each on its own chunk."""
+    sample a map's chunks (:mod:`jaxrefl._threads`) run it side by side, each on its own chunk."""
     flat = samples.natural.reshape(samples.natural.shape[0], -1, samples.natural.shape[-1])
     return ChunkSummary(
         flat.mean(1),

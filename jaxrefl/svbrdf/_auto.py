@@ -44,7 +44,6 @@ that can be fitted :func:`choose_model` refuses, listing what each candidate nee
 from __future__ import annotations
 
 import os
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -52,6 +51,7 @@ import jax
 import numpy as np
 
 from jaxrefl._errors import JaxreflError
+from jaxrefl._threads import threaded
 
 from ._auto_options import AUTO_CANDIDATES, SELECTION_PIXELS, AutoOptions
 from ._data import stack_folds, subsample
@@ -240,8 +240,9 @@ def choose_model(capture, job: FitJob) -> ModelChoice:
     # The candidates that refine none are independent: they are scored side by side (most of
     # their time is compiling their programs, which runs on one core each).
     plain = [m for m in scorable if m not in REFINES]
-    with ThreadPoolExecutor(max(1, min(len(plain), os.cpu_count() or 1))) as ex:
-        done = dict(zip(plain, ex.map(score, plain), strict=True))
+    threads = max(1, min(len(plain), os.cpu_count() or 1))
+    scores = threaded(score, plain, threads, max(1, len(plain)), wait=True)
+    done = dict(zip(plain, scores, strict=True))
     pool: PoolChoice | None = done["pooled"][0].pooled if "pooled" in done else None
     cv.update({m: done[m][1] for m in plain})
     for m in scorable:

@@ -24,13 +24,14 @@ from __future__ import annotations
 import hashlib
 import time
 from collections.abc import Callable
-from concurrent.futures import Future, ThreadPoolExecutor
+from contextlib import closing
 from pathlib import Path
 from typing import Any
 
 import jax
 import numpy as np
 
+from jaxrefl._threads import threaded
 from jaxrefl.fit import WorkStore, process_barrier, process_gather, refuse_other_work
 
 from ._job_types import FitJob
@@ -197,19 +198,17 @@ def fit_tiles(
 
         iterator = tqdm(todo, desc="fit tiles", unit="tile")
 
-    def read(j: int):
-        return fitter.data(*tiles[todo[j]])
+    def read(i: int):
+        return fitter.data(*tiles[i])
 
     # The next tile's data is read on a second thread while this one is fitted (reading is
-    # NumPy work on the host, the fit XLA's); ``read`` counts only the wait for it.
-    with ThreadPoolExecutor(max_workers=1) as pool:
-        ahead: Future | None = pool.submit(read, 0)
-        for j, i in enumerate(iterator):
+    # NumPy work on the host, the fit XLA's): one thread, one tile ahead (a window of two).
+    # ``read`` counts only the wait for it.
+    with closing(threaded(read, todo, 1, 2, wait=True)) as ahead:
+        for i in iterator:
             s, e = tiles[i]
             t0 = time.perf_counter()
-            assert ahead is not None
-            data = ahead.result()
-            ahead = pool.submit(read, j + 1) if j + 1 < len(todo) else None
+            data = next(ahead)
             fitter.stage_s["read"] += time.perf_counter() - t0
             out = fitter(data, e - s)
             t1 = time.perf_counter()
