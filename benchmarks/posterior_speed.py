@@ -82,7 +82,7 @@ def part_speed(args, model, space, lp, theta, data):
     n = data.obs.shape[0]
     r = fit.fit_pixels(model, data, space=space, noise=fit.GaussianNoise(SIGMA))
     res = fit.make_residual(model, space, fit.GaussianNoise(SIGMA))
-    lap = fit.laplace(r, data, residual=res, noise="known")
+    lap = fit.laplace(r, data, residual=res, options=fit.LaplaceOptions(noise="known"))
     th0 = np.asarray(r.theta)
     tsd = np.asarray(lap.theta_std)
     opts = jp.HMCOptions(num_warmup=300, num_samples=500, num_chains=2, batch_size=100)
@@ -147,7 +147,7 @@ def part_window(args) -> None:
     model, space, lp, _, data = simulate(args.window_pixels, seed=1)
     r = fit.fit_pixels(model, data, space=space, noise=fit.GaussianNoise(SIGMA))
     res = fit.make_residual(model, space, fit.GaussianNoise(SIGMA))
-    lap = fit.laplace(r, data, residual=res, noise="known")
+    lap = fit.laplace(r, data, residual=res, options=fit.LaplaceOptions(noise="known"))
     rows = []
     for end in (0.9, 0.75):
         opts = jp.HMCOptions(num_chains=2, batch_size=100, metric_window_end=end)

@@ -85,7 +85,7 @@ def test_sbc_laplace_where_reliable(ggx1):
         model, data, config=fit.FitConfig(noise=fit.GaussianNoise(SIGMA)), space=space
     )
     res_fn = fit.make_residual(model, space, fit.GaussianNoise(SIGMA))
-    lap = fit.laplace(r, data, residual=res_fn, noise="known")
+    lap = fit.laplace(r, data, residual=res_fn, options=fit.LaplaceOptions(noise="known"))
     ok = np.asarray(lap.reliable)
     assert ok.sum() >= 80, lap.flag_counts()
     res = jp.sbc_summary(

@@ -165,6 +165,9 @@ def test_the_entry_points_take_their_settings_as_option_objects():
         jm.prune: {"options", "mask", "labels", "config", "cache"},
         fit.fit_pixels: {"config", "space", "init", "bounds", "fixed", "devices", "prior"},
         fit.fit_samples: {"options", "config", "space", "init", "bounds", "fixed"},
+        # laplace: the residual whose curvature is wanted is the problem (data); noise and
+        #   thresholds are LaplaceOptions
+        fit.laplace: {"residual", "options", "devices"},
         ps.run_ps: {"method", "calibrate_lights", "reference", "downsample"},
         ps.fit_normal_brdf: {"intensities", "weight", "saturated", "options"},
         ps.robust: {"intensities", "weight", "options"},
@@ -173,3 +176,47 @@ def test_the_entry_points_take_their_settings_as_option_objects():
         params = inspect.signature(f).parameters.values()
         given = {p.name for p in params if p.default is not inspect.Parameter.empty}
         assert given == names, f"{f.__qualname__}: {sorted(given ^ names)}"
+
+
+def test_the_laplace_settings_are_an_option_object_that_reaches_the_result():
+    """The noise scale and the thresholds of ``NOT_IDENTIFIED`` are fields of
+    :class:`jaxrefl.fit.LaplaceOptions`: recorded, checked when built, and followed."""
+    from jaxrefl import brdf, fit
+
+    rec = fit.LaplaceOptions().to_json()
+    assert rec == {
+        "type": "laplace",
+        "noise": "estimate",
+        "max_theta_std": 1.0,
+        "cond_max": None,
+        "unroll_max": 8,
+    }
+    for bad, name in (
+        ({"noise": "guess"}, "noise"),
+        ({"max_theta_std": 0.0}, "max_theta_std"),
+        ({"cond_max": -1.0}, "cond_max"),
+        ({"unroll_max": -1}, "unroll_max"),
+    ):
+        with pytest.raises(ValueError, match=f"LaplaceOptions needs .*{name}"):
+            fit.LaplaceOptions(**bad)
+
+    k = 6
+    ang = np.linspace(0.1, 0.9, k)
+    wi = np.stack([np.sin(ang), np.zeros(k), np.cos(ang)], -1)
+    wo = np.stack([-0.5 * np.sin(ang), np.zeros(k), np.sqrt(1 - 0.25 * np.sin(ang) ** 2)], -1)
+    obs = np.random.default_rng(0).uniform(0.1, 0.5, (4, k, 3)).astype(np.float32)
+    data = fit.pixel_data(obs, wi, wo)
+    r = fit.fit_pixels(brdf.get("lambert"), data)
+    with pytest.raises(ValueError, match=r"options=LaplaceOptions"):
+        fit.laplace(r, data, options={"noise": "known"})
+    est = fit.laplace(r, data)
+    known = fit.laplace(r, data, options=fit.LaplaceOptions(noise="known"))
+    assert np.all(np.asarray(known.noise_var) == 1.0)
+    assert not np.allclose(np.asarray(est.noise_var), 1.0)
+    loose = fit.laplace(r, data, options=fit.LaplaceOptions(max_theta_std=1e9))
+    strict = fit.laplace(r, data, options=fit.LaplaceOptions(max_theta_std=1e-9))
+    assert np.all(np.asarray(loose.identified)) and not np.any(np.asarray(strict.identified))
+    assert np.all(np.asarray(strict.flag) & fit.LaplaceFlag.NOT_IDENTIFIED)
+    singular = fit.laplace(r, data, options=fit.LaplaceOptions(cond_max=1.0 + 1e-6))
+    assert np.all(np.isnan(np.asarray(singular.std)))
+    assert np.all(np.asarray(singular.flag) & fit.LaplaceFlag.SINGULAR)

@@ -147,7 +147,7 @@ def test_gaussian_prior_residual_is_the_map_estimate():
     mode = (prec_d * np.pi * obs.mean() + prec_0 * m0) / (prec_d + prec_0)
     assert abs(float(r.params["albedo"][0, 0]) - mode) < 1e-10 * mode
     res = fit.make_residual(model, space, noise, prior=prior)
-    lap = fit.laplace(r, data, residual=res, noise="known")
+    lap = fit.laplace(r, data, residual=res, options=fit.LaplaceOptions(noise="known"))
     assert abs(float(lap.std[0, 0]) - (prec_d + prec_0) ** -0.5) < 1e-9
     with pytest.raises(KeyError, match="no free parameters"):
         fit.gaussian_prior(space, {"alpha": (0.1, 0.1)})
@@ -279,7 +279,7 @@ def noisy_fit():
 def test_laplace_std_is_calibrated_on_noisy_pixels(noisy_fit, noise):
     model, space, data, truth, r = noisy_fit
     res = fit.make_residual(model, space, fit.GaussianNoise(_SIGMA))
-    lap = fit.laplace(r, data, residual=res, noise=noise)
+    lap = fit.laplace(r, data, residual=res, options=fit.LaplaceOptions(noise=noise))
     true_theta = np.asarray(space.from_natural({k: v for k, v in truth.items()}))
     z = (np.asarray(r.theta) - true_theta) / np.asarray(lap.theta_std)
     use = np.asarray(lap.reliable)
@@ -367,8 +367,9 @@ def test_laplace_reuses_the_fits_curvature_with_censored_and_masked_pixels():
     # Another residual is not the fit's: it is linearised afresh (noise scale 0.5 halves
     # the whitened residual, so J^T J is 4x larger and the known-noise std half).
     half = fit.make_residual(model, space, fit.GaussianNoise(0.5))
-    a = np.asarray(fit.laplace(r, data, residual=half, noise="known").std)
-    b = np.asarray(fit.laplace(r, data, noise="known").std)
+    known = fit.LaplaceOptions(noise="known")
+    a = np.asarray(fit.laplace(r, data, residual=half, options=known).std)
+    b = np.asarray(fit.laplace(r, data, options=known).std)
     np.testing.assert_allclose(a[0], 0.5 * b[0], rtol=1e-6)
 
 

@@ -21,10 +21,10 @@ are the shared small linear algebra of :mod:`._linalg`), :func:`solve` (the solv
 :class:`LMOptions`, :class:`OptimistixLM`, :class:`JaxoptLM`), :class:`FitConfig` (solver,
 noise, loss and dtype of a fit, taken by every fitting entry point), per-pixel
 :class:`Status` codes, and :func:`laplace` (Gauss-Newton covariance in natural units with
-reliability flags). :func:`map_sharded` spreads a batch of pixels over this process's
-devices; :class:`Distributed` names the process group of a job split over processes and
-hosts (JAX's distributed runtime; :mod:`._distributed` shares out, waits for and gathers
-the work); a process that stops makes the others' barrier raise
+reliability flags, configured by :class:`LaplaceOptions`). :func:`map_sharded` spreads a
+batch of pixels over this process's devices; :class:`Distributed` names the process group of
+a job split over processes and hosts (JAX's distributed runtime; :mod:`._distributed` shares
+out, waits for and gathers the work); a process that stops makes the others' barrier raise
 :class:`ProcessGroupError`, and :func:`leave_group` ends them at once;
 :class:`WorkStore` keeps a job's finished pieces in a folder the processes share, for resume.
 """
@@ -44,6 +44,7 @@ from ._distributed import (
 )
 from ._init import initial_theta as initial_theta
 from ._laplace import LaplaceFlag as LaplaceFlag
+from ._laplace import LaplaceOptions as LaplaceOptions
 from ._laplace import LaplaceResult as LaplaceResult
 from ._laplace import (
     flag_counts,  # noqa: F401
@@ -135,6 +136,7 @@ __all__ = [
     "LMResult",
     "LMState",
     "LaplaceFlag",
+    "LaplaceOptions",
     "LaplaceResult",
     "LevelNoise",
     "Linearisation",

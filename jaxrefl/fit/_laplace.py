@@ -6,7 +6,7 @@ posterior of the unconstrained parameters (flat prior in theta) is Gaussian:
     theta ~ N(theta*, Sigma_theta),   Sigma_theta = s^2 (J^T J)^-1,   J = dr/dtheta at theta*
 
 where r is the whitened, weighted residual of :class:`Residual` (so J^T J = J_pred^T W J_pred
-for W = weight / std^2), and s^2 is the noise scale:
+for W = weight / std^2), and s^2 is the noise scale (:attr:`LaplaceOptions.noise`):
 
 * ``noise="known"``: s^2 = 1 (the noise model's std is trusted; r is already whitened);
 * ``noise="estimate"`` (default): s^2 = 2 cost / (n - P), the residual variance with n the
@@ -29,9 +29,10 @@ Reliability flags (bits of ``flag``; 0 = the Gaussian approximation is trusted):
 ``AT_BOUND``                 4    a parameter sits at a bound: the posterior is cut
                                   off there, a Gaussian is the wrong shape
 ``NOT_IDENTIFIED``           8    some parameter's theta-space std exceeds
-                                  ``max_theta_std`` (default 1: the data do not pin it
-                                  down within a factor e of a log-scale parameter, or
-                                  within ~one logit unit of an albedo; e.g. roughness where
+                                  ``max_theta_std`` (:class:`LaplaceOptions`; default
+                                  1: the data do not pin it down within a factor e of a
+                                  log-scale parameter, or within ~one logit unit of an
+                                  albedo; e.g. roughness where
                                   no highlight was observed), the equilibrated condition
                                   number of J^T J exceeds ``cond_max`` (then J^T J is not
                                   inverted: std NaN), or n <= P
@@ -71,8 +72,9 @@ one LM iteration.
 from __future__ import annotations
 
 import enum
+import numbers
 from dataclasses import dataclass
-from typing import Literal
+from typing import ClassVar, Literal
 
 import equinox as eqx
 import jax
@@ -84,14 +86,16 @@ from jaxrefl._errors import JaxreflError
 
 from ._linalg import cho_solve_unrolled, cholesky_unrolled
 from ._lm import _linearise as lm_linearise
+from ._options import Option, check_number
 from ._residual import PixelData, Residual
 from ._shard import device_count, map_sharded
-from ._status import has_estimate, ill_conditioned
+from ._status import default_cond_max, has_estimate, ill_conditioned
 
 __all__ = [
     "CORR_NAN_FLAGS",
     "STD_NAN_FLAGS",
     "LaplaceFlag",
+    "LaplaceOptions",
     "LaplaceResult",
     "flag_counts",
     "laplace",
@@ -121,6 +125,45 @@ STD_NAN_FLAGS = (
 )
 #: The bits of which one is set wherever a correlation is not finite.
 CORR_NAN_FLAGS = STD_NAN_FLAGS | LaplaceFlag.CORR_UNDEFINED
+
+#: The noise settings of :class:`LaplaceOptions`.
+NOISE_SETTINGS = ("estimate", "known")
+
+
+class LaplaceOptions(Option):
+    """How :func:`laplace` forms and judges each pixel's covariance (kind ``"laplace"``;
+    hashable, every field static).
+
+    noise:         ``"estimate"`` (default: s^2 from the residuals) or ``"known"`` (s^2 = 1:
+                   the residual is already whitened by the right sigma); module docstring
+    max_theta_std: a parameter whose theta-space std exceeds it is not identified
+                   (``NOT_IDENTIFIED``; > 0, default 1)
+    cond_max:      equilibrated condition number of J^T J above which it is not inverted
+                   (``NOT_IDENTIFIED`` and ``SINGULAR``); None = 1e7 (float32) / 1e10
+                   (float64), as the fit's ``ILL_CONDITIONED``
+    unroll_max:    largest P for the unrolled Cholesky (:mod:`._linalg`; else
+                   jnp.linalg.cholesky, the same factor to rounding); default 8, as
+                   :class:`~jaxrefl.fit.LMOptions`
+    """
+
+    kind: ClassVar[str] = "laplace"
+    noise: Literal["estimate", "known"] = eqx.field(default="estimate", static=True)
+    max_theta_std: float = eqx.field(default=1.0, static=True)
+    cond_max: float | None = eqx.field(default=None, static=True)
+    unroll_max: int = eqx.field(default=8, static=True)
+
+    def __check_init__(self):
+        if self.noise not in NOISE_SETTINGS:
+            raise JaxreflError(
+                f"LaplaceOptions needs noise one of {', '.join(map(repr, NOISE_SETTINGS))}, "
+                f"got {self.noise!r}"
+            )
+        check_number("LaplaceOptions", "max_theta_std", self.max_theta_std, positive=True)
+        if self.cond_max is not None:
+            check_number("LaplaceOptions", "cond_max", self.cond_max, positive=True)
+        v = self.unroll_max
+        if not isinstance(v, numbers.Integral) or isinstance(v, bool) or v < 0:
+            raise JaxreflError(f"LaplaceOptions needs an integer unroll_max >= 0, got {v!r}")
 
 
 def undefined_correlations(std: np.ndarray, corr: np.ndarray, flag: np.ndarray):
@@ -289,10 +332,7 @@ def laplace(
     data: PixelData,
     *,
     residual: Residual | None = None,
-    noise: Literal["estimate", "known"] = "estimate",
-    max_theta_std: float = 1.0,
-    cond_max: float | None = None,
-    unroll_max: int = 8,
+    options: LaplaceOptions = LaplaceOptions(),
     devices: int | None = None,
 ) -> LaplaceResult:
     """Laplace covariance of every pixel of a :class:`FitResult` from :func:`fit_pixels`.
@@ -303,9 +343,8 @@ def laplace(
                ``fit.linearisation``; Gaussian sigma 1, L2 for a result without one). When
                it is the fit's, the fit's J^T J at theta is reused and ``data`` is not
                read; another residual is linearised here (one Jacobian per pixel)
-    noise:     ``"estimate"`` the noise scale from the residuals, or ``"known"``
-    max_theta_std, cond_max: thresholds of ``NOT_IDENTIFIED`` (cond_max default 1e7 in
-               float32, 1e10 in float64, as the fit's ILL_CONDITIONED)
+    options:   the noise scale (estimated or known) and the thresholds of
+               ``NOT_IDENTIFIED`` (:class:`LaplaceOptions`)
     devices:   how many of JAX's devices share the pixels (default all)
     """
     from ._residual import make_residual
@@ -313,10 +352,9 @@ def laplace(
     theta = jnp.asarray(fit.theta)
     if theta.ndim != 2:
         raise JaxreflError(f"laplace expects a batch fit with theta (N, P); got {theta.shape}")
-    if cond_max is None:
-        cond_max = 1e7 if jnp.finfo(theta.dtype).bits <= 32 else 1e10
-    if noise not in ("estimate", "known"):
-        raise JaxreflError(f"noise must be 'estimate' or 'known', not {noise!r}")
+    if not isinstance(options, LaplaceOptions):
+        raise JaxreflError(f"laplace takes options=LaplaceOptions(...), not {options!r}")
+    cond_max = default_cond_max(theta.dtype, options.cond_max)
     lin = getattr(fit, "linearisation", None)
     if lin is not None and (residual is None or same_residual(residual, lin.residual)):
         # The fit's own J^T J at theta: no Jacobian to compute here.
@@ -338,10 +376,10 @@ def laplace(
             rest,
             cost,
             status,
-            noise == "estimate",
-            float(max_theta_std),
-            float(cond_max),
-            int(unroll_max),
+            options.noise == "estimate",
+            float(options.max_theta_std),
+            cond_max,
+            int(options.unroll_max),
         )
 
     # Pixels are independent: spread them over every device, as the fit does (``_shard``).

@@ -219,8 +219,8 @@ class GaussianNoise(NoiseModel):
 
     ``sigma=None`` means unknown: the fit uses sigma = 1 (the optimum of an L2 fit does not
     depend on a common sigma) and sigma can be estimated afterwards from the residuals
-    (:func:`jaxrefl.fit.laplace` with ``noise="estimate"``). Robust-loss thresholds are in
-    units of sigma, so give sigma when using Huber or Cauchy.
+    (:func:`jaxrefl.fit.laplace` with ``LaplaceOptions(noise="estimate")``). Robust-loss
+    thresholds are in units of sigma, so give sigma when using Huber or Cauchy.
 
     sigma: noise std in the units of the observations, > 0 and finite (a number, or an
            array of one per channel (C,)); default None (unknown)

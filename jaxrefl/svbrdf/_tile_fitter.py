@@ -280,7 +280,7 @@ class TileFitter:
         t1 = time.perf_counter()
         # A prior's scale is tied to the noise scale: that one is then known, not re-estimated.
         known: Literal["known", "estimate"] = "known" if noise_var is not None else "estimate"
-        lap = fit.laplace(r, fit_data, residual=res, noise=known)
+        lap = fit.laplace(r, fit_data, residual=res, options=fit.LaplaceOptions(noise=known))
         lap_noise = lap.noise_var if noise_var is None else jnp.full_like(lap.noise_var, noise_var)
         jax.block_until_ready((lap.std, lap_noise))
         n_rows, p = r.theta.shape

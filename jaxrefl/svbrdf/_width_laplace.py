@@ -32,7 +32,7 @@ their v_i is NaN and their s_i 0, so the width's variance is that of the other p
 data, the same or larger than the joint problem's. The curvature is taken where the fit
 stopped, with the width at the value chosen by held-out photos: the Gaussian approximation
 of the joint posterior around that point, not at a joint optimum. Noise is the pooled fit's
-known scale (the per-pixel Laplace uses the same, ``noise="known"``).
+known scale (the per-pixel Laplace uses the same, ``LaplaceOptions(noise="known")``).
 """
 
 from __future__ import annotations
