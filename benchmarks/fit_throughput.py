@@ -407,7 +407,7 @@ def end_to_end(side: int, lm_pixels: int, repeats: int, auto: bool) -> list[dict
             # The LM alone and the start alone on the same pixels, tile-shaped blocks (the
             # job's own compiled shapes), same model, space, noise and loss as the job.
             # The fit's job records the compaction that ran (FitJob.compact).
-            fitter = TileFitter(cap, r.job, pooled=r.extra["pooled"])
+            fitter = TileFitter(cap, r.job, pooled=r.pooled)
             tile = r.job.tile_pixels
             n_lm = min(lm_pixels, n_px) // tile * tile or tile
             blocks = [

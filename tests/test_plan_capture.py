@@ -153,7 +153,8 @@ def _truth_fit(saturation_level=np.inf):
         labels=SPACE.labels,
         theta=theta,
         job=svbrdf.FitJob(model="ggx"),
-        extra={"alpha_min": 1e-3, "channels": 3},
+        alpha_min=1e-3,
+        channels=3,
     )
     return fit, cap
 

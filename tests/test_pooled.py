@@ -221,7 +221,7 @@ def test_auto_chooses_the_shared_coloured_lobe_and_never_sees_held_out_photos(au
     from jaxrefl.svbrdf import AUTO_CANDIDATES, choose_model
 
     cap, res = auto_fit
-    choice = res.extra["auto"]
+    choice = res.auto
     assert set(choice.cv_rmse) | set(choice.skipped) == set(AUTO_CANDIDATES)
     # The per-pixel normal refines the per-pixel dielectric, which is not the best here.
     assert "ggx_normal" in choice.skipped
@@ -237,7 +237,7 @@ def test_auto_chooses_the_shared_coloured_lobe_and_never_sees_held_out_photos(au
     assert again.cv_rmse == choice.cv_rmse
     # The fit resolves the model and its loss and reports the choice.
     assert res.job.model == "pooled" and res.job.config.loss == fit.Huber()
-    assert res.extra["pooled"] is choice.pooled  # the selection's width, not chosen again
+    assert res.pooled is choice.pooled  # the selection's width, not chosen again
     assert res.report["model"] == "pooled"
     assert res.report["auto"]["model"] == "pooled"
     assert res.report["auto"]["cv_rmse"] == pytest.approx(choice.cv_rmse)
@@ -252,10 +252,10 @@ def test_the_pooled_fit_runs_and_records_its_own_settings(auto_fit):
     from jaxrefl.svbrdf._tile_fitter import TileFitter
 
     cap, cf = auto_fit
-    ran = TileFitter(cap, cf.job, pooled=cf.extra["pooled"]).settings()
+    ran = TileFitter(cap, cf.job, pooled=cf.pooled).settings()
     assert ran["compact"] is cf.job.compact is False  # a small capture: no compaction
     assert cf.job.config.noise.sigma is None
-    sigma = pytest.approx(cf.extra["pooled"].sigma, rel=1e-6)
+    sigma = pytest.approx(cf.pooled.sigma, rel=1e-6)
     assert ran["config"]["noise"] == {"type": "gaussian", "sigma": sigma}
     assert ran["config"]["loss"]["type"] == "huber"
     assert ran["config"]["solver"]["host_fused"] and not ran["config"]["solver"]["compact_stages"]

@@ -145,7 +145,7 @@ def test_one_capture_noise_scale_is_replaced_by_a_variance_function(fitted):
     assert np.all(np.isinf(dof[~np.isnan(dof)])) and np.mean(~np.isnan(dof)) > 0.9
     kept = estimate_discrepancy(cap, cf, DiscrepancyOptions(replace_noise=False))
     assert not kept.replaces_noise
-    known = float(cf.extra["pooled"].sigma) ** 2
+    known = float(cf.pooled.sigma) ** 2
     np.testing.assert_allclose(predictive(cap, cf, kept).noise_var, known, rtol=1e-5)
 
 
@@ -173,7 +173,7 @@ def test_variance_function_rescales_the_parameter_term_to_the_pixels_own_noise()
     assert disc.error_var is not None and np.all(disc.var <= disc.error_var), disc.as_dict()
     pred = predictive(cap, cf, disc)
     plain = predictive(cap, cf, Discrepancy(disc.radiance, disc.var, replaces_noise=True))
-    known = float(cf.extra["pooled"].sigma) ** 2
+    known = float(cf.pooled.sigma) ** 2
     err = np.interp(pred.mean, disc.radiance, disc.error_var)
     train = np.arange(cap.n_photos) != HELD
     f = 1.0 / np.mean((known / err)[:, train], axis=(1, 2))

@@ -47,7 +47,7 @@ def test_width_share_equals_the_joint_laplace(pooled_fit):
     cap, cf = pooled_fit
     with jax.enable_x64(True):
         n = SIZE * SIZE
-        fitter = TileFitter(cap, cf.job, pooled=cf.extra["pooled"])
+        fitter = TileFitter(cap, cf.job, pooled=cf.pooled)
         res, space = fitter.residual, fitter.space
         data = pixel_block(cap, 0, n, dtype=np.float64)
         train = jnp.asarray(fitter.train, jnp.float64)[None, :, None]
@@ -97,7 +97,7 @@ def test_a_pixel_without_a_covariance_takes_no_part(pooled_fit):
 
     cap, cf = pooled_fit
     with jax.enable_x64(True):
-        fitter = TileFitter(cap, cf.job, pooled=cf.extra["pooled"])
+        fitter = TileFitter(cap, cf.job, pooled=cf.pooled)
         n = SIZE * SIZE
         data = pixel_block(cap, 0, n, dtype=np.float64)
         train = jnp.asarray(fitter.train, jnp.float64)[None, :, None]

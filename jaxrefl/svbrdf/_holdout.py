@@ -66,7 +66,8 @@ class LeaveOneOut:
 
 def _fold_errors(fit: CaptureFit, k: int) -> tuple[float, np.ndarray, np.ndarray]:
     """(photo k's RMSE, per-pixel SSE (N,), per-pixel count (N,)) of a fit holding k out."""
-    sse, cnt = fit.extra["sse"][:, k], fit.extra["cnt"][:, k]
+    assert fit.sse is not None and fit.cnt is not None  # fit_capture's own result holds them
+    sse, cnt = fit.sse[:, k], fit.cnt[:, k]
     n = float(np.sum(cnt))
     rmse = float(np.sqrt(np.sum(sse) / n)) if n > 0 else float("nan")
     return rmse, sse, cnt

@@ -21,7 +21,9 @@ from ._auto_options import AutoOptions
 from ._models import ALPHA_RANGE, capture_model
 
 if TYPE_CHECKING:
+    from ._auto import ModelChoice
     from ._light import LightEstimate
+    from ._pooled import PoolChoice
 
 __all__ = ["COMPACT_MIN_PIXELS", "DEFAULT_LOSS", "CaptureFit", "FitJob"]
 
@@ -192,6 +194,18 @@ class CaptureFit:
     report:  what ``report.json`` holds (timings, counts, held-out error, model)
     light:   the light the pixels were fitted under (:class:`jaxrefl.svbrdf.LightEstimate`;
              ``light.apply(capture)`` places it); None: as the capture states it
+    channels: colour channels C of the capture the model was built for
+    alpha_min: the lower bound of the lobe width alpha the model was built with (the job's
+             ``alpha_min``, or the training photos' resolvable width); None: the model's own
+    pooled:  ``pooled``'s choice (shared width, F0 prior, noise sigma); None for the other
+             models
+    noise_estimated: whether the Laplace step estimated each pixel's noise scale from its
+             residuals (False where it is known: ``pooled``'s capture-wide scale, or a
+             two-stage model's first-stage median)
+    sse, cnt: (H*W, K) per pixel and photo, the sum of squared radiance errors and the count
+             of the observations that are values (held-out photos included); None for a
+             fit read back from its files
+    auto:    the model choice by held-out photos (``FitJob(model="auto")``); None otherwise
     """
 
     maps: dict[str, np.ndarray]
@@ -201,18 +215,23 @@ class CaptureFit:
     job: FitJob
     tiles_computed: int = 0
     tiles_loaded: int = 0
-    extra: dict[str, Any] = field(default_factory=dict)
     light: LightEstimate | None = None
+    channels: int = 3
+    alpha_min: float | None = None
+    pooled: PoolChoice | None = None
+    noise_estimated: bool = True
+    sse: np.ndarray | None = None
+    cnt: np.ndarray | None = None
+    auto: ModelChoice | None = None
 
     def model(self) -> tuple[brdf.BRDF, Any]:
-        """(model, parameter space) the pixels were fitted with (for ``pooled``: the choice
-        and shared alpha of ``extra["pooled"]``)."""
-        pooled = self.extra.get("pooled")
+        """(model, parameter space) the pixels were fitted with (for ``pooled``: the shared
+        alpha of :attr:`pooled`)."""
         return capture_model(
             self.job.model,
-            channels=self._channels,
-            alpha_min=self.extra.get("alpha_min"),
-            alpha=None if pooled is None else pooled.alpha,
+            channels=self.channels,
+            alpha_min=self.alpha_min,
+            alpha=None if self.pooled is None else self.pooled.alpha,
         )
 
     def params(self) -> dict[str, np.ndarray]:
@@ -222,7 +241,3 @@ class CaptureFit:
         t = jnp.asarray(np.nan_to_num(self.theta), dtype=self.job.dtype)
         nat = space.to_natural(t)
         return {k: np.asarray(v).reshape(h, w, *v.shape[1:]) for k, v in nat.items()}
-
-    @property
-    def _channels(self) -> int:
-        return int(self.extra.get("channels", 3))

@@ -74,8 +74,8 @@ def write_maps(result: CaptureFit, path: Path) -> Path:
         # the misspecified map's bits: pixels whose intervals are not calibrated
         "model_checks": {b.name: int(b.value) for b in ModelCheck},
     }
-    if result.extra.get("pooled") is not None:
-        meta["pooled"] = result.extra["pooled"].as_dict()
+    if result.pooled is not None:
+        meta["pooled"] = result.pooled.as_dict()
     return write_exr(path, exr_channels(result.maps), metadata=meta)
 
 

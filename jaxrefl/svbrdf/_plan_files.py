@@ -166,7 +166,9 @@ def read_fit(fit_dir: str | Path) -> tuple[CaptureFit, Any]:
         labels=tuple(labels),
         theta=theta,
         job=job,
-        extra={"channels": channels, "alpha_min": report.get("alpha_min"), "pooled": pooled},
+        channels=channels,
+        alpha_min=report.get("alpha_min"),
+        pooled=pooled,
     )
     return result, _capture(report, rpath)
 

@@ -139,9 +139,10 @@ class _State:
 def _fit_noise(capture_fit: CaptureFit, noise_std: np.ndarray):
     """(noise model of the fit's residual, whether the Laplace step estimated its scale)."""
     job, noise = capture_fit.job, capture_fit.job.config.noise
-    pooled = capture_fit.extra.get("pooled")
+    pooled = capture_fit.pooled
     unknown = noise.scale_unknown
     if unknown and pooled is not None and pooled.alpha is not None:
+        assert pooled.sigma is not None  # choose_pooled sets it with alpha
         # An array, not a float: equinox's jit would compile again for every value.
         return noise.with_scale(jnp.asarray(float(pooled.sigma))), False
     if unknown and job.model in TWO_STAGE:
@@ -153,7 +154,7 @@ def _fit_noise(capture_fit: CaptureFit, noise_std: np.ndarray):
 
 
 def _prior(capture_fit: CaptureFit, space: fit.ParamSpace) -> fit.GaussianPrior | None:
-    job, pooled = capture_fit.job, capture_fit.extra.get("pooled")
+    job, pooled = capture_fit.job, capture_fit.pooled
     if pooled is not None and pooled.alpha is not None:
         chans = [lab.split(".", 1)[1] for lab in space.labels if lab.startswith("specular.")]
         return fit.gaussian_prior(
@@ -188,11 +189,16 @@ def _state(capture_fit: CaptureFit, capture, max_pixels: int, seed: int) -> _Sta
     dtype = capture_fit.job.dtype
     nat = space.to_natural(jnp.asarray(theta_all[take], dtype))
     shared: tuple[str, ...] = ()
-    pooled = capture_fit.extra.get("pooled")
+    pooled = capture_fit.pooled
     if pooled is not None and pooled.alpha is not None:
+        if capture_fit.alpha_min is None:
+            raise JaxreflError(
+                "the pooled fit records no lower bound of its width (alpha_min): plan from "
+                "the fit fit_capture returns"
+            )
         # The shared width becomes a free parameter of the same model (counted once).
         model, space = capture_model(
-            "ggx_rgb", c, alpha_min=min(float(capture_fit.extra["alpha_min"]), pooled.alpha)
+            "ggx_rgb", c, alpha_min=min(float(capture_fit.alpha_min), pooled.alpha)
         )
         shared = ("alpha",)
     theta = np.asarray(space.from_natural(nat, dtype=dtype), np.float64)

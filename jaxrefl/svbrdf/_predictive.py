@@ -283,7 +283,7 @@ def predictive(capture, cf: CaptureFit, discrepancy: Discrepancy | None = None) 
             "capture the fit was made of"
         )
     fitter = TileFitter(
-        capture, replace(cf.job, compact=False), pooled=cf.extra.get("pooled"), width_terms=False
+        capture, replace(cf.job, compact=False), pooled=cf.pooled, width_terms=False
     )
     space = fitter.space
     theta, std, corr = _fit_arrays(cf, space)
@@ -419,7 +419,7 @@ def estimate_discrepancy(
     if len(train) < 2:
         return Discrepancy.zero()
     fitter = TileFitter(
-        capture, replace(cf.job, compact=False), pooled=cf.extra.get("pooled"), width_terms=False
+        capture, replace(cf.job, compact=False), pooled=cf.pooled, width_terms=False
     )
     if replace_noise is None:
         replace_noise = fitter.known_noise is not None

@@ -338,7 +338,7 @@ def laplace_dof(cf: CaptureFit) -> np.ndarray:
     sec. 14.2), not the Gaussian of a known variance: with 8 photos x 3 channels and 7
     parameters its 90% interval is 6% wider."""
     n = cf.maps["n_used"].reshape(-1).astype(np.float64)
-    if not cf.extra.get("noise_estimated", True):
+    if not cf.noise_estimated:
         return np.where(n > 0, np.inf, np.nan)
     p = len(cf.labels)
     return np.where(n > p, n - p, np.nan)

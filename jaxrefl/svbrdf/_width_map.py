@@ -220,7 +220,7 @@ def _curve(cf, data, widths: tuple[np.ndarray, ...], prior: bool) -> list[np.nda
     on F0 where ``prior``, in tiles of :data:`_TILE`."""
     n, c = widths[0].shape[0], data.obs.shape[-1]
     dtype = np.asarray(data.obs).dtype
-    pooled = cf.extra.get("pooled")
+    pooled = cf.pooled
     prior_w, prior_mu = np.zeros(c), np.zeros(c)
     if prior and pooled is not None and pooled.sigma is not None and len(pooled.prior_std) == c:
         sd = np.asarray(pooled.prior_std, np.float64)
