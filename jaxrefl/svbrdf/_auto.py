@@ -240,6 +240,8 @@ def choose_model(capture, job: FitJob) -> ModelChoice:
     # The candidates that refine none are independent: they are scored side by side (most of
     # their time is compiling their programs, which runs on one core each).
     plain = [m for m in scorable if m not in REFINES]
+    # One thread a candidate, up to the cores; a pool and a window need at least one (a
+    # window of every candidate starts them all at once).
     threads = max(1, min(len(plain), os.cpu_count() or 1))
     scores = threaded(score, plain, threads, max(1, len(plain)), wait=True)
     done = dict(zip(plain, scores, strict=True))
