@@ -12,15 +12,18 @@ from jaxrefl._threads import CHUNK_THREAD_NAME, in_order, threaded
 
 def test_threaded_yields_in_the_items_order_whatever_finishes_first():
     gates = [threading.Event() for _ in range(4)]
+    finished: list[int] = []
 
     def fn(i: int) -> int:
         # Item i finishes only after item i + 1 has: the threads finish in reverse order.
         if i + 1 < len(gates):
-            assert gates[i + 1].wait(5.0)
+            gates[i + 1].wait(60.0)  # a bound, so that a pool without threads cannot hang
+        finished.append(i)
         gates[i].set()
         return i * i
 
     assert list(threaded(fn, range(4), 4, 4)) == [0, 1, 4, 9]
+    assert finished == [3, 2, 1, 0]
 
 
 @pytest.mark.parametrize(("threads", "window"), [(1, 2), (2, 4), (3, 3)])
@@ -45,13 +48,18 @@ def test_threaded_keeps_at_most_window_items_submitted_and_not_yielded(threads, 
 def test_one_thread_with_a_window_of_two_reads_one_item_ahead():
     """The tile store's read-ahead: while the caller holds item j, item j + 1 is read."""
     done: list[int] = []
-    ahead = threaded(lambda i: done.append(i) or i, range(3), 1, 2, wait=True)
+    read_one = threading.Event()
+
+    def read(i: int) -> int:
+        done.append(i)
+        if i == 1:
+            read_one.set()
+        return i
+
+    ahead = threaded(read, range(3), 1, 2, wait=True)
     assert next(ahead) == 0
-    for _ in range(100):  # item 1 runs on the thread without the caller asking for it
-        if 1 in done:
-            break
-        threading.Event().wait(0.01)
-    assert done[:2] == [0, 1] and 2 not in done
+    read_one.wait(60.0)  # item 1 runs on the thread without the caller asking for it
+    assert done == [0, 1]
     assert list(ahead) == [1, 2]
 
 
