@@ -149,9 +149,11 @@ def adaptive_uncertainty(
     timings = {"laplace_summary_s": time.perf_counter() - t0}
     out = _Summaries.from_laplace(mean, std, q05, q95, lp.size)
     idx = np.flatnonzero(np.isin(method, MCMC_METHODS))
-    # Pixels without censored observations first: their chunks run the cheaper posterior
-    # without the censored branch (LogPosterior.for_data); at most one chunk is mixed.
-    censored_px = np.any(np.asarray(data.censored)[idx] != 0, axis=(-2, -1))
+    # Pixels in order of their count of censored observations, none first: those chunks
+    # run the cheaper posterior without the censored branch (LogPosterior.for_data), and a
+    # Gibbs chunk's latent draws gather as many slots as its pixels need at most
+    # (_conjugate.censored_slots), so pixels with a few do not pay for one with many.
+    censored_px = np.sum(np.asarray(data.censored)[idx] != 0, axis=(-2, -1))
     idx = idx[np.argsort(censored_px, kind="stable")]
     samples, kept = None, None
     if idx.size:

@@ -23,8 +23,10 @@ from ._logpost import LogPosterior
 from ._priors import Jeffreys
 
 __all__ = [
+    "CENSORED_SLOTS",
     "EDGE",
     "LINEAR_RTOL",
+    "censored_slots",
     "censoring_failure",
     "density",
     "is_linear",
@@ -47,6 +49,8 @@ EDGE = 1e-12
 # approaches the smallest normal float, and the tail is drawn as its exponential limit
 # a + Exp(a) (relative error of the density about 1 / a^2 over the tail's scale 1 / a).
 _TAIL = {8: 30.0, 4: 10.0}
+# The fewest slots of censored observations a pixel's latent draw gathers (censored_slots).
+CENSORED_SLOTS = 4
 
 
 def truncated_normal(key, a, b, dtype=jnp.float64):
@@ -113,6 +117,25 @@ def censoring_failure(data) -> str:
     if np.any(cens & (w != 0) & (w != 1)):
         return "a censored observation has a weight other than 0 or 1"
     return ""
+
+
+def censored_slots(cens: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The censored observations of each pixel, gathered, so that a scan draws latent values
+    for them only (a pixel has a few at most): their indices (N, R), padded with index 0,
+    and their signs (N, R) (+1 above, -1 below, 0 on the padding), of the flags ``cens`` (N,
+    M) (+1 saturated, -1 dark, 0 observed). R is the smallest power of 2 at least
+    :data:`CENSORED_SLOTS` that holds every pixel's, so chunks share a few compiled sizes."""
+    count = np.sum(cens != 0, axis=1)
+    r_max = CENSORED_SLOTS
+    while r_max < int(count.max(initial=0)):
+        r_max *= 2
+    # argsort's stable order puts each pixel's censored observations first, in their order
+    order = np.argsort(cens == 0, axis=1, kind="stable")[:, :r_max]
+    if order.shape[1] < r_max:  # fewer observations than slots: pad with observation 0
+        order = np.pad(order, ((0, 0), (0, r_max - order.shape[1])))
+    sign = np.take_along_axis(cens, order, axis=1)
+    sign = np.where(np.arange(r_max) < count[:, None], sign, 0).astype(np.int8)
+    return np.where(sign != 0, order, 0), sign
 
 
 def is_linear(pred: Float[Array, " M"], linear: Float[Array, " M"]) -> Array:

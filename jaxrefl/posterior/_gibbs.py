@@ -58,6 +58,7 @@ from jaxrefl._errors import JaxreflError
 from jaxrefl.fit import PixelData, ScaledSigmoid
 
 from ._conjugate import (
+    censored_slots,
     censoring_failure,
     is_linear,
     likelihood_failure,
@@ -72,7 +73,7 @@ from ._driver import Kernel, chain_starts, run_chain
 from ._logpost import LogPosterior
 from ._priors import Uniform
 
-__all__ = ["gibbs_kernel", "linear_terms", "qualifies", "sample_gibbs"]
+__all__ = ["gibbs_kernel", "latent_terms", "linear_terms", "qualifies", "sample_gibbs"]
 
 
 def _box(lp: LogPosterior) -> tuple[np.ndarray, np.ndarray] | None:
@@ -139,8 +140,10 @@ def qualifies(lp: LogPosterior, data: PixelData) -> tuple[bool, str]:
 class _Terms(NamedTuple):
     """The whitened linear-Gaussian terms of the pixels (module docstring), a leading (N,)
     axis on each: Q = A'^T W A' (P, P), r = A'^T W y' (P,), y'^T W y' (), n = sum of the
-    weights (), Q's eigenvectors (P, P, as columns) and eigenvalues (P,), A' (M, P), y' (M,),
-    the weights W (M,) and the censoring flags (M,) (+1 saturated, -1 dark, 0 observed)."""
+    weights (), Q's eigenvectors (P, P, as columns) and eigenvalues (P,); for the latent
+    draws, r and y'^T W y' of the observed (uncensored) rows alone, and the R gathered
+    censored rows (:func:`._conjugate.censored_slots`): A' (R, P), y' (R,), W (R,; 0 on the
+    padding) and their signs (R,) (+1 saturated, -1 dark, 0 padding)."""
 
     q: Array
     r: Array
@@ -148,10 +151,12 @@ class _Terms(NamedTuple):
     nw: Array
     evec: Array
     evals: Array
-    aw: Array
-    yw: Array
-    w: Array
-    cens: Array
+    r_obs: Array
+    yy_obs: Array
+    aw_c: Array
+    yw_c: Array
+    w_c: Array
+    sign_c: Array
 
 
 def sample_gibbs(
@@ -188,15 +193,16 @@ def sample_gibbs(
     nw = jnp.sum(w, axis=-1)
     evals, evec = jnp.linalg.eigh(q)
     jeffreys = lp.noise_scale is not None
-    cens = jnp.where(lp.residual.usable(data), data.censored, 0).reshape(n, -1).astype(jnp.int8)
-    censored = bool(np.any(np.asarray(cens) != 0))
+    cens = jnp.where(lp.residual.usable(data), data.censored, 0).reshape(n, -1)
+    cens_np = np.asarray(cens).astype(np.int8)
+    censored = bool(np.any(cens_np != 0))
 
     t0, finite = chain_starts(theta0, n, num_chains, dtype)
     x0, s0 = natural_starts(lp, t0, lo, hi, jeffreys)
 
     keys = jax.random.split(jax.random.PRNGKey(seed), n)
     t_start = time.perf_counter()
-    terms = _Terms(q, r, yy, nw, evec, evals, aw, yw, w, cens)
+    terms = _Terms(q, r, yy, nw, evec, evals, *latent_terms(aw, yw, w, cens_np))
     xs, s2s = _chains(
         keys,
         x0,
@@ -226,6 +232,20 @@ def sample_gibbs(
     )
 
 
+def latent_terms(aw, yw, w, cens: np.ndarray):
+    """The latent draws' fixed terms (:class:`_Terms`) of whitened A' (N, M, P), y' (N, M),
+    weights W (N, M) and censoring flags (N, M): r and y'^T W y' of the observed rows, and
+    the censored rows gathered (A', y', W, signs; (N, R, ...))."""
+    w_obs = jnp.where(cens != 0, 0.0, w)
+    r_obs = jnp.einsum("nmp,nm,nm->np", aw, w_obs, yw)
+    yy_obs = jnp.einsum("nm,nm,nm->n", yw, w_obs, yw)
+    c_idx, sign_c = (jnp.asarray(v) for v in censored_slots(cens))
+    aw_c = jnp.take_along_axis(aw, c_idx[..., None], axis=1)
+    yw_c = jnp.take_along_axis(yw, c_idx, axis=1)
+    w_c = jnp.where(sign_c != 0, jnp.take_along_axis(w, c_idx, axis=1), 0.0)
+    return r_obs, yy_obs, aw_c, yw_c, w_c, sign_c
+
+
 def gibbs_kernel(terms: _Terms, lo, hi, *, jeffreys: bool, censored: bool) -> Kernel:
     """One chain's exact Gibbs scan (module docstring) over the state (key, x, s^2): with
     ``censored``, the latent value of every censored observation given x and s first (and
@@ -234,15 +254,16 @@ def gibbs_kernel(terms: _Terms, lo, hi, *, jeffreys: bool, censored: bool) -> Ke
 
     def latent(key, x, s2):
         # whitened units: y* ~ N(A' x, s^2) truncated to [bound, inf) where saturated and
-        # (-inf, bound] where dark; the other observations keep their values
-        mean = t.aw @ x
+        # (-inf, bound] where dark, on the gathered censored rows (the padding's draws
+        # have weight 0); the observed rows' terms are fixed
+        mean = t.aw_c @ x
         sd = jnp.sqrt(s2)
-        z0 = (t.yw - mean) / sd
-        lo_z = jnp.where(t.cens > 0, z0, -jnp.inf)
-        hi_z = jnp.where(t.cens < 0, z0, jnp.inf)
-        z = truncated_normal(key, lo_z, hi_z, x.dtype)
-        y = jnp.where(t.cens != 0, mean + sd * z, t.yw)
-        return jnp.einsum("mp,m,m->p", t.aw, t.w, y), jnp.sum(t.w * y * y)
+        z0 = (t.yw_c - mean) / sd
+        lo_z = jnp.where(t.sign_c > 0, z0, -jnp.inf)
+        hi_z = jnp.where(t.sign_c < 0, z0, jnp.inf)
+        y = mean + sd * truncated_normal(key, lo_z, hi_z, x.dtype)
+        wy = t.w_c * y
+        return t.r_obs + wy @ t.aw_c, t.yy_obs + jnp.sum(wy * y)
 
     def step(state):
         key, x, s2 = state

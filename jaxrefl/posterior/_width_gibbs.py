@@ -97,6 +97,7 @@ from jaxrefl.fit import (
 from ._bind import bind_once
 from ._conjugate import (
     EDGE,
+    censored_slots,
     natural_starts,
     observations,
     package_draws,
@@ -133,9 +134,6 @@ _LOCAL_SD = 6.0
 # even cells).
 _LOCAL_SD_DEFAULT = 0.5
 _LOCAL_SD_RANGE = (1e-4, 2.0)
-# Censored observations per pixel the compiled sampler has room for (doubled where a pixel
-# has more): a clipped highlight is seen in one or two photos.
-_CENSORED_SLOTS = 4
 # Draws of the joint proposal per move, the first inside the box proposed (module docstring).
 _CANDIDATES = 2
 
@@ -181,17 +179,10 @@ def sample_width_gibbs(
     w, obs, u_std = observations(lp, data)
     cens = jnp.where(lp.residual.usable(data), data.censored, 0)
     cens_np = np.asarray(cens).reshape(n, -1).astype(np.int8)
-    # The censored observations of each pixel, gathered (a pixel has a few at most): their
-    # indices (N, R), padded with index 0 and sign 0, and their signs (+1 above, -1 below).
-    # R is a power of 2, at least _CENSORED_SLOTS, and every batch takes the censored path:
-    # chunks of a map with and without clipped highlights then share one compiled program.
-    count = np.sum(cens_np != 0, axis=1)
-    r_max = _CENSORED_SLOTS
-    while r_max < int(count.max()):
-        r_max *= 2
-    order = np.argsort(cens_np == 0, axis=1, kind="stable")[:, :r_max]
-    sign = np.take_along_axis(cens_np, order, axis=1)
-    c_idx, c_sign = jnp.asarray(np.where(sign != 0, order, 0)), jnp.asarray(sign)
+    # The censored observations of each pixel, gathered (:func:`._conjugate.censored_slots`).
+    # Every batch takes the censored path: chunks of a map with and without clipped
+    # highlights then share one compiled program.
+    c_idx, c_sign = (jnp.asarray(v) for v in censored_slots(cens_np))
 
     t0, finite = chain_starts(theta0, n, num_chains, dtype)
     v0, s0 = natural_starts(lp, t0, lo, hi, jeffreys)
