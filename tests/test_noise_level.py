@@ -88,9 +88,16 @@ def captures():
 JOB = svbrdf.FitJob(model="ggx_rgb", light="fixed", config=fit.FitConfig(dtype=np.float64))
 
 
-def test_a_capture_whose_noise_grows_with_the_signal_keeps_a_level_function(captures):
-    het, hom, _truth = captures
-    level = svbrdf.estimate_noise_level(het, JOB)
+@pytest.fixture(scope="module")
+def het_level(captures):
+    """The noise-level estimate of the heteroscedastic capture under JOB (one estimate for
+    the tests that read it)."""
+    return svbrdf.estimate_noise_level(captures[0], JOB)
+
+
+def test_a_capture_whose_noise_grows_with_the_signal_keeps_a_level_function(captures, het_level):
+    _het, hom, _truth = captures
+    level = het_level
     assert level.kept and isinstance(level.noise, fit.LevelNoise), level.why
     assert "grow with the signal" in level.why and level.loglik_gain > level.penalty
     assert level.n_pixels == SIZE * SIZE
@@ -99,11 +106,11 @@ def test_a_capture_whose_noise_grows_with_the_signal_keeps_a_level_function(capt
     assert "flat noise model" in flat.why
 
 
-def test_the_leverage_correction_is_what_sees_the_bright_noise(captures, monkeypatch):
+def test_the_leverage_correction_is_what_sees_the_bright_noise(captures, het_level, monkeypatch):
     """Without it (every leverage taken as 0) the highlights' short residuals hide the
     growth: the estimated bright-end std falls well below the corrected estimate's."""
     het, _hom, _truth = captures
-    with_lev = svbrdf.estimate_noise_level(het, JOB)
+    with_lev = het_level
     import jaxrefl.svbrdf._noise_level as nl
 
     real = nl._corrected
