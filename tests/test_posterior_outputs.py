@@ -47,6 +47,15 @@ def lambert():
     return lp, data, r, lap
 
 
+@pytest.fixture(scope="module")
+def demo_cap(tmp_path_factory):
+    """`jaxrefl demo` (8 x 8, no fit): the capture the command-line tests sample a crop of
+    (one crop shape, so the fit's programs compiled by one test are loaded by the next)."""
+    cap = tmp_path_factory.mktemp("demo") / "cap"
+    assert main(["demo", "--out", str(cap), "--size", "8", "--no-fit"]) == 0
+    return cap
+
+
 def test_inference_data_netcdf_round_trip(lambert, tmp_path):
     lp, data, r, _ = lambert
     d0 = jax.tree.map(lambda a: a[1], data)
@@ -138,13 +147,12 @@ def test_laplace_summaries_are_student_t_where_the_noise_was_estimated(lambert):
     assert np.all(u2.method[1:5] == 1) and np.all(np.isfinite(u2.std[5, :3]))
 
 
-def test_cli_sample_capture_end_to_end(tmp_path):
+def test_cli_sample_capture_end_to_end(demo_cap, tmp_path):
     """`jaxrefl demo` (8 x 8) then `jaxrefl sample` on a 4 x 4 crop, Lambert model, MCMC on
     every pixel: the EXR, the NetCDF and report.json with diagnostics; then
     :func:`jaxrefl.svbrdf.uncertainty_maps` with the same settings returns exactly what the
     command wrote, as a typed result."""
-    cap = tmp_path / "cap"
-    assert main(["demo", "--out", str(cap), "--size", "8", "--no-fit"]) == 0
+    cap = demo_cap
     out = tmp_path / "out"
     argv = ["sample", str(cap), "--out", str(out), "--model", "lambert", "--pixels", "2:6,2:6"]
     argv += ["--mcmc", "all", "--warmup", "60", "--samples", "60", "--chains", "2", "--quiet"]
@@ -225,9 +233,11 @@ def test_cli_sample_capture_end_to_end(tmp_path):
     slope = np.asarray(res.posterior.space.dnatural(jax.numpy.asarray(res.fit.theta)))[:, 0]
     std_map = res.fit.maps[map_name(lab, "_std")].reshape(-1)
     np.testing.assert_allclose(res.theta_std[:, 0] * np.abs(slope), std_map, rtol=1e-12)
-    # A held-out photo stays out of the posterior as it stayed out of the fit.
+    # A held-out photo stays out of the posterior as it stayed out of the fit: the data
+    # the map's posterior holds (what its MCMC samples, with or without pixels to sample)
     crop = load_capture(cap).crop(2, 6, 2, 6)
-    held = svbrdf.uncertainty_maps(crop, replace(job, holdout=(0,)), options)
+    laplace_only = replace(options, mcmc="none")
+    held = svbrdf.uncertainty_maps(crop, replace(job, holdout=(0,)), laplace_only)
     w = np.asarray(held.data.weight)
     assert np.all(w[:, 0] == 0) and np.all(np.any(w[:, 1:] > 0, axis=(1, 2)))
     with pytest.raises(ValueError, match="float64"):
@@ -836,17 +846,17 @@ def test_time_limit_leaves_laplace_pixels_marked_and_a_pass_says_what_it_does(la
         replace(opts, time_limit_s=0.0)
 
 
-def test_cli_sample_prints_its_stages_without_a_terminal_and_stops_at_its_time_limit(tmp_path):
+def test_cli_sample_prints_its_stages_without_a_terminal_and_stops_at_its_time_limit(
+    demo_cap, tmp_path
+):
     """`jaxrefl sample` in a subprocess (stderr a pipe, not a terminal): one line per stage
     with the seconds since the start; --time-limit: exit status 3, the MCMC pixels left
     marked ``laplace_time_limit`` in uncertainty.exr and counted in report.json, the fit's
     work kept and named for a rerun."""
-    import os
     import subprocess
     import sys
 
-    cap = tmp_path / "cap"
-    assert main(["demo", "--out", str(cap), "--size", "8", "--no-fit"]) == 0
+    cap = demo_cap
     out = tmp_path / "out"
     argv = ["sample", str(cap), "--out", str(out), "--model", "lambert", "--pixels", "2:6,2:6"]
     argv += ["--mcmc", "all", "--time-limit", "0.001"]
@@ -856,7 +866,6 @@ def test_cli_sample_prints_its_stages_without_a_terminal_and_stops_at_its_time_l
         capture_output=True,
         text=True,
         timeout=300,
-        env={**os.environ, "JAXREFL_NO_COMPILE_CACHE": "1"},
     )
     assert r.returncode == 3, r.stderr
     stages = [ln for ln in r.stderr.splitlines() if ln.startswith("[")]
