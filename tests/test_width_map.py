@@ -99,8 +99,11 @@ def _capture(alpha_map, seed=5):
 
 
 def _widths(cap):
+    """(fit, Laplace posterior, width spread) of ``cap``, fitted as ``uncertainty_maps`` fits
+    it: in one tile of the capture's pixels (so the ``varying`` fixture's programs serve)."""
     with jax.enable_x64(True):
-        job = FitJob(model="pooled", light="fixed", config=fit.FitConfig(dtype=np.float64))
+        config = fit.FitConfig(dtype=np.float64)
+        job = FitJob(model="pooled", light="fixed", config=config, tile_pixels=SIZE * SIZE)
         cf = fit_capture(cap, job)
         lp, _ = map_posterior(cf)
         data = pixel_block(cap, 0, SIZE * SIZE, dtype=np.float64)
