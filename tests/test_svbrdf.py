@@ -75,8 +75,9 @@ _F64_JOB = dict(
 
 
 def test_noise_free_capture_recovers_the_maps():
-    """Through the capture path (images stored as float32, so 1e-3 rather than 1e-4)."""
-    cap, scene = _demo_capture(size=12)
+    """Through the capture path (images stored as float32, so 1e-3 rather than 1e-4), on the
+    8 x 8 demo: one tile of the job's 64 pixels."""
+    cap, scene = _demo_capture(size=8)
     job = svbrdf.FitJob(**_F64_JOB)
     r = svbrdf.fit_capture(cap, job)
     p = r.params()
