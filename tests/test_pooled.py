@@ -27,6 +27,9 @@ SIZE = 24
 # Most tests fit six of the nine photos: one photo count (and one tile size) for every fit
 # of the same model, so each program compiles once for the whole file.
 SIX = (0, 1, 2, 3, 4, 5)
+# Every fit of the whole capture runs in one tile of its 576 pixels (the default 4096 rows
+# would be mostly padding), and the model selection in tiles of the same shape.
+TILE = SIZE * SIZE
 # JAX's monitoring events: a program lowered (new to the process), and compiled by XLA.
 _LOWER_EVENT = "/jax/core/compile/jaxpr_to_mlir_module_duration"
 _COMPILE_EVENT = "/jax/core/compile/backend_compile_duration"
@@ -65,8 +68,9 @@ def test_pooling_identifies_a_shared_lobe_the_pixels_do_not(shared_lobe_capture)
     assert choice.cv_rmse[f"{choice.alpha:.4g}"] < 0.5 * choice.cv_rmse["lambert"]
 
     # the light as stated: the light is not what this tests (tests/test_light*.py)
-    pooled = fit_capture(cap, FitJob(model="pooled", alpha_min=1e-3, light="fixed"))
-    per_px = fit_capture(cap, FitJob(model="ggx_rgb", alpha_min=1e-3, light="fixed"))
+    job = FitJob(model="pooled", alpha_min=1e-3, light="fixed", tile_pixels=TILE)
+    pooled = fit_capture(cap, job)
+    per_px = fit_capture(cap, replace(job, model="ggx_rgb"))
     f0_true = truth["specular"]
     f0_pool = np.stack([pooled.maps[f"specular.{c}"] for c in "RGB"], -1)
     f0_px = np.stack([per_px.maps[f"specular.{c}"] for c in "RGB"], -1)
@@ -92,7 +96,7 @@ def test_pooling_chooses_lambert_for_a_matte_capture(shared_lobe_capture):
     matte = Capture(**{**cap.__dict__, "images": img.astype(np.float32)}).select(SIX)
     choice = choose_pooled(matte, np.ones(matte.n_photos, bool), alpha_min=1e-3)
     assert choice.model == "lambert" and choice.alpha is None
-    res = fit_capture(matte, FitJob(model="pooled", holdout=(4,)))
+    res = fit_capture(matte, FitJob(model="pooled", holdout=(4,), tile_pixels=TILE))
     assert res.report["pooled"]["model"] == "lambert"
     assert list(res.labels) == ["albedo.R", "albedo.G", "albedo.B"]
     np.testing.assert_allclose(res.maps["albedo.G"], truth["albedo"][..., 1], rtol=0.03)
@@ -140,7 +144,8 @@ def test_leave_one_out_reuses_one_compile(shared_lobe_capture, tmp_path):
         fold["i"] = -2
         jax.jit(lambda x: x + 1.0)(1.0)  # a new program: the listener must see it
         fold["i"] = -1
-        loo = leave_one_out(cap, FitJob(model="pooled", alpha_min=1e-3), progress=progress)
+        job = FitJob(model="pooled", alpha_min=1e-3, tile_pixels=TILE)
+        loo = leave_one_out(cap, job, progress=progress)
     finally:
         jax.monitoring.unregister_event_duration_listener(listener)
     k = cap.n_photos
@@ -180,8 +185,7 @@ def test_cli_holdout_all(shared_lobe_capture, tmp_path):
     ).parent
     out = tmp_path / "out"
     argv = ["fit", str(folder), "--out", str(out), "--holdout", "all"]  # the default model
-    # one tile of the capture's 576 pixels (the default 4096 would be mostly padding)
-    opts = ["--quiet", "--no-previews", "--alpha-min", "0.001", "--tile-pixels", str(SIZE * SIZE)]
+    opts = ["--quiet", "--no-previews", "--alpha-min", "0.001", "--tile-pixels", str(TILE)]
     opts += ["--light", "fixed"]  # the light is not what this tests (tests/test_light*.py)
     assert main([*argv, *opts]) == 0
 
@@ -212,7 +216,7 @@ def auto_fit(shared_lobe_capture):
     """(6-photo capture, its default fit with photo 5 held out)."""
     cap, _ = shared_lobe_capture
     cap = cap.select(SIX)
-    job = FitJob(holdout=(5,), alpha_min=1e-3)
+    job = FitJob(holdout=(5,), alpha_min=1e-3, tile_pixels=TILE)
     assert job.model == "auto" and job.config.loss is None
     return cap, fit_capture(cap, job)
 
@@ -233,7 +237,7 @@ def test_auto_chooses_the_shared_coloured_lobe_and_never_sees_held_out_photos(au
     assert choice.cv_rmse["pooled"] < choice.cv_rmse["ggx"]
     assert choice.folds == (0, 1, 2, 3, 4)
     # Photo 5 is held out: replacing it by noise changes no score.
-    again = choose_model(_corrupt(cap, 5), FitJob(holdout=(5,), alpha_min=1e-3))
+    again = choose_model(_corrupt(cap, 5), FitJob(holdout=(5,), alpha_min=1e-3, tile_pixels=TILE))
     assert again.cv_rmse == choice.cv_rmse
     # The fit resolves the model and its loss and reports the choice.
     assert res.job.model == "pooled" and res.job.config.loss == fit.Huber()
@@ -242,7 +246,7 @@ def test_auto_chooses_the_shared_coloured_lobe_and_never_sees_held_out_photos(au
     assert res.report["auto"]["model"] == "pooled"
     assert res.report["auto"]["cv_rmse"] == pytest.approx(choice.cv_rmse)
     assert "leave-one-photo-out" in res.report["auto"]["why"]
-    lam = fit_capture(cap, FitJob(model="lambert", holdout=(5,)))
+    lam = fit_capture(cap, FitJob(model="lambert", holdout=(5,), tile_pixels=TILE))
     assert res.report["heldout_rmse"] < 0.5 * lam.report["heldout_rmse"]
 
 
@@ -271,7 +275,7 @@ def test_auto_leaves_out_what_a_matte_capture_does_not_need(shared_lobe_capture)
     img = img * (1.0 + 0.005 * np.random.default_rng(1).standard_normal(img.shape))
     matte = Capture(**{**cap.__dict__, "images": img.astype(np.float32)}).select(SIX)
     three = AutoOptions(candidates=("lambert", "pooled", "ggx"))
-    choice = choose_model(matte, FitJob(alpha_min=1e-3, auto=three))
+    choice = choose_model(matte, FitJob(alpha_min=1e-3, auto=three, tile_pixels=TILE))
     assert choice.model == "lambert"
     assert set(choice.cv_rmse) == {"lambert", "pooled", "ggx"}
     assert choice.as_dict()["candidates"] == ["lambert", "pooled", "ggx"]
@@ -285,7 +289,7 @@ def test_tilted_model_compiles_once_for_every_tile(shared_lobe_capture):
     import jax
 
     cap, _ = shared_lobe_capture
-    cap = cap.select([0, 1, 2, 3])
+    cap = cap.select([0, 1, 2, 3]).crop(0, 12, 0, 12)  # three tiles of 48 pixels
     n_px = cap.shape[1] * cap.shape[2]
     events: list[int] = []
     tiles = {"done": 0}
@@ -355,7 +359,7 @@ def test_held_out_photo_is_re_rendered_with_coloured_highlights(auto_fit, tmp_pa
 
     assert chroma(shot) > 1.8  # the photo's highlight is gold
     assert chroma(pred) == pytest.approx(chroma(shot), rel=0.15)
-    grey = fit_capture(cap, FitJob(model="ggx", holdout=(5,), alpha_min=1e-3))
+    grey = fit_capture(cap, FitJob(model="ggx", holdout=(5,), alpha_min=1e-3, tile_pixels=TILE))
     _, g = predict_photos(grey, cap, [5])
     assert abs(chroma(g[0]) - chroma(shot)) > 2 * abs(chroma(pred) - chroma(shot))
     files = write_outputs(res, cap, tmp_path / "out")
@@ -370,7 +374,7 @@ def test_leave_one_out_compacts_by_the_work_of_all_folds(shared_lobe_capture, mo
     from jaxrefl.svbrdf import _auto, _job, _job_types, _tile_fitter
 
     cap, _ = shared_lobe_capture
-    cap = cap.select(SIX).crop(0, 8, 0, 8)
+    cap = cap.select([0, 1, 2, 3]).crop(0, 8, 0, 8)  # K = 4 folds of 64 pixels
     seen: list[tuple[str, bool]] = []
 
     class Recording(_tile_fitter.TileFitter):
@@ -385,18 +389,18 @@ def test_leave_one_out_compacts_by_the_work_of_all_folds(shared_lobe_capture, mo
     assert seen == [("lambert", False)]  # 64 pixels: far below COMPACT_MIN_PIXELS
     assert res.job.compact is False and res.report["job"]["compact"] is False
     seen.clear()
-    monkeypatch.setattr(_job_types, "COMPACT_MIN_PIXELS", 6 * 64)  # K x H x W reaches it
+    monkeypatch.setattr(_job_types, "COMPACT_MIN_PIXELS", 4 * 64)  # K x H x W reaches it
     leave_one_out(cap, job)
-    assert seen == [("lambert", True)] * 12
+    assert seen == [("lambert", True)] * 8
     seen.clear()
-    monkeypatch.setattr(_job_types, "COMPACT_MIN_PIXELS", 6 * 64 + 1)
+    monkeypatch.setattr(_job_types, "COMPACT_MIN_PIXELS", 4 * 64 + 1)
     leave_one_out(cap, job)
-    assert seen == [("lambert", False)] * 12
+    assert seen == [("lambert", False)] * 8
     seen.clear()
     # The default model: fit_capture hands the job's choice to the selection (here of one
     # candidate, which keeps the test to one compiled model) and to the chosen model's fit.
     one = AutoOptions(candidates=("lambert",))
-    res = fit_capture(cap, FitJob(tile_pixels=64, holdout=(5,), compact=True, auto=one))
+    res = fit_capture(cap, FitJob(tile_pixels=64, holdout=(3,), compact=True, auto=one))
     assert res.job.model == "lambert" and res.job.compact is True
     assert res.report["auto"]["candidates"] == ["lambert"] and res.job.auto == one
     assert seen == [("lambert", True), ("lambert", True)]
