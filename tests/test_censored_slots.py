@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from jaxrefl.posterior._conjugate import CENSORED_SLOTS, censored_slots
+from jaxrefl.posterior._conjugate import CENSORED_GROWTH, CENSORED_SLOTS, censored_slots
 from jaxrefl.posterior._gibbs import latent_terms
 
 
@@ -23,8 +23,8 @@ def test_slots_hold_each_pixels_censored_observations_in_order_then_padding():
     idx, sign = censored_slots(cens)
     count = np.sum(cens != 0, axis=1)
     r = idx.shape[1]
-    assert r >= CENSORED_SLOTS and r >= count.max() and r & (r - 1) == 0
-    assert r // 2 < count.max() or r == CENSORED_SLOTS  # the smallest such power of 2
+    sizes = [CENSORED_SLOTS * CENSORED_GROWTH**k for k in range(4)]
+    assert r == min(s for s in sizes if s >= count.max())  # the smallest compiled size
     for i in range(cens.shape[0]):
         where = np.flatnonzero(cens[i])
         k = where.size
@@ -36,14 +36,15 @@ def test_slots_hold_each_pixels_censored_observations_in_order_then_padding():
 def test_no_censoring_and_more_slots_than_observations():
     idx, sign = censored_slots(np.zeros((5, 9), np.int8))
     assert idx.shape == (5, CENSORED_SLOTS) and not np.any(sign) and not np.any(idx)
-    # every one of 6 observations censored: 8 slots, the last 2 padding
+    # every one of 6 observations censored: more slots than observations, padding after
     cens = np.array([[1, -1, 1, 1, -1, 1], [0, 0, 0, 0, 0, -1]], np.int8)
     idx, sign = censored_slots(cens)
-    assert idx.shape == (2, 8)
-    np.testing.assert_array_equal(idx[0], [0, 1, 2, 3, 4, 5, 0, 0])
-    np.testing.assert_array_equal(sign[0], [1, -1, 1, 1, -1, 1, 0, 0])
-    np.testing.assert_array_equal(idx[1], [5, 0, 0, 0, 0, 0, 0, 0])
-    np.testing.assert_array_equal(sign[1], [-1, 0, 0, 0, 0, 0, 0, 0])
+    r = CENSORED_SLOTS * CENSORED_GROWTH
+    assert idx.shape == (2, r)
+    np.testing.assert_array_equal(idx[0], [0, 1, 2, 3, 4, 5] + [0] * (r - 6))
+    np.testing.assert_array_equal(sign[0], [1, -1, 1, 1, -1, 1] + [0] * (r - 6))
+    np.testing.assert_array_equal(idx[1], [5] + [0] * (r - 1))
+    np.testing.assert_array_equal(sign[1], [-1] + [0] * (r - 1))
 
 
 def test_gathered_latent_terms_equal_the_dense_ones():

@@ -23,6 +23,7 @@ from ._logpost import LogPosterior
 from ._priors import Jeffreys
 
 __all__ = [
+    "CENSORED_GROWTH",
     "CENSORED_SLOTS",
     "EDGE",
     "LINEAR_RTOL",
@@ -49,8 +50,12 @@ EDGE = 1e-12
 # approaches the smallest normal float, and the tail is drawn as its exponential limit
 # a + Exp(a) (relative error of the density about 1 / a^2 over the tail's scale 1 / a).
 _TAIL = {8: 30.0, 4: 10.0}
-# The fewest slots of censored observations a pixel's latent draw gathers (censored_slots).
+# Slots of censored observations a pixel's latent draw gathers (censored_slots): at least
+# CENSORED_SLOTS (a pixel has a few), else that times a power of CENSORED_GROWTH. The coarse
+# growth keeps the compiled sizes to two for a capture's 27-48 observations a pixel (each
+# size is one more program to compile in a cold run).
 CENSORED_SLOTS = 4
+CENSORED_GROWTH = 8
 
 
 def truncated_normal(key, a, b, dtype=jnp.float64):
@@ -123,12 +128,13 @@ def censored_slots(cens: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The censored observations of each pixel, gathered, so that a scan draws latent values
     for them only (a pixel has a few at most): their indices (N, R), padded with index 0,
     and their signs (N, R) (+1 above, -1 below, 0 on the padding), of the flags ``cens`` (N,
-    M) (+1 saturated, -1 dark, 0 observed). R is the smallest power of 2 at least
-    :data:`CENSORED_SLOTS` that holds every pixel's, so chunks share a few compiled sizes."""
+    M) (+1 saturated, -1 dark, 0 observed). R is the smallest :data:`CENSORED_SLOTS` times
+    a power of :data:`CENSORED_GROWTH` that holds every pixel's, so chunks share a few
+    compiled sizes."""
     count = np.sum(cens != 0, axis=1)
     r_max = CENSORED_SLOTS
     while r_max < int(count.max(initial=0)):
-        r_max *= 2
+        r_max *= CENSORED_GROWTH
     # argsort's stable order puts each pixel's censored observations first, in their order
     order = np.argsort(cens == 0, axis=1, kind="stable")[:, :r_max]
     if order.shape[1] < r_max:  # fewer observations than slots: pad with observation 0
