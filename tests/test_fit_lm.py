@@ -165,17 +165,31 @@ def test_pure_state_functions_and_status_codes():
     assert set(fit.STATUS_MEANINGS) == set(fit.Status)
 
 
-def test_compaction_stages_give_each_pixel_its_own_lm_solve(monkeypatch):
+@pytest.fixture(scope="module")
+def ggx_256():
+    """256 noisy GGX pixels in float64 with a small parameter space (P = 3: grey albedo and
+    F0, alpha), their residual and start, and the reference: lm_solve on each pixel alone
+    (vmap), 25 steps. lm_solve reads only the step's options (max_iters, damping, tolerances,
+    step cap, bound tolerance), none of batched_lm's batching fields (compact_*, chunk,
+    host_*): one reference serves every batching compared with it below."""
+    pr = make_problem("ggx_noisy_256", _GGX, n=256, noise=0.02, seed=7)
+    space = fit.ParamSpace(pr.model, channels=3, grey=("albedo", "specular"))
+    res = fit.make_residual(pr.model, space)
+    theta0 = jnp.broadcast_to(space.from_natural({}, dtype=jnp.float64), (256, space.size))
+    step = fit.LMOptions(max_iters=25)
+    plain = jax.vmap(lambda t, d: fit.lm_solve(res, t, d, step, space=space))
+    theta_ref, r_ref = plain(theta0, pr.data)
+    return pr, space, res, theta0, theta_ref, r_ref
+
+
+def test_compaction_stages_give_each_pixel_its_own_lm_solve(monkeypatch, ggx_256):
     """batched_lm's staged compaction (gather the unconverged pixels into ever smaller
     sub-batches) must not change any pixel's result: the same steps in the same order as
     lm_solve on that pixel alone, here against vmap(lm_solve) in float64."""
     # Blocks below _MIN_BLOCK pixels take one plain scan; this block of 256 must compact.
     monkeypatch.setattr(fit._lm, "_MIN_BLOCK", 0)
     # A small problem (P = 3) keeps the five compiled copies of the step cheap.
-    pr = make_problem("ggx_noisy_256", _GGX, n=256, noise=0.02, seed=7)
-    space = fit.ParamSpace(pr.model, channels=3, grey=("albedo", "specular"))
-    res = fit.make_residual(pr.model, space)
-    theta0 = jnp.broadcast_to(space.from_natural({}, dtype=jnp.float64), (256, space.size))
+    pr, space, res, theta0, theta_ref, r_ref = ggx_256
     staged = fit.LMOptions(
         max_iters=25,
         compact_after=6,
@@ -184,8 +198,6 @@ def test_compaction_stages_give_each_pixel_its_own_lm_solve(monkeypatch):
         host_loop=False,
     )
     theta, r = fit.batched_lm(res, theta0, pr.data, staged, space=space)
-    plain = jax.vmap(lambda t, d: fit.lm_solve(res, t, d, staged, space=space))
-    theta_ref, r_ref = plain(theta0, pr.data)
     it = np.asarray(r.iterations)
     # The stages were exercised: pixels stopped in each of them.
     assert np.any(it <= 6) and np.any((it > 9) & (it <= 13)) and np.any(it > 13), np.bincount(it)
@@ -198,17 +210,14 @@ def test_compaction_stages_give_each_pixel_its_own_lm_solve(monkeypatch):
 
 
 @pytest.mark.parametrize("fused", [False, True])
-def test_host_driven_steps_give_each_pixel_its_own_lm_solve(monkeypatch, fused):
+def test_host_driven_steps_give_each_pixel_its_own_lm_solve(monkeypatch, fused, ggx_256):
     """batched_lm called outside a trace drives its steps from Python and gathers the
     unconverged pixels into ever fewer slots every host_round steps (``host_fused``: each
     round one program, and the last few pixels in one round of all their remaining steps):
     every pixel takes the steps lm_solve takes on it alone (float64), and the result equals
     the one-program path's; under jit the one-program path runs."""
     monkeypatch.setattr(fit._lm, "_MIN_BLOCK", 0)  # gather in a block of 256 as well
-    pr = make_problem("ggx_noisy_256", _GGX, n=256, noise=0.02, seed=7)
-    space = fit.ParamSpace(pr.model, channels=3, grey=("albedo", "specular"))
-    res = fit.make_residual(pr.model, space)
-    theta0 = jnp.broadcast_to(space.from_natural({}, dtype=jnp.float64), (256, space.size))
+    pr, space, res, theta0, theta_ref, r_ref = ggx_256
     host = fit.LMOptions(max_iters=25, compact_after=2, host_round=3, host_fused=fused)
     gathered: list[int] = []  # live slots of each gathered round
     steps: list[int] = []  # host_fused: the steps each round may take
@@ -229,8 +238,6 @@ def test_host_driven_steps_give_each_pixel_its_own_lm_solve(monkeypatch, fused):
     monkeypatch.setattr(fit._lm_host, "_gather", recording)
     monkeypatch.setattr(fit._lm_host, "_round", recording_round)
     theta, r = fit.batched_lm(res, theta0, pr.data, host, space=space)
-    plain = jax.vmap(lambda t, d: fit.lm_solve(res, t, d, host, space=space))
-    theta_ref, r_ref = plain(theta0, pr.data)
     it = np.asarray(r.iterations)
     # Pixels stopped early and late, and the late ones were gathered in fewer slots.
     assert gathered and min(gathered) < 64 and np.any(it <= 5) and np.any(it > 12), gathered
