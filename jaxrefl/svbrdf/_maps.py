@@ -188,7 +188,13 @@ def capture_report(fitter, cat, capture, job, maps, compile_s, times, n_tiles, l
                 fitter.space.labels, fitter.space.lower, fitter.space.upper, strict=True
             )
         },
-        "alpha_min": fitter.alpha_min if "alpha" in fitter.space.labels else None,
+        # a pooled fit's too: its width was chosen from alpha_min up, and a plan read back
+        # from this file frees that width with this bound
+        "alpha_min": (
+            fitter.alpha_min
+            if "alpha" in fitter.space.labels or fitter.pooled is not None
+            else None
+        ),
         "pooled": None if fitter.pooled is None else fitter.pooled.as_dict(),
         "job": job.to_json(),
         "capture": {

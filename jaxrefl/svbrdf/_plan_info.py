@@ -193,8 +193,9 @@ def _state(capture_fit: CaptureFit, capture, max_pixels: int, seed: int) -> _Sta
     if pooled is not None and pooled.alpha is not None:
         if capture_fit.alpha_min is None:
             raise JaxreflError(
-                "the pooled fit records no lower bound of its width (alpha_min): plan from "
-                "the fit fit_capture returns"
+                "the pooled fit's report.json records no lower bound of its width "
+                "(alpha_min): run `jaxrefl fit` again to write one, or plan from the fit "
+                "fit_capture returns"
             )
         # The shared width becomes a free parameter of the same model (counted once).
         model, space = capture_model(
