@@ -297,8 +297,12 @@ def plot_rank(idata, pixel: int = 0, var_names=None):
 
 
 def plot_corner(samples: Samples, pixel: int = 0, truth: np.ndarray | None = None, max_points=2000):
-    """Corner plot: pairwise scatter of the draws and marginal histograms."""
+    """Corner plot: pairwise scatter of the draws and marginal histograms. Tick labels on
+    the outer axes only (a column shares its parameter's axis, a row its own), three ticks
+    an axis, and fixed margins rather than a computed layout: a map writes a few of these,
+    and laying out d^2 labelled axes costs seconds each."""
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import MaxNLocator
 
     x = samples.flat(pixel)
     x = x[np.all(np.isfinite(x), axis=-1)]
@@ -310,7 +314,7 @@ def plot_corner(samples: Samples, pixel: int = 0, truth: np.ndarray | None = Non
         for j in range(d):
             ax = axes[i, j]
             if j > i:
-                ax.axis("off")
+                ax.remove()
                 continue
             if i == j:
                 ax.hist(x[:, i], bins=30, color="C0", alpha=0.8)
@@ -320,12 +324,19 @@ def plot_corner(samples: Samples, pixel: int = 0, truth: np.ndarray | None = Non
                 ax.plot(x[:, j], x[:, i], ".", ms=1.5, alpha=0.4)
                 if truth is not None:
                     ax.plot(truth[j], truth[i], "+", color="C3", ms=10)
+                if j > 0:  # a row's scatters share parameter i's axis
+                    ax.sharey(axes[i, 0])
+                ax.sharex(axes[j, j])  # and a column's, parameter j's
+            ax.xaxis.set_major_locator(MaxNLocator(3))
+            ax.yaxis.set_major_locator(MaxNLocator(3))
+            ax.tick_params(
+                labelsize=6, labelbottom=i == d - 1, labelleft=j == 0 and i > 0, labelrotation=0
+            )
             if i == d - 1:
                 ax.set_xlabel(samples.labels[j], fontsize=8)
             if j == 0 and i > 0:
                 ax.set_ylabel(samples.labels[i], fontsize=8)
-            ax.tick_params(labelsize=6)
-    fig.tight_layout()
+    fig.subplots_adjust(left=0.1, right=0.98, bottom=0.1, top=0.95, wspace=0.1, hspace=0.1)
     return fig
 
 

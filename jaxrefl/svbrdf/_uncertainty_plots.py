@@ -69,10 +69,12 @@ def write_uncertainty_plots(
     step = max(1, -(-max(h, w) // side))
     paths: list[Path] = []
 
-    def save(fig, name: str) -> None:
-        fig.tight_layout()
+    def save(fig, name: str, layout: bool = True) -> None:
+        # layout=False: the figure placed its axes itself (plot_corner's fixed margins)
+        if layout:
+            fig.tight_layout()
         paths.append(out / name)
-        fig.savefig(paths[-1], dpi=90, bbox_inches="tight")
+        fig.savefig(paths[-1], dpi=90, bbox_inches="tight" if layout else None)
         plt.close(fig)
 
     labels = u.labels
@@ -119,5 +121,5 @@ def write_uncertainty_plots(
             row, col = divmod(int(idx[i]), w)
             fig = jp.plot_corner(u.samples, i)
             fig.suptitle(f"pixel row {row}, col {col}: max R-hat {u.rhat[idx[i]]:.3f}", fontsize=9)
-            save(fig, f"pair_r{row}_c{col}.png")
+            save(fig, f"pair_r{row}_c{col}.png", layout=False)
     return paths
