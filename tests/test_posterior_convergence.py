@@ -65,15 +65,17 @@ def _gauss(theta):
 def test_sample_emcee_runs_until_converged_or_the_cap():
     o = jp.EmceeOptions(n_walkers=8, max_steps=20_000, check_every=250, seed=3)
     s = jp.sample_emcee(_gauss, np.zeros(1), (), o)
-    c = s.extra["convergence"]
-    assert c["converged"] and s.extra["tau_reliable"]
-    n = s.extra["n_steps"]
-    assert n % 250 == 0 and 50 * max(s.extra["tau"]) <= n < 20_000
-    assert c["max_rhat"] <= 1.01 and c["min_ess_bulk"] >= 400
+    assert s.emcee is not None
+    c = s.emcee.convergence
+    assert c.converged and s.emcee.tau_reliable and c.tau == s.emcee.tau
+    n = s.emcee.n_steps
+    assert n % 250 == 0 and 50 * max(s.emcee.tau) <= n < 20_000 and c.n_steps == n
+    assert c.max_rhat <= 1.01 and c.min_ess_bulk >= 400
     np.testing.assert_allclose(np.std(s.theta[0]), 0.1, rtol=0.15)
     capped = jp.sample_emcee(_gauss, np.zeros(1), (), jp.EmceeOptions(8, max_steps=120, seed=3))
-    c = capped.extra["convergence"]
-    assert capped.extra["n_steps"] == 120 and not c["converged"] and c["reasons"]
+    assert capped.emcee is not None
+    c = capped.emcee.convergence
+    assert capped.emcee.n_steps == 120 and not c.converged and c.reasons
     # The seed is an option: the same options, the same draws; another seed, others.
     again = jp.sample_emcee(_gauss, np.zeros(1), (), jp.EmceeOptions(8, max_steps=120, seed=3))
     other = jp.sample_emcee(_gauss, np.zeros(1), (), jp.EmceeOptions(8, max_steps=120, seed=4))

@@ -297,9 +297,7 @@ def _draws_at_start(lp, th0, options, seed):
     n, c, m = th0.shape[0], options.num_chains, options.num_samples
     x = th0[:, None, None, :] + 1e-3 * rng.normal(size=(n, c, m, th0.shape[1]))
     st = {"acceptance_rate": np.ones((n, c, m)), "diverging": np.zeros((n, c, m), bool)}
-    return jp.Samples(
-        x, x, lp.labels, st, "hmc", run_s=1.0, extra={"no_estimate": np.zeros(n, bool)}
-    )
+    return jp.Samples(x, x, lp.labels, st, "hmc", run_s=1.0, no_estimate=np.zeros(n, bool))
 
 
 def test_adaptive_chunks_have_one_shape_and_map_back(lambert, monkeypatch):
@@ -472,9 +470,7 @@ def test_second_pass_reruns_the_pixels_whose_chains_disagree(lambert, monkeypatc
         x = x + 1e-2 * rng.normal(size=x.shape)
         st = {"acceptance_rate": np.ones(x.shape[:3]), "diverging": np.zeros(x.shape[:3], bool)}
         n = x.shape[0]
-        return jp.Samples(
-            x, x, lp_.labels, st, "hmc", run_s=1.0, extra={"no_estimate": np.zeros(n, bool)}
-        )
+        return jp.Samples(x, x, lp_.labels, st, "hmc", run_s=1.0, no_estimate=np.zeros(n, bool))
 
     monkeypatch.setattr(_chunks, "sample_pixels", fake)
     opts = jp.HMCOptions(num_warmup=5, num_samples=30, num_chains=2)
@@ -627,9 +623,7 @@ def test_third_pass_reruns_the_pixels_still_apart(lambert, monkeypatch):
                 x[k, 1] += 1.0
         st = {"acceptance_rate": np.ones(x.shape[:3]), "diverging": np.zeros(x.shape[:3], bool)}
         n = x.shape[0]
-        return jp.Samples(
-            x, x, lp_.labels, st, "hmc", run_s=1.0, extra={"no_estimate": np.zeros(n, bool)}
-        )
+        return jp.Samples(x, x, lp_.labels, st, "hmc", run_s=1.0, no_estimate=np.zeros(n, bool))
 
     monkeypatch.setattr(_chunks, "sample_pixels", fake)
     opts = jp.HMCOptions(num_warmup=5, num_samples=30, num_chains=2)
@@ -681,7 +675,7 @@ def test_chunk_folder_resumes_without_sampling_again(lambert, monkeypatch, tmp_p
         tuning = {"step_size": np.ones(x.shape[:2])}
         n = x.shape[0]
         return jp.Samples(
-            x, x, lp_.labels, st, "hmc", tuning, run_s=1.0, extra={"no_estimate": np.zeros(n, bool)}
+            x, x, lp_.labels, st, "hmc", tuning, run_s=1.0, no_estimate=np.zeros(n, bool)
         )
 
     monkeypatch.setattr(_chunks, "sample_pixels", fake)
@@ -751,7 +745,7 @@ def test_second_pass_of_an_untuned_sampler_reuses_the_first_pass_program(lambert
             st,
             "gibbs_mh",
             run_s=1.0,
-            extra={"no_estimate": np.zeros(x.shape[0], bool)},
+            no_estimate=np.zeros(x.shape[0], bool),
         )
 
     monkeypatch.setattr(_chunks, "sample_pixels", fake)

@@ -120,7 +120,7 @@ def test_known_answer_against_the_bound():
         noise_scale=sigma,
     )
     s = jp.sample_pixels(lp, data, theta0[None], options=opts, seed=4)
-    assert s.extra["reparam"] == "albedo"
+    assert s.reparam == "albedo"
     x = s.flat(0)  # albedo R, G, B, noise_scale
 
     saa = np.sum(a * a, 0)

@@ -68,7 +68,7 @@ def test_sbc_batched_hmc(ggx1):
         num_warmup=120, num_samples=80, num_chains=2, num_integration_steps=8, batch_size=40
     )
     s = jp.sample_pixels(lp, sub, jnp.asarray(theta[:n]), options=opts, seed=5)
-    assert s.extra["reparam"] == "albedo"
+    assert s.reparam == "albedo"
     draws = thin(s.theta, 19)
     res = jp.sbc_summary(theta[:n], draws, labels=lp.labels, bins=5)
     assert np.all(res.tests["chi2_p"] > 1e-3), res.to_dict()

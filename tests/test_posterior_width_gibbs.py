@@ -145,7 +145,7 @@ def test_draws_have_the_quadrature_marginals_of_alpha_and_f0(ggx_fit, f0_prior):
         s2 = run(num_samples=2000, sweeps=2, seed=12, theta0=theta_high, theta_std=std_high)
     finally:
         clock.stop()
-    assert clock.programs == 0 and s2.extra["sweeps"] == 2
+    assert clock.programs == 0 and s2.sweeps == 2
     assert np.all(np.isfinite(s2.theta)) and not np.array_equal(s2.theta, s.theta)
     assert np.median(s.natural[0, ..., ia]) < 0.095
     for j in range(3):

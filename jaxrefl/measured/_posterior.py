@@ -50,7 +50,6 @@ _MULTISTART = MultiStart()
 _OPTIONS = MeasuredOptions()
 FILE_DRAWS = 2000  # draws in posterior.nc: with the log-likelihood, ~35 MB for 4,300 values
 HMC_SEED = 0  # the HMC chains' seed where HMCOptions.seed is None
-_EMCEE_KEYS = ("tau", "burn", "thin", "tau_reliable", "n_steps", "max_steps", "n_walkers")
 
 
 @dataclass
@@ -84,16 +83,8 @@ class BRDFPosterior:
         """Whether the draws may be trusted (:func:`jaxrefl.posterior.convergence`): emcee's
         verdict at its stop (chain >= n_tau tau, R-hat, bulk ESS); for HMC, R-hat <=
         1.01 and bulk ESS >= 400 for every parameter."""
-        c = self.samples.extra.get("convergence")
-        if c is not None:
-            return jp.Convergence(
-                converged=c["converged"],
-                reasons=tuple(c["reasons"]),
-                tau=tuple(c["tau"]),
-                n_steps=c["chain_length"],
-                max_rhat=c["max_rhat"],
-                min_ess_bulk=c["min_ess_bulk"],
-            )
+        if self.samples.emcee is not None:
+            return self.samples.emcee.convergence
         x = self.samples.natural[0]  # (chains, draws, D)
         return jp.convergence(x, labels=self.samples.labels)
 
@@ -154,7 +145,18 @@ class BRDFPosterior:
         diagnostics (worst R-hat and ESS, divergences, acceptance; emcee's tau, burn-in and
         thinning), timings and the :attr:`settings` that ran."""
         s, dg, mf = self.samples, self.diagnostics(), self.fit
-        emcee = {k: s.extra[k] for k in _EMCEE_KEYS} if self.sampler_name == "emcee" else {}
+        run = s.emcee
+        emcee: dict[str, Any] = {}
+        if run is not None:  # emcee's tau, burn-in and thinning
+            emcee = {
+                "tau": list(run.tau),
+                "burn": run.burn,
+                "thin": run.thin,
+                "tau_reliable": run.tau_reliable,
+                "n_steps": run.n_steps,
+                "max_steps": run.max_steps,
+                "n_walkers": run.n_walkers,
+            }
         return {
             "model": self.model,
             "converged": self.convergence.converged,

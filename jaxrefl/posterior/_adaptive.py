@@ -231,7 +231,7 @@ class _Run:
             out.store(real, summary)
             if second is not None:  # draws kept for the second pass's starts only
                 # NaN R-hat (a chain that never moved) counts as disagreeing
-                stuck = ~(out.rhat[real] <= o.rerun_rhat) & ~cut.extra["no_estimate"]
+                stuck = ~(out.rhat[real] <= o.rerun_rhat) & ~cut.no_estimate
                 for j in np.flatnonzero(stuck):
                     restart[int(real[j])] = _restarts(cut, int(j), second.num_chains, rng)
             if o.keep_samples:
@@ -316,7 +316,7 @@ class _Run:
                 rows = self._rows(real)
                 samples.put([at[int(i)] for i in real[rows]], cut.take(rows))
             # NaN R-hat (a chain that never moved) counts as disagreeing
-            stuck = ~(out.rhat[real] <= self.o.rerun_rhat) & ~cut.extra["no_estimate"]
+            stuck = ~(out.rhat[real] <= self.o.rerun_rhat) & ~cut.no_estimate
             for j in np.flatnonzero(stuck):
                 stuck_starts[int(real[j])] = _restarts(cut, int(j), settings.num_chains, rng)
         if self.chunks.deadline is not None:

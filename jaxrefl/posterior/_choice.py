@@ -12,6 +12,8 @@ the per-pixel ``ggx``), Metropolis-within-Gibbs with a collapsed proposal of the
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
@@ -100,9 +102,7 @@ def sample_pixels(
                 **chains,
             )
         if s is not None:
-            s.extra["options"] = opts
-            s.extra["gibbs"] = gibbs
-            return s
+            return replace(s, options=opts, gibbs=gibbs)
     return sample_hmc(
         lp,
         data,

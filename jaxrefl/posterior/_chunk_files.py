@@ -52,9 +52,9 @@ def save_chunk(store: WorkStore, ci: int, cut: Samples, run_s: float) -> None:
     arrays: dict[str, Any] = {"theta": cut.theta, "natural": cut.natural, "run_s": run_s}
     arrays.update({f"stats.{k}": v for k, v in cut.stats.items()})
     arrays.update({f"tuning.{k}": v for k, v in cut.tuning.items()})
-    arrays["no_estimate"] = cut.extra["no_estimate"]
+    arrays["no_estimate"] = cut.no_estimate
     arrays["method"] = np.str_(cut.method)
-    arrays["reparam"] = np.str_(cut.extra.get("reparam", "none"))
+    arrays["reparam"] = np.str_(cut.reparam)
     store.save(_key(ci), arrays)
 
 
@@ -79,6 +79,7 @@ def load_chunk(
         method=str(a["method"]),
         tuning={k[7:]: v for k, v in a.items() if k.startswith("tuning.")},
         run_s=float(a["run_s"]),
-        extra={"no_estimate": a["no_estimate"], "reparam": str(a["reparam"])},
+        no_estimate=a["no_estimate"],
+        reparam=str(a["reparam"]),
     )
     return smp, float(a["run_s"])

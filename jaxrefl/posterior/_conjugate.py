@@ -241,14 +241,15 @@ def package_draws(
     *,
     acceptance,
     method: str,
-    sweeps,
+    sweeps: int,
     run_s: float,
     jeffreys: bool,
 ):
     """:class:`~jaxrefl.posterior.Samples` of a Gibbs sampler's natural draws ``xs`` (N,
     chains, draws, P) and noise variances ``s2s``: theta (log s appended where the scale is
-    sampled), the log density of every draw, ``acceptance`` (N, chains, draws) and no step
-    size (NaN, so that chunks of Gibbs and HMC draws concatenate)."""
+    sampled), the log density of every draw, ``acceptance`` (N, chains, draws), no step
+    size (NaN, so that chunks of Gibbs and HMC draws concatenate) and ``sweeps``, the
+    sweeps between kept draws (:attr:`Samples.sweeps`)."""
     theta = theta_of(lp, xs)
     if jeffreys:
         theta = jnp.concatenate([theta, 0.5 * jnp.log(s2s)[..., None]], axis=-1)
@@ -265,5 +266,5 @@ def package_draws(
         method=method,
         tuning={"step_size": np.full(shape[:2], np.nan)},
         run_s=run_s,
-        extra={"sweeps": sweeps, "reparam": "none"},
+        sweeps=sweeps,
     )

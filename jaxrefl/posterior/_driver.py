@@ -111,10 +111,12 @@ def chain_starts(theta0, n: int, num_chains: int, dtype):
 
 
 def package(
-    lp, theta, ok, *, stats: dict, method: str, tuning: dict, run_s: float, extra: dict, **kw
+    lp, theta, ok, *, stats: dict, method: str, tuning: dict, run_s: float, **kw
 ) -> Samples:
     """:class:`Samples` of theta draws (N, chains, draws, D) in float64, NaN on the pixels
-    without an estimate (``~ok``, also ``extra["no_estimate"]``), with their natural values."""
+    without an estimate (``~ok``, also :attr:`Samples.no_estimate`), with their natural
+    values; ``kw``: the other fields of :class:`Samples` (``compile_s``, ``reparam``,
+    ``options``, ``sweeps``)."""
     pos = np.array(theta, np.float64)
     bad = ~np.asarray(ok)
     pos[bad] = np.nan
@@ -127,6 +129,6 @@ def package(
         method=method,
         tuning=tuning,
         run_s=run_s,
-        extra={**extra, "no_estimate": bad},
+        no_estimate=bad,
         **kw,
     )

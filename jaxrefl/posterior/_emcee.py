@@ -39,7 +39,14 @@ from jaxrefl.fit import PixelData
 from ._fastdiag import ess_bulk, rhat_rank
 from ._samples import Samples
 
-__all__ = ["Convergence", "EmceeOptions", "autocorr_check", "convergence", "sample_emcee"]
+__all__ = [
+    "Convergence",
+    "EmceeOptions",
+    "EmceeRun",
+    "autocorr_check",
+    "convergence",
+    "sample_emcee",
+]
 
 MAX_RHAT = 1.01  # Vehtari et al. (2021) recommend R-hat < 1.01 before using the draws
 MIN_ESS = 400.0  # and a bulk ESS of at least 100 per chain of 4 (stable quantiles)
@@ -121,6 +128,31 @@ class Convergence:
             "max_rhat": self.max_rhat,
             "min_ess_bulk": self.min_ess_bulk,
         }
+
+
+@dataclass(frozen=True)
+class EmceeRun:
+    """What one :func:`sample_emcee` run did (:attr:`Samples.emcee`).
+
+    tau:          (D,) integrated autocorrelation times in steps at the stop
+    burn, thin:   the steps dropped at the start, and the step between kept draws
+    tau_reliable: whether the chain is at least ``n_tau`` times the largest tau long
+    acceptance:   the walkers' mean acceptance fraction
+    n_steps:      the chain's length in steps per walker
+    n_walkers:    walkers of the ensemble
+    max_steps:    the cap on steps the run had (:attr:`EmceeOptions.max_steps`)
+    convergence:  the verdict at the stop (:class:`Convergence`)
+    """
+
+    tau: tuple[float, ...]
+    burn: int
+    thin: int
+    tau_reliable: bool
+    acceptance: float
+    n_steps: int
+    n_walkers: int
+    max_steps: int
+    convergence: Convergence
 
 
 def autocorr_check(
@@ -208,9 +240,8 @@ def sample_emcee(
     theta_std: (D,) the start ball's shape (e.g. the Laplace std; None: 1e-2 everywhere)
     progress: a tqdm bar over the steps (to stderr)
     Returns :class:`Samples` with N = 1, walkers as chains (after burn-in and thinning);
-    ``extra`` holds ``tau``, ``burn``, ``thin``, ``tau_reliable`` (chain >= n_tau tau),
-    ``acceptance``, ``n_steps`` (the chain's length), ``n_walkers``, ``max_steps`` and
-    ``convergence`` (:meth:`Convergence.to_dict`).
+    ``emcee`` holds the run's facts (:class:`EmceeRun`: tau, burn-in, thinning, the
+    convergence verdict).
     """
     if args and isinstance(args[0], PixelData) and hasattr(logdensity, "for_data"):
         logdensity = logdensity.for_data(args[0])  # drops the unused censored branch
@@ -286,15 +317,15 @@ def sample_emcee(
         method="emcee",
         compile_s=compile_s,
         run_s=run_s,
-        extra={
-            "tau": tau.tolist(),
-            "burn": burn,
-            "thin": thin,
-            "tau_reliable": long_enough,
-            "acceptance": float(np.mean(sampler.acceptance_fraction)),
-            "n_steps": done,
-            "n_walkers": n_walkers,
-            "max_steps": o.max_steps,
-            "convergence": verdict.to_dict(),
-        },
+        emcee=EmceeRun(
+            tau=tuple(float(t) for t in tau),
+            burn=burn,
+            thin=thin,
+            tau_reliable=long_enough,
+            acceptance=float(np.mean(sampler.acceptance_fraction)),
+            n_steps=done,
+            n_walkers=n_walkers,
+            max_steps=o.max_steps,
+            convergence=verdict,
+        ),
     )

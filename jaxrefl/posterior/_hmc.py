@@ -306,5 +306,6 @@ def sample_hmc(
         tuning={"step_size": step},
         compile_s=compile_s,
         run_s=run_s,
-        extra={"options": opts, "reparam": "none" if rp is None else rp.name},
+        options=opts,
+        reparam="none" if rp is None else rp.name,
     )

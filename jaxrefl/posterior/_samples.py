@@ -5,12 +5,21 @@ pass)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Any
+from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ._options import GibbsOptions, HMCOptions
+
+if TYPE_CHECKING:  # _emcee returns Samples: the type of its run facts is named for mypy only
+    from ._emcee import EmceeRun
+
 __all__ = ["Samples"]
+
+
+def _no_pixels() -> np.ndarray:
+    return np.zeros(0, bool)
 
 
 @dataclass
@@ -25,6 +34,16 @@ class Samples:
     method:  ``"hmc"``, ``"nuts"`` or ``"emcee"``
     compile_s, run_s: time of compilation (first call minus a warm one, or of tracing),
              and of the sampling itself
+    no_estimate: (N,) bool, the pixels without an estimate (a non-finite start: their
+             draws are NaN); left empty, it is all False (every pixel has one)
+    reparam: the coordinates HMC ran in (``"albedo"``, or ``"none"``: theta itself); the
+             draws are theta's whatever it names
+    options: the :class:`HMCOptions` that ran (HMC, or the chain counts of a Gibbs
+             sampler); None where no HMC settings ran (emcee, a chunk read from disk)
+    gibbs:   the :class:`GibbsOptions` where a Gibbs sampler drew the pixels, else None
+    sweeps:  the Gibbs sweeps (or width scans) between kept draws, else None
+    emcee:   emcee's run facts (:class:`jaxrefl.posterior._emcee.EmceeRun`: tau, burn-in,
+             thinning, the convergence verdict), else None
     """
 
     theta: np.ndarray
@@ -35,7 +54,17 @@ class Samples:
     tuning: dict[str, np.ndarray] = field(default_factory=dict)
     compile_s: float = float("nan")
     run_s: float = float("nan")
-    extra: dict[str, Any] = field(default_factory=dict)
+    no_estimate: np.ndarray = field(default_factory=_no_pixels)
+    reparam: str = "none"
+    options: HMCOptions | None = None
+    gibbs: GibbsOptions | None = None
+    sweeps: int | None = None
+    emcee: EmceeRun | None = None
+
+    def __post_init__(self) -> None:
+        ne = np.asarray(self.no_estimate, bool)
+        # left empty: every pixel has an estimate
+        self.no_estimate = ne if ne.size else np.zeros(self.theta.shape[0], bool)
 
     @property
     def n_pixels(self) -> int:
@@ -50,36 +79,34 @@ class Samples:
         """The first ``m`` pixels (an int: drops the padding of a chunk), or the pixels at
         the indices ``m`` (an integer array)."""
         at = slice(None, m) if isinstance(m, int) else np.asarray(m, dtype=np.int64)
-        return Samples(
+        return replace(
+            self,
             theta=self.theta[at],
             natural=self.natural[at],
-            labels=self.labels,
             stats={k: v[at] for k, v in self.stats.items()},
-            method=self.method,
             tuning={k: v[at] for k, v in self.tuning.items()},
-            compile_s=self.compile_s,
-            run_s=self.run_s,
-            extra={**self.extra, "no_estimate": self.extra["no_estimate"][at]},
+            no_estimate=self.no_estimate[at],
         )
 
     @classmethod
     def concat(cls, parts: list[Samples]) -> Samples:
         """Chunks' draws joined along the pixel axis; ``method`` names every sampler that
-        drew a part (exact Gibbs and HMC chunks can meet in one map: ``"gibbs+hmc"``)."""
+        drew a part (exact Gibbs and HMC chunks can meet in one map: ``"gibbs+hmc"``), the
+        run time is their sum, and the other settings (labels, compile time, ``reparam``,
+        ``options``, ``gibbs``, ``sweeps``, ``emcee``) are the first part's."""
         if len(parts) == 1:
             return parts[0]
         p0 = parts[0]
         cat = np.concatenate
-        return cls(
+        return replace(
+            p0,
             theta=cat([p.theta for p in parts]),
             natural=cat([p.natural for p in parts]),
-            labels=p0.labels,
             stats={k: cat([p.stats[k] for p in parts]) for k in p0.stats},
             method="+".join(dict.fromkeys(p.method for p in parts)),
             tuning={k: cat([p.tuning[k] for p in parts]) for k in p0.tuning},
-            compile_s=p0.compile_s,
             run_s=float(sum(p.run_s for p in parts)),
-            extra={**p0.extra, "no_estimate": cat([p.extra["no_estimate"] for p in parts])},
+            no_estimate=cat([p.no_estimate for p in parts]),
         )
 
     def put(self, at: list[int], cut: Samples) -> None:
