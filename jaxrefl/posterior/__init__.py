@@ -48,6 +48,7 @@ from ._diagnostics import save_netcdf as save_netcdf
 from ._diagnostics import to_inference_data as to_inference_data
 from ._emcee import Convergence as Convergence
 from ._emcee import EmceeOptions as EmceeOptions
+from ._emcee import EmceeRun as EmceeRun
 from ._emcee import convergence as convergence
 from ._emcee import sample_emcee as sample_emcee
 from ._logpost import LogPosterior as LogPosterior
@@ -92,6 +93,7 @@ __all__ = [
     "AdaptiveOptions",
     "Convergence",
     "EmceeOptions",
+    "EmceeRun",
     "GibbsOptions",
     "HMCOptions",
     "HalfCauchy",

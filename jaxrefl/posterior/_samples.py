@@ -31,7 +31,8 @@ class Samples:
     stats:   per-draw sample statistics (N, chains, draws): ``acceptance_rate``,
              ``diverging`` (bool), ``lp`` (log density)
     tuning:  per-chain tuned settings, e.g. ``step_size`` (N, chains)
-    method:  ``"hmc"``, ``"nuts"`` or ``"emcee"``
+    method:  ``"hmc"``, ``"nuts"``, ``"gibbs"`` (exact Gibbs), ``"gibbs_mh"`` (the width
+             sampler) or ``"emcee"``
     compile_s, run_s: time of compilation (first call minus a warm one, or of tracing),
              and of the sampling itself
     no_estimate: (N,) bool, the pixels without an estimate (a non-finite start: their

@@ -43,7 +43,7 @@ uncertainty).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import jax
@@ -81,7 +81,6 @@ class PoolChoice:
     prior_std: tuple[float, ...] = ()
     sigma: float | None = None
     pixels: int = 0
-    extra: dict[str, Any] = field(default_factory=dict)
 
     def as_dict(self) -> dict[str, Any]:
         best = min(self.cv_rmse.values()) if self.cv_rmse else None

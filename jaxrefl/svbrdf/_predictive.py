@@ -62,7 +62,7 @@ flagged pixels apart (:meth:`Predictive.coverage` takes a pixel mask).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from typing import Any
 
 import equinox as eqx
@@ -150,7 +150,7 @@ class Predictive:
     chi2, dof:  (N,) the posterior predictive check's statistic and degrees of freedom
     no_covariance: (N,) bool: no Laplace covariance (the parameter term is missing)
     discrepancy: the :class:`Discrepancy` used
-    extra:      ``noise_ref_var``: the check's reference noise variance (the median)
+    noise_ref_var: the check's reference noise variance (the median)
     """
 
     mean: np.ndarray
@@ -165,7 +165,7 @@ class Predictive:
     dof: np.ndarray
     no_covariance: np.ndarray
     discrepancy: Discrepancy
-    extra: dict[str, Any] = field(default_factory=dict)
+    noise_ref_var: float = float("nan")
 
     def std(self, terms: tuple[str, ...] = ("param", "noise", "disc")) -> np.ndarray:
         """(N, K, C) predictive std from the named variance terms (all three by default)."""
@@ -345,7 +345,7 @@ def predictive(capture, cf: CaptureFit, discrepancy: Discrepancy | None = None) 
         dof=dof,
         no_covariance=~formed & np.all(np.isfinite(theta), -1),
         discrepancy=disc,
-        extra={"noise_ref_var": float(np.nanmedian(ref))},
+        noise_ref_var=float(np.nanmedian(ref)),
     )
 
 
