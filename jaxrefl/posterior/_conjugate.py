@@ -51,9 +51,9 @@ EDGE = 1e-12
 # a + Exp(a) (relative error of the density about 1 / a^2 over the tail's scale 1 / a).
 _TAIL = {8: 30.0, 4: 10.0}
 # Slots of censored observations a pixel's latent draw gathers (censored_slots): at least
-# CENSORED_SLOTS (a pixel has a few), else that times a power of CENSORED_GROWTH. The coarse
-# growth keeps the compiled sizes to two for a capture's 27-48 observations a pixel (each
-# size is one more program to compile in a cold run).
+# CENSORED_SLOTS (a pixel has a few), else that times a power of CENSORED_GROWTH, at most
+# the pixel's observations. The coarse growth keeps the compiled sizes to two (4 and every
+# row) for a capture's 27-48 observations a pixel: each is one more program in a cold run.
 CENSORED_SLOTS = 4
 CENSORED_GROWTH = 8
 
@@ -129,16 +129,15 @@ def censored_slots(cens: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     for them only (a pixel has a few at most): their indices (N, R), padded with index 0,
     and their signs (N, R) (+1 above, -1 below, 0 on the padding), of the flags ``cens`` (N,
     M) (+1 saturated, -1 dark, 0 observed). R is the smallest :data:`CENSORED_SLOTS` times
-    a power of :data:`CENSORED_GROWTH` that holds every pixel's, so chunks share a few
-    compiled sizes."""
+    a power of :data:`CENSORED_GROWTH` that holds every pixel's, at most M, so chunks share
+    a few compiled sizes and never gather more rows than a pixel has."""
     count = np.sum(cens != 0, axis=1)
     r_max = CENSORED_SLOTS
     while r_max < int(count.max(initial=0)):
         r_max *= CENSORED_GROWTH
+    r_max = min(r_max, cens.shape[1])
     # argsort's stable order puts each pixel's censored observations first, in their order
     order = np.argsort(cens == 0, axis=1, kind="stable")[:, :r_max]
-    if order.shape[1] < r_max:  # fewer observations than slots: pad with observation 0
-        order = np.pad(order, ((0, 0), (0, r_max - order.shape[1])))
     sign = np.take_along_axis(cens, order, axis=1)
     sign = np.where(np.arange(r_max) < count[:, None], sign, 0).astype(np.int8)
     return np.where(sign != 0, order, 0), sign
